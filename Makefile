@@ -26,7 +26,7 @@ typecheck: $(INSTALLED)
 	$(BIN)/mypy --strict src
 
 docs: $(INSTALLED)
-	$(BIN)/mkdocs build --strict --quiet --site-dir site
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir site
 
 pytest: $(INSTALLED)
 	$(BIN)/pytest

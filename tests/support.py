@@ -1,0 +1,38 @@
+"""Helpers shared by the tests: one timeout factor, and where the shared corpora live."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
+
+# Every timeout in the tests is multiplied by this factor, so a slow machine can raise them all
+# at once (SRVWIRE_TEST_TIMEOUT_FACTOR=3) instead of any single test growing its own margin.
+TIMEOUT_FACTOR = float(os.environ.get("SRVWIRE_TEST_TIMEOUT_FACTOR", "1"))
+
+
+def scaled(seconds: float) -> float:
+    """Return ``seconds`` multiplied by the suite's timeout factor."""
+    return seconds * TIMEOUT_FACTOR
+
+
+def ros_test_interfaces() -> Path:
+    """Return the folder of ROS 2's own test interfaces, or fail saying where it should be.
+
+    The corpus is not part of this repository: it sits in ``shared/ros_test_interfaces`` beside
+    the checkout (CI puts it there), or wherever ``SRVWIRE_ROS_TEST_INTERFACES`` points.
+    """
+    configured = os.environ.get("SRVWIRE_ROS_TEST_INTERFACES")
+    folder = Path(configured) if configured else ROOT.parent / "shared" / "ros_test_interfaces"
+    if not (folder / "msg").is_dir():
+        pytest.fail(
+            f"ROS 2's test interface corpus is not at {folder}: these conformance tests read it "
+            "from shared/ros_test_interfaces beside the checkout, or from the folder named by "
+            "SRVWIRE_ROS_TEST_INTERFACES",
+            pytrace=False,
+        )
+    return folder
