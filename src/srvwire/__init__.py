@@ -21,28 +21,44 @@ from srvwire.errors import (
     SrvwireError,
     Unauthenticated,
 )
+from srvwire.loader import (
+    InterfaceLoader,
+    default_search_path,
+    load_action,
+    load_message,
+    load_service,
+)
+from srvwire.models import Action, Message, Service
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Action",
     "Cancelled",
     "ConnectionLost",
     "DeadlineExceeded",
     "ErrorCode",
     "InterfaceError",
+    "InterfaceLoader",
     "InterfaceNotFoundError",
     "InterfaceSyntaxError",
     "InternalError",
     "InvalidParams",
     "InvalidRequest",
+    "Message",
     "ParseError",
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
+    "Service",
     "ServiceError",
     "ServiceNotFound",
     "ServiceUnavailable",
     "SrvwireError",
     "Unauthenticated",
     "__version__",
+    "default_search_path",
+    "load_action",
+    "load_message",
+    "load_service",
 ]

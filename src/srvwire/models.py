@@ -1,0 +1,541 @@
+"""Turn interface specs into pydantic classes: messages, services and actions.
+
+:func:`build_message`, :func:`build_service` and :func:`build_action` take the frozen specs of
+:mod:`srvwire.idl` and return classes. Every message class, including the ``Request`` and
+``Response`` of a service and the ``Goal``, ``Result`` and ``Feedback`` of an action, derives
+from :class:`Message`; a service class derives from :class:`Service` and only groups its two
+message classes with the type name, spec and text.
+
+Invariants
+----------
+* **One annotation per ROS type.** Each primitive has one public annotated alias here
+  (:data:`Int32`, :data:`Float32`, :data:`String`, ...). A field's annotation is that alias,
+  optionally wrapped for a string bound, wrapped in ``list[...]`` for arrays, and wrapped again
+  for array bounds and base64 input. :mod:`srvwire.codegen` writes the very same composition as
+  source text, so a built class and a generated one validate, serialize and describe themselves
+  (JSON schema) identically.
+* **Constraints live in pydantic-core.** Ranges, lengths and strictness are declared with
+  ``Strict()`` and ``Field(ge=, le=, min_length=, max_length=)``, so validation runs in Rust.
+  Only two checks call Python: the ``float32`` range (it must let ``inf`` and ``nan`` through,
+  which a ``ge``/``le`` pair cannot) and the base64 decoding of byte arrays (once per field).
+* **Every field has a default.** A written default is used; otherwise the field takes its ROS
+  zero value. Scalars share their immutable default; every list and nested message comes from
+  a ``default_factory``, so two instances never share a mutable value. ``Request()`` with no
+  arguments is always valid, as in ROS.
+* **The wire name is the .srv name.** A field whose name is a Python keyword or an attribute of
+  :class:`Message` (``from``, ``copy``, ``json``, ``model_config``, ``spec``, ...) is stored
+  under :func:`python_name` (a trailing underscore: ``from_``) with ``alias=`` the .srv name.
+  Input is accepted under either name, output always uses the .srv name, and validation error
+  locations use the name the input used.
+* **No module state.** Each ``build_*`` call builds new classes; callers that want one class per
+  type (the loader) cache them.
+
+Decisions (``docs/types.md`` explains them for users): integers, floats, booleans and strings
+are strict (no ``"5"`` for an int, no ``5.0`` or ``True`` for an int, no ``1`` for a bool; an
+int is accepted for a float and becomes a float); ``float32`` and ``float64`` allow ``inf`` and
+``nan``, which JSON output writes as ``Infinity``/``NaN`` like Python's :mod:`json`; string
+bounds count characters (code points); ``byte``/``uint8`` arrays also accept base64 text and
+``bytes`` and always serialize as a list of integers.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import keyword
+import types
+from collections.abc import Callable
+from typing import Annotated, Any, ClassVar, TypeAlias, cast
+
+import pydantic
+from pydantic import ConfigDict, Field, GetCoreSchemaHandler, GetJsonSchemaHandler, Strict
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import CoreSchema, PydanticCustomError, core_schema
+
+from srvwire.errors import InterfaceError
+from srvwire.idl import (
+    ARRAY_PRIMITIVES_AS_BYTES,
+    FLOAT_TYPES,
+    INTEGER_RANGES,
+    ActionSpec,
+    ArrayKind,
+    FieldSpec,
+    MessageSpec,
+    Scalar,
+    ServiceSpec,
+    TypeSpec,
+)
+
+__all__ = [
+    "FLOAT32_MAX",
+    "PRIMITIVE_ALIASES",
+    "AcceptBase64",
+    "Action",
+    "Bool",
+    "Byte",
+    "Char",
+    "Float32",
+    "Float64",
+    "Int8",
+    "Int16",
+    "Int32",
+    "Int64",
+    "Message",
+    "Resolver",
+    "Service",
+    "String",
+    "UInt8",
+    "UInt16",
+    "UInt32",
+    "UInt64",
+    "WString",
+    "build_action",
+    "build_message",
+    "build_service",
+    "python_name",
+    "validation_errors",
+    "zero_value",
+]
+
+FLOAT32_MAX = 3.4028234663852886e38
+"""The largest finite ``float32``; a finite ``float32`` value must lie within ``±FLOAT32_MAX``."""
+
+
+# --- the primitive types -----------------------------------------------------------------------
+
+
+def _check_float32(value: float) -> float:
+    # abs() of nan is nan, and nan > x is False, so nan and the two infinities pass.
+    if abs(value) > FLOAT32_MAX and value not in (float("inf"), float("-inf")):
+        raise PydanticCustomError(
+            "float32_range",
+            "Input should be a float32: within ±{limit}, or inf, or nan",
+            {"limit": FLOAT32_MAX},
+        )
+    return value
+
+
+class _Float32Range:
+    """Annotation marker: a finite value must fit a float32; ``inf`` and ``nan`` are allowed."""
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        return core_schema.no_info_after_validator_function(_check_float32, handler(source))
+
+    def __get_pydantic_json_schema__(
+        self, schema: CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        json_schema = handler(schema)
+        json_schema.update(minimum=-FLOAT32_MAX, maximum=FLOAT32_MAX)
+        return json_schema
+
+    def __repr__(self) -> str:
+        return "Float32Range()"
+
+
+def _bytes_input(value: Any) -> Any:
+    if isinstance(value, str):
+        try:
+            return list(base64.b64decode(value, validate=True))
+        except (binascii.Error, ValueError) as exc:
+            raise PydanticCustomError(
+                "base64",
+                "Input should be a list of integers or base64 text: {reason}",
+                {"reason": str(exc)},
+            ) from None
+    if isinstance(value, bytes | bytearray | memoryview):
+        return list(value)
+    return value
+
+
+class _Base64Input:
+    """Annotation marker for ``byte``/``uint8`` arrays: also accept base64 text and ``bytes``.
+
+    The decoded bytes become a list of integers before the list's own checks (element range,
+    length) run, so a fixed or bounded array keeps its bounds. Output is always the list.
+    """
+
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        return core_schema.no_info_before_validator_function(_bytes_input, handler(source))
+
+    def __get_pydantic_json_schema__(
+        self, schema: CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        json_schema = handler(schema)
+        if handler.mode == "serialization":
+            return json_schema
+        return {"anyOf": [json_schema, {"type": "string", "contentEncoding": "base64"}]}
+
+    def __repr__(self) -> str:
+        return "AcceptBase64"
+
+
+AcceptBase64 = _Base64Input()
+"""Put in ``Annotated[list[UInt8], ..., AcceptBase64]`` to accept base64 text for the list."""
+
+
+# Written out (not computed from INTEGER_RANGES) so that type checkers see ``int``; a test checks
+# that each range matches the table in srvwire.idl.
+Bool: TypeAlias = Annotated[bool, Strict()]
+Byte: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=255)]
+Char: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=255)]
+Int8: TypeAlias = Annotated[int, Strict(), Field(ge=-128, le=127)]
+UInt8: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=255)]
+Int16: TypeAlias = Annotated[int, Strict(), Field(ge=-32768, le=32767)]
+UInt16: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=65535)]
+Int32: TypeAlias = Annotated[int, Strict(), Field(ge=-2147483648, le=2147483647)]
+UInt32: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=4294967295)]
+Int64: TypeAlias = Annotated[int, Strict(), Field(ge=-9223372036854775808, le=9223372036854775807)]
+UInt64: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=18446744073709551615)]
+Float32: TypeAlias = Annotated[float, Strict(), _Float32Range()]
+Float64: TypeAlias = Annotated[float, Strict()]
+String: TypeAlias = Annotated[str, Strict()]
+WString: TypeAlias = Annotated[str, Strict()]
+
+PRIMITIVE_ALIASES: dict[str, str] = {
+    "bool": "Bool",
+    "byte": "Byte",
+    "char": "Char",
+    "int8": "Int8",
+    "uint8": "UInt8",
+    "int16": "Int16",
+    "uint16": "UInt16",
+    "int32": "Int32",
+    "uint32": "UInt32",
+    "int64": "Int64",
+    "uint64": "UInt64",
+    "float32": "Float32",
+    "float64": "Float64",
+    "string": "String",
+    "wstring": "WString",
+}
+"""Each ROS primitive type and the name of its annotated alias in this module."""
+
+_PRIMITIVES: dict[str, Any] = {ros: globals()[alias] for ros, alias in PRIMITIVE_ALIASES.items()}
+
+
+def _normalize(type_name: str, value: Scalar) -> Scalar:
+    """Give a written value the Python type validation would give it (``1`` -> ``1.0``)."""
+    if type_name in FLOAT_TYPES and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def zero_value(type_: TypeSpec) -> Scalar:
+    """Return the ROS zero value of a primitive scalar type: ``False``, ``0``, ``0.0`` or ``""``."""
+    if type_.name == "bool":
+        return False
+    if type_.name in INTEGER_RANGES:
+        return 0
+    if type_.name in FLOAT_TYPES:
+        return 0.0
+    if type_.name in PRIMITIVE_ALIASES:
+        return ""
+    raise InterfaceError(f"{type_} is not a primitive type, so it has no zero value")
+
+
+def default_value(field: FieldSpec) -> Scalar | list[Scalar]:
+    """Return the default of a primitive field: its written default, else the ROS zero value.
+
+    Arrays give a new list (``N`` zero values for a fixed array ``T[N]``, else empty); floats
+    are always floats. A nested message field has no such value: it defaults to a new instance.
+    """
+    type_ = field.type
+    if not type_.is_primitive:
+        raise InterfaceError(f"field {field.name!r} has the nested type {type_}, not a primitive")
+    if isinstance(field.default, tuple):
+        return [_normalize(type_.name, item) for item in field.default]
+    if field.default is not None:
+        return _normalize(type_.name, field.default)
+    if not type_.is_array:
+        return zero_value(type_)
+    if type_.array is ArrayKind.FIXED:
+        return [zero_value(type_)] * (type_.size or 0)
+    return []
+
+
+# --- the base classes --------------------------------------------------------------------------
+
+
+class Message(pydantic.BaseModel):
+    """The base of every message class, including the parts of services and actions.
+
+    Instances are mutable like ROS messages, and every assignment is validated. Unknown fields
+    are refused. Fields are read by their .srv name or their Python name and written by their
+    .srv name (see :func:`python_name`).
+    """
+
+    model_config = ConfigDict(
+        extra="forbid",
+        validate_by_name=True,
+        validate_by_alias=True,
+        serialize_by_alias=True,
+        validate_assignment=True,
+        ser_json_inf_nan="constants",
+        protected_namespaces=(),
+    )
+
+    spec: ClassVar[MessageSpec]
+    """What the interface file says: fields, constants, defaults, comments."""
+    type_name: ClassVar[str]
+    """``pkg/msg/Name``; ``pkg/srv/Name_Request`` and so on for the parts of a service/action."""
+
+
+class Service:
+    """The base of every service class: a request type and a response type under one name."""
+
+    Request: ClassVar[type[Message]]
+    Response: ClassVar[type[Message]]
+    type_name: ClassVar[str]
+    """``pkg/srv/Name``."""
+    spec: ClassVar[ServiceSpec]
+    text: ClassVar[str]
+    """The text of the .srv file."""
+
+
+class Action:
+    """The base of every action class: its goal, result and feedback types under one name."""
+
+    Goal: ClassVar[type[Message]]
+    Result: ClassVar[type[Message]]
+    Feedback: ClassVar[type[Message]]
+    type_name: ClassVar[str]
+    """``pkg/action/Name``."""
+    spec: ClassVar[ActionSpec]
+    text: ClassVar[str]
+    """The text of the .action file."""
+
+
+Resolver: TypeAlias = Callable[[TypeSpec], type[Message]]
+"""Given a nested element type (``package`` set, no array part), return its message class."""
+
+_RESERVED_NAMES = frozenset({*keyword.kwlist, *dir(Message), *Message.__class_vars__})
+
+
+def python_name(field_name: str) -> str:
+    """Return the attribute name of the field ``field_name``: itself, unless it is reserved.
+
+    A Python keyword or a name :class:`Message` already uses (``from``, ``copy``, ``json``,
+    ``model_dump``, ``spec``, ``type_name``, ...) gets a trailing underscore. ROS field names
+    never end with one, so the result cannot clash with another field.
+    """
+    return f"{field_name}_" if field_name in _RESERVED_NAMES else field_name
+
+
+# --- building classes --------------------------------------------------------------------------
+
+_CONSTANT_TYPES: dict[str, type[Scalar]] = {
+    **dict.fromkeys(INTEGER_RANGES, int),
+    **dict.fromkeys(FLOAT_TYPES, float),
+    "bool": bool,
+    "string": str,
+    "wstring": str,
+}
+
+
+def _element_annotation(spec: MessageSpec, field: FieldSpec, resolve: Resolver | None) -> Any:
+    type_ = field.type
+    if type_.is_primitive:
+        annotation = _PRIMITIVES.get(type_.name)
+        if annotation is None:
+            raise InterfaceError(f"{spec.type_name}: field {field.name!r} has unknown type {type_}")
+        if type_.string_bound is not None:
+            annotation = Annotated[annotation, Field(max_length=type_.string_bound)]
+        return annotation
+    if resolve is None:
+        raise InterfaceError(
+            f"{spec.type_name}: field {field.name!r} has the nested type {type_.qualified_name}, "
+            "and no resolver was given to find its class"
+        )
+    nested = resolve(type_.element)
+    if not (isinstance(nested, type) and issubclass(nested, Message)):
+        raise InterfaceError(
+            f"{spec.type_name}: the resolver returned {nested!r} for {type_.qualified_name}, "
+            "not a Message class"
+        )
+    return nested
+
+
+def _annotation(type_: TypeSpec, element: Any) -> Any:
+    """Wrap an element annotation for an array type: ``list[...]`` and its bounds."""
+    if not type_.is_array:
+        return element
+    metadata: list[Any] = []
+    if type_.array is ArrayKind.FIXED:
+        metadata.append(Field(min_length=type_.size, max_length=type_.size))
+    elif type_.array is ArrayKind.BOUNDED:
+        metadata.append(Field(max_length=type_.size))
+    if type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES:
+        metadata.append(AcceptBase64)
+    if not metadata:
+        return list[element]
+    return Annotated[(list[element], *metadata)]
+
+
+def _copies_of(values: tuple[Any, ...]) -> Callable[[], list[Any]]:
+    def factory() -> list[Any]:
+        return list(values)
+
+    return factory
+
+
+def _new_message(cls: type[Message]) -> Callable[[], Message]:
+    def factory() -> Message:
+        return cls()
+
+    return factory
+
+
+def _new_messages(cls: type[Message], count: int) -> Callable[[], list[Message]]:
+    def factory() -> list[Message]:
+        return [cls() for _ in range(count)]
+
+    return factory
+
+
+def _field_info(spec: MessageSpec, field: FieldSpec, element: Any) -> Any:
+    keywords: dict[str, Any] = {}
+    if python_name(field.name) != field.name:
+        keywords["alias"] = field.name
+    if field.doc:
+        keywords["description"] = field.doc
+    type_ = field.type
+    if type_.is_primitive:
+        value = default_value(field)
+        if isinstance(value, list):
+            return Field(default_factory=_copies_of(tuple(value)), **keywords)
+        return Field(default=value, **keywords)
+    if field.default is not None:
+        raise InterfaceError(
+            f"{spec.type_name}: field {field.name!r} of message type {type_} cannot have a default"
+        )
+    if not type_.is_array:
+        return Field(default_factory=_new_message(element), **keywords)
+    if type_.array is ArrayKind.FIXED:
+        return Field(default_factory=_new_messages(element, type_.size or 0), **keywords)
+    return Field(default_factory=_copies_of(()), **keywords)
+
+
+def _check_defaults(cls: type[Message], spec: MessageSpec) -> None:
+    written = {f.name: default_value(f) for f in spec.fields if f.default is not None}
+    if not written:
+        return
+    try:
+        cls.model_validate(written)
+    except pydantic.ValidationError as exc:
+        problems = "; ".join(f"{e['path']}: {e['message']}" for e in validation_errors(exc))
+        raise InterfaceError(f"{spec.type_name}: invalid default value ({problems})") from None
+
+
+def _filler(namespace: dict[str, Any]) -> Callable[[dict[str, Any]], None]:
+    def fill(class_namespace: dict[str, Any]) -> None:
+        class_namespace.update(namespace)
+
+    return fill
+
+
+def _build(
+    spec: MessageSpec, resolve: Resolver | None, type_name: str, module: str
+) -> type[Message]:
+    annotations: dict[str, Any] = {"spec": ClassVar[MessageSpec], "type_name": ClassVar[str]}
+    namespace: dict[str, Any] = {
+        "__module__": module,
+        "__qualname__": spec.name,
+        "__doc__": spec.doc or None,
+        "__annotations__": annotations,
+        "spec": spec,
+        "type_name": type_name,
+    }
+    for constant in spec.constants:
+        annotations[constant.name] = ClassVar[_CONSTANT_TYPES[constant.type.name]]
+        namespace[constant.name] = _normalize(constant.type.name, constant.value)
+    for field in spec.fields:
+        element = _element_annotation(spec, field, resolve)
+        name = python_name(field.name)
+        annotations[name] = _annotation(field.type, element)
+        namespace[name] = _field_info(spec, field, element)
+    cls = cast("type[Message]", types.new_class(spec.name, (Message,), {}, _filler(namespace)))
+    _check_defaults(cls, spec)
+    return cls
+
+
+def build_message(spec: MessageSpec, resolve: Resolver | None = None) -> type[Message]:
+    """Build the class of a message.
+
+    ``resolve`` finds the class of each nested type; without it a nested field is an
+    :class:`~srvwire.errors.InterfaceError`. The class is named after the message, lives in the
+    module ``pkg.msg`` (as rclpy's do) and has ``type_name`` ``pkg/msg/Name``. A new class is
+    built on every call.
+    """
+    return _build(spec, resolve, spec.type_name, f"{spec.package}.msg")
+
+
+def build_service(spec: ServiceSpec, resolve: Resolver | None = None) -> type[Service]:
+    """Build the class of a service: ``Request`` and ``Response`` message classes under one name.
+
+    The parts are named ``Name_Request``/``Name_Response`` with type names
+    ``pkg/srv/Name_Request``/``pkg/srv/Name_Response``; see :func:`build_message`.
+    """
+    module = f"{spec.package}.srv"
+    namespace: dict[str, Any] = {
+        "__module__": module,
+        "__qualname__": spec.name,
+        "Request": _build(spec.request, resolve, _part_name(spec, spec.request), module),
+        "Response": _build(spec.response, resolve, _part_name(spec, spec.response), module),
+        "type_name": spec.type_name,
+        "spec": spec,
+        "text": spec.text,
+    }
+    return cast("type[Service]", types.new_class(spec.name, (Service,), {}, _filler(namespace)))
+
+
+def build_action(spec: ActionSpec, resolve: Resolver | None = None) -> type[Action]:
+    """Build the class of an action: ``Goal``, ``Result`` and ``Feedback`` message classes.
+
+    The parts are named ``Name_Goal`` and so on, with type names ``pkg/action/Name_Goal``.
+    """
+    module = f"{spec.package}.action"
+    namespace: dict[str, Any] = {
+        "__module__": module,
+        "__qualname__": spec.name,
+        "Goal": _build(spec.goal, resolve, _part_name(spec, spec.goal), module),
+        "Result": _build(spec.result, resolve, _part_name(spec, spec.result), module),
+        "Feedback": _build(spec.feedback, resolve, _part_name(spec, spec.feedback), module),
+        "type_name": spec.type_name,
+        "spec": spec,
+        "text": spec.text,
+    }
+    return cast("type[Action]", types.new_class(spec.name, (Action,), {}, _filler(namespace)))
+
+
+def _part_name(spec: ServiceSpec | ActionSpec, part: MessageSpec) -> str:
+    return f"{spec.type_name.rpartition('/')[0]}/{part.name}"
+
+
+# --- validation errors ---------------------------------------------------------------------------
+
+
+def _path(location: tuple[int | str, ...]) -> str:
+    path = ""
+    for item in location:
+        if isinstance(item, int):
+            path += f"[{item}]"
+        else:
+            path += f".{item}" if path else item
+    return path
+
+
+def validation_errors(exc: pydantic.ValidationError) -> list[dict[str, str]]:
+    """Describe each problem of ``exc`` as ``{"path": ..., "message": ..., "type": ...}``.
+
+    ``path`` points into the payload by .srv field names: ``pose.position.x``, ``values[3]``,
+    ``points[0].x``; it is ``""`` when the payload as a whole is wrong (not an object).
+    ``type`` is pydantic's error type (``int_type``, ``less_than_equal``, ``extra_forbidden``).
+    """
+    return [
+        {"path": _path(error["loc"]), "message": error["msg"], "type": error["type"]}
+        for error in exc.errors(include_url=False, include_context=False, include_input=False)
+    ]

@@ -1,0 +1,229 @@
+"""ROS 2's own test interfaces load as the package ``test_msgs``, meaning what they mean in ROS 2.
+
+The corpus (``shared/ros_test_interfaces``, see ``support.ros_test_interfaces``) is copied into
+a temporary search-path folder as ``test_msgs``, the package ROS 2 ships these files in. The
+counts and values below were read off the files by hand, so a parser or model that drops, adds
+or alters a field, constant or default fails here.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any, TypeAlias
+
+import pytest
+from pydantic import BaseModel
+
+from srvwire.idl import MessageSpec, Scalar
+from srvwire.loader import InterfaceLoader
+from support import ros_test_interfaces
+
+# (fields, constants, fields with a default) for each part of each file, in file order.
+Counts: TypeAlias = tuple[int, int, int]
+COUNTS: dict[str, list[Counts]] = {
+    "test_msgs/msg/Arrays": [(32, 0, 14)],
+    "test_msgs/msg/BasicTypes": [(13, 0, 0)],
+    "test_msgs/msg/BoundedPlainSequences": [(30, 0, 13)],
+    "test_msgs/msg/BoundedSequences": [(32, 0, 14)],
+    "test_msgs/msg/Constants": [(0, 13, 0)],
+    "test_msgs/msg/Defaults": [(13, 0, 13)],
+    "test_msgs/msg/Empty": [(0, 0, 0)],
+    "test_msgs/msg/MultiNested": [(9, 0, 0)],
+    "test_msgs/msg/Nested": [(1, 0, 0)],
+    "test_msgs/msg/Strings": [(12, 1, 10)],
+    "test_msgs/msg/UnboundedSequences": [(32, 0, 14)],
+    "test_msgs/msg/WStrings": [(7, 0, 3)],
+    "test_msgs/srv/Arrays": [(31, 0, 14), (31, 0, 14)],
+    "test_msgs/srv/BasicTypes": [(14, 0, 0), (14, 0, 0)],
+    "test_msgs/srv/Empty": [(0, 0, 0), (0, 0, 0)],
+    "test_msgs/action/Fibonacci": [(1, 0, 0), (1, 0, 0), (1, 0, 0)],
+}
+
+# The defaults written in the files, field by field.
+PLAIN_SEQUENCE_DEFAULTS: dict[str, Any] = {
+    "bool_values_default": [False, True, False],
+    "byte_values_default": [0, 1, 255],
+    "char_values_default": [0, 1, 127],
+    "float32_values_default": [1.125, 0.0, -1.125],
+    "float64_values_default": [3.1415, 0.0, -3.1415],
+    "int8_values_default": [0, 127, -128],
+    "uint8_values_default": [0, 1, 255],
+    "int16_values_default": [0, 32767, -32768],
+    "uint16_values_default": [0, 1, 65535],
+    "int32_values_default": [0, 2147483647, -2147483648],
+    "uint32_values_default": [0, 1, 4294967295],
+    "int64_values_default": [0, 9223372036854775807, -9223372036854775808],
+    "uint64_values_default": [0, 1, 18446744073709551615],
+}
+SEQUENCE_DEFAULTS: dict[str, Any] = {
+    **PLAIN_SEQUENCE_DEFAULTS,
+    "string_values_default": ["", "max value", "min value"],
+}
+SCALAR_DEFAULTS: dict[str, Any] = {
+    "bool_value": True,
+    "byte_value": 50,
+    "char_value": 100,
+    "float32_value": 1.125,
+    "float64_value": 1.125,
+    "int8_value": -50,
+    "uint8_value": 200,
+    "int16_value": -1000,
+    "uint16_value": 2000,
+    "int32_value": -30000,
+    "uint32_value": 60000,
+    "int64_value": -40000000,
+    "uint64_value": 50000000,
+}
+STRING_DEFAULTS: dict[str, Any] = {
+    "string_value_default1": "Hello world!",
+    "string_value_default2": "Hello'world!",
+    "string_value_default3": 'Hello"world!',
+    "string_value_default4": "Hello'world!",
+    "string_value_default5": 'Hello"world!',
+    "bounded_string_value_default1": "Hello world!",
+    "bounded_string_value_default2": "Hello'world!",
+    "bounded_string_value_default3": 'Hello"world!',
+    "bounded_string_value_default4": "Hello'world!",
+    "bounded_string_value_default5": 'Hello"world!',
+}
+WSTRING_DEFAULTS: dict[str, Any] = {
+    "wstring_value_default1": "Hello world!",
+    "wstring_value_default2": "Hellö wörld!",
+    "wstring_value_default3": "ハローワールド",
+}
+DEFAULTS: dict[str, list[dict[str, Any]]] = {
+    "test_msgs/msg/Arrays": [SEQUENCE_DEFAULTS],
+    "test_msgs/msg/BoundedPlainSequences": [PLAIN_SEQUENCE_DEFAULTS],
+    "test_msgs/msg/BoundedSequences": [SEQUENCE_DEFAULTS],
+    "test_msgs/msg/Defaults": [SCALAR_DEFAULTS],
+    "test_msgs/msg/Strings": [STRING_DEFAULTS],
+    "test_msgs/msg/UnboundedSequences": [SEQUENCE_DEFAULTS],
+    "test_msgs/msg/WStrings": [WSTRING_DEFAULTS],
+    "test_msgs/srv/Arrays": [SEQUENCE_DEFAULTS, SEQUENCE_DEFAULTS],
+}
+
+CONSTANTS: dict[str, dict[str, Scalar]] = {
+    "test_msgs/msg/Constants": {
+        "BOOL_CONST": True,
+        "BYTE_CONST": 50,
+        "CHAR_CONST": 100,
+        "FLOAT32_CONST": 1.125,
+        "FLOAT64_CONST": 1.125,
+        "INT8_CONST": -50,
+        "UINT8_CONST": 200,
+        "INT16_CONST": -1000,
+        "UINT16_CONST": 2000,
+        "INT32_CONST": -30000,
+        "UINT32_CONST": 60000,
+        "INT64_CONST": -40000000,
+        "UINT64_CONST": 50000000,
+    },
+    "test_msgs/msg/Strings": {"STRING_CONST": "Hello world!"},
+}
+
+TYPES = sorted(COUNTS)
+
+
+@pytest.fixture(scope="module")
+def loader(tmp_path_factory: pytest.TempPathFactory) -> InterfaceLoader:
+    # A copy rather than a symlink: it works wherever the tests run, Windows included.
+    root = tmp_path_factory.mktemp("ros_corpus")
+    shutil.copytree(ros_test_interfaces(), root / "test_msgs")
+    return InterfaceLoader([root])
+
+
+def spec_parts(loader: InterfaceLoader, name: str) -> list[MessageSpec]:
+    if "/msg/" in name:
+        return [loader.message_spec(name)]
+    if "/srv/" in name:
+        service = loader.service_spec(name)
+        return [service.request, service.response]
+    action = loader.action_spec(name)
+    return [action.goal, action.result, action.feedback]
+
+
+def class_parts(loader: InterfaceLoader, name: str) -> list[type[BaseModel]]:
+    if "/msg/" in name:
+        return [loader.load_message(name)]
+    if "/srv/" in name:
+        service = loader.load_service(name)
+        return [service.Request, service.Response]
+    action = loader.load_action(name)
+    return [action.Goal, action.Result, action.Feedback]
+
+
+def typed(value: Any) -> Any:
+    """``value`` with the type of every scalar, so ``1 == 1.0 == True`` no longer holds."""
+    if isinstance(value, list | tuple | bytes):
+        return [typed(item) for item in value]
+    return (type(value).__name__, value)
+
+
+def test_the_corpus_holds_exactly_these_files(loader: InterfaceLoader) -> None:
+    assert loader.types() == TYPES
+    assert list(loader.packages()) == ["test_msgs"]
+
+
+@pytest.mark.parametrize("name", TYPES)
+def test_fields_constants_and_defaults_are_counted_as_in_ros(
+    loader: InterfaceLoader, name: str
+) -> None:
+    parts = spec_parts(loader, name)
+    counted = [
+        (
+            len(part.fields),
+            len(part.constants),
+            sum(field.default is not None for field in part.fields),
+        )
+        for part in parts
+    ]
+    assert counted == COUNTS[name]
+    classes = class_parts(loader, name)
+    assert [len(cls.model_fields) for cls in classes] == [count[0] for count in COUNTS[name]]
+
+
+@pytest.mark.parametrize("name", TYPES)
+def test_defaults_are_the_values_written(loader: InterfaceLoader, name: str) -> None:
+    expected = DEFAULTS.get(name, [{} for _ in COUNTS[name]])
+    specs = spec_parts(loader, name)
+    instances = [cls() for cls in class_parts(loader, name)]
+    for spec, instance, defaults in zip(specs, instances, expected, strict=True):
+        written = {field.name: field.default for field in spec.fields if field.default is not None}
+        assert {key: typed(value) for key, value in written.items()} == {
+            key: typed(value) for key, value in defaults.items()
+        }
+        held = {key: typed(getattr(instance, key)) for key in defaults}
+        assert held == {key: typed(value) for key, value in defaults.items()}
+
+
+@pytest.mark.parametrize("name", sorted(CONSTANTS))
+def test_constants_are_class_attributes(loader: InterfaceLoader, name: str) -> None:
+    cls = loader.load_message(name)
+    expected = CONSTANTS[name]
+    spec = loader.message_spec(name)
+    assert {constant.name: typed(constant.value) for constant in spec.constants} == {
+        key: typed(value) for key, value in expected.items()
+    }
+    assert {key: typed(getattr(cls, key)) for key in expected} == {
+        key: typed(value) for key, value in expected.items()
+    }
+
+
+@pytest.mark.parametrize("name", TYPES)
+def test_a_default_instance_survives_json(loader: InterfaceLoader, name: str) -> None:
+    for cls in class_parts(loader, name):
+        instance = cls()
+        text = instance.model_dump_json()
+        again = cls.model_validate_json(text)
+        assert again == instance
+        assert again.model_dump_json() == text
+
+
+def test_the_corpus_is_where_support_says(loader: InterfaceLoader) -> None:
+    copied = loader.packages()["test_msgs"]
+    original: Path = ros_test_interfaces()
+    for name in TYPES:
+        kind, file = name.split("/")[1:]
+        relative = Path(kind) / f"{file}.{kind}"
+        assert (copied / relative).read_bytes() == (original / relative).read_bytes()

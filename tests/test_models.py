@@ -1,0 +1,815 @@
+"""Spec -> pydantic classes: every ROS type's mapping, defaults, names, errors (srvwire.models)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import warnings
+from typing import Any
+
+import pydantic
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from srvwire.errors import InterfaceError
+from srvwire.idl import (
+    INTEGER_RANGES,
+    ActionSpec,
+    ArrayKind,
+    ConstantSpec,
+    FieldSpec,
+    MessageSpec,
+    ServiceSpec,
+    TypeSpec,
+)
+from srvwire.models import (
+    FLOAT32_MAX,
+    PRIMITIVE_ALIASES,
+    Action,
+    Message,
+    Service,
+    build_action,
+    build_message,
+    build_service,
+    python_name,
+    validation_errors,
+)
+from srvwire.parser import parse_file
+from support import ros_test_interfaces
+
+# --- helpers -------------------------------------------------------------------------------------
+
+
+def t(
+    name: str,
+    *,
+    package: str | None = None,
+    bound: int | None = None,
+    array: ArrayKind = ArrayKind.NONE,
+    size: int | None = None,
+) -> TypeSpec:
+    return TypeSpec(name, package, bound, array, size)
+
+
+def fixed(name: str, size: int, **kwargs: Any) -> TypeSpec:
+    return t(name, array=ArrayKind.FIXED, size=size, **kwargs)
+
+
+def bounded(name: str, size: int, **kwargs: Any) -> TypeSpec:
+    return t(name, array=ArrayKind.BOUNDED, size=size, **kwargs)
+
+
+def unbounded(name: str, **kwargs: Any) -> TypeSpec:
+    return t(name, array=ArrayKind.UNBOUNDED, **kwargs)
+
+
+def msg(name: str, *fields: FieldSpec, package: str = "pkg", **kwargs: Any) -> MessageSpec:
+    return MessageSpec(package, name, fields, **kwargs)
+
+
+def one(type_: TypeSpec, default: Any = None) -> Any:
+    """A message with the single field ``v`` (typed ``Any``: its attributes are dynamic)."""
+    return build_message(msg("One", FieldSpec(type_, "v", default)))
+
+
+def errors_of(cls: type[Message], data: Any, *, as_json: bool = False) -> list[dict[str, str]]:
+    with pytest.raises(pydantic.ValidationError) as info:
+        if as_json:
+            cls.model_validate_json(data)
+        else:
+            cls.model_validate(data)
+    return validation_errors(info.value)
+
+
+def error_types(cls: type[Message], data: Any, *, as_json: bool = False) -> list[str]:
+    return [e["type"] for e in errors_of(cls, data, as_json=as_json)]
+
+
+POINT = msg("Point", FieldSpec(t("float64"), "x"), FieldSpec(t("float64"), "y"), package="geo")
+POSE = msg(
+    "Pose",
+    FieldSpec(t("Point", package="geo"), "position"),
+    FieldSpec(unbounded("Point", package="geo"), "points"),
+    package="geo",
+)
+
+
+def geo_resolver() -> Any:
+    built: dict[str, type[Message]] = {}
+
+    def resolve(type_: TypeSpec) -> type[Message]:
+        assert type_.package == "geo"
+        assert not type_.is_array
+        if type_.name not in built:
+            spec = {"Point": POINT, "Pose": POSE}[type_.name]
+            built[type_.name] = build_message(spec, resolve)
+        return built[type_.name]
+
+    return resolve
+
+
+# --- integers ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", sorted(INTEGER_RANGES))
+def test_integer_bounds_are_inclusive(name: str) -> None:
+    low, high = INTEGER_RANGES[name]
+    cls = one(t(name))
+    assert cls(v=low).v == low
+    assert cls(v=high).v == high
+    assert error_types(cls, {"v": low - 1}) == ["greater_than_equal"]
+    assert error_types(cls, {"v": high + 1}) == ["less_than_equal"]
+
+
+@pytest.mark.parametrize("name", sorted(INTEGER_RANGES))
+@pytest.mark.parametrize("bad", [True, False, 1.0, 1.5, "1", None, [1]])
+def test_integers_are_strict(name: str, bad: Any) -> None:
+    assert error_types(one(t(name)), {"v": bad}) == ["int_type"]
+
+
+@pytest.mark.parametrize("text", ['{"v": 1.0}', '{"v": "1"}', '{"v": true}', '{"v": null}'])
+def test_integers_are_strict_in_json(text: str) -> None:
+    assert error_types(one(t("int32")), text, as_json=True) == ["int_type"]
+
+
+@pytest.mark.parametrize("name", sorted(INTEGER_RANGES))
+def test_integer_json_schema_carries_the_range(name: str) -> None:
+    low, high = INTEGER_RANGES[name]
+    schema = one(t(name)).model_json_schema()["properties"]["v"]
+    assert (schema["type"], schema["minimum"], schema["maximum"]) == ("integer", low, high)
+
+
+@pytest.mark.parametrize("name", ["int64", "uint64"])
+def test_64_bit_integers_are_exact_in_json(name: str) -> None:
+    low, high = INTEGER_RANGES[name]
+    cls = one(fixed(name, 2))
+    text = cls(v=[low, high]).model_dump_json()
+    assert text == f'{{"v":[{low},{high}]}}'
+    assert json.loads(text)["v"] == [low, high]
+    assert cls.model_validate_json(text).v == [low, high]
+
+
+def test_assignment_is_validated() -> None:
+    m = one(t("int8"))()
+    m.v = 127
+    with pytest.raises(pydantic.ValidationError):
+        m.v = 128
+    assert m.v == 127
+
+
+# --- floats --------------------------------------------------------------------------------------
+
+
+def test_float32_range_is_the_largest_finite_float32() -> None:
+    cls = one(t("float32"))
+    assert cls(v=FLOAT32_MAX).v == FLOAT32_MAX
+    assert cls(v=-FLOAT32_MAX).v == -FLOAT32_MAX
+    above = math.nextafter(FLOAT32_MAX, math.inf)
+    assert error_types(cls, {"v": above}) == ["float32_range"]
+    assert error_types(cls, {"v": -above}) == ["float32_range"]
+    assert error_types(cls, {"v": 1e39}) == ["float32_range"]
+    schema = cls.model_json_schema()["properties"]["v"]
+    assert (schema["minimum"], schema["maximum"]) == (-FLOAT32_MAX, FLOAT32_MAX)
+
+
+@pytest.mark.parametrize("name", ["float32", "float64"])
+def test_floats_allow_inf_and_nan_and_write_them_as_json_constants(name: str) -> None:
+    cls = one(fixed(name, 3))
+    m = cls(v=[math.inf, -math.inf, math.nan])
+    text = m.model_dump_json()
+    assert text == '{"v":[Infinity,-Infinity,NaN]}'
+    back = cls.model_validate_json(text).v
+    assert back[:2] == [math.inf, -math.inf]
+    assert math.isnan(back[2])
+    assert json.loads(text)["v"][:2] == [math.inf, -math.inf]  # what Python's json reads too
+
+
+@pytest.mark.parametrize("name", ["float32", "float64"])
+def test_floats_accept_ints_as_floats(name: str) -> None:
+    cls = one(t(name))
+    value = cls(v=3).v
+    assert value == 3.0
+    assert type(value) is float
+    assert type(cls.model_validate_json('{"v": 3}').v) is float
+    assert cls(v=3).model_dump_json() == '{"v":3.0}'
+
+
+@pytest.mark.parametrize("name", ["float32", "float64"])
+@pytest.mark.parametrize("bad", [True, "1.5", None, [1.0]])
+def test_floats_are_strict(name: str, bad: Any) -> None:
+    assert error_types(one(t(name)), {"v": bad}) == ["float_type"]
+
+
+def test_float64_takes_any_double() -> None:
+    cls = one(t("float64"))
+    assert cls(v=1.7976931348623157e308).v == 1.7976931348623157e308
+    assert cls(v=2**64).v == float(2**64)
+    assert cls(v=5e-324).v == 5e-324
+
+
+# --- bool, strings -------------------------------------------------------------------------------
+
+
+def test_bool_is_strict() -> None:
+    cls = one(t("bool"))
+    assert cls(v=True).v is True
+    assert cls.model_validate_json('{"v": false}').v is False
+    for bad in (1, 0, "true", None):
+        assert error_types(cls, {"v": bad}) == ["bool_type"]
+
+
+@pytest.mark.parametrize("name", ["string", "wstring"])
+def test_strings_are_strict(name: str) -> None:
+    cls = one(t(name))
+    assert cls(v="hi").v == "hi"
+    for bad in (5, b"hi", None, ["a"]):
+        assert error_types(cls, {"v": bad}) == ["string_type"]
+
+
+@pytest.mark.parametrize("name", ["string", "wstring"])
+def test_bounded_strings_count_characters(name: str) -> None:
+    cls = one(t(name, bound=3))
+    assert cls(v="abc").v == "abc"
+    assert cls(v="ハロー").v == "ハロー"  # 3 characters, 9 UTF-8 bytes
+    assert error_types(cls, {"v": "abcd"}) == ["string_too_long"]
+    assert cls.model_json_schema()["properties"]["v"]["maxLength"] == 3
+
+
+def test_bounded_strings_in_a_bounded_array() -> None:
+    cls = one(bounded("string", 2, bound=3))
+    assert cls(v=["abc", ""]).v == ["abc", ""]
+    assert [e["path"] for e in errors_of(cls, {"v": ["abc", "abcd"]})] == ["v[1]"]
+    assert error_types(cls, {"v": ["a", "b", "c"]}) == ["too_long"]
+    schema = cls.model_json_schema()["properties"]["v"]
+    assert (schema["maxItems"], schema["items"]["maxLength"]) == (2, 3)
+
+
+# --- arrays --------------------------------------------------------------------------------------
+
+
+def test_fixed_arrays_take_exactly_n_elements() -> None:
+    cls = one(fixed("int32", 3))
+    assert cls(v=[1, 2, 3]).v == [1, 2, 3]
+    assert error_types(cls, {"v": [1, 2]}) == ["too_short"]
+    assert error_types(cls, {"v": [1, 2, 3, 4]}) == ["too_long"]
+    schema = cls.model_json_schema()["properties"]["v"]
+    assert (schema["minItems"], schema["maxItems"]) == (3, 3)
+
+
+def test_bounded_arrays_take_at_most_n_elements() -> None:
+    cls = one(bounded("float64", 2))
+    assert cls(v=[]).v == []
+    assert cls(v=[1.0, 2.0]).v == [1.0, 2.0]
+    assert error_types(cls, {"v": [1.0, 2.0, 3.0]}) == ["too_long"]
+    schema = cls.model_json_schema()["properties"]["v"]
+    assert schema["maxItems"] == 2
+    assert "minItems" not in schema
+
+
+def test_unbounded_arrays_take_any_length_and_tuples() -> None:
+    cls = one(unbounded("int16"))
+    assert cls(v=list(range(10_000))).v == list(range(10_000))
+    assert cls(v=(1, 2)).v == [1, 2]
+    assert [e["path"] for e in errors_of(cls, {"v": [1, 2, 3, 40_000]})] == ["v[3]"]
+    assert error_types(cls, {"v": "abc"}) == ["list_type"]
+
+
+# --- byte arrays and base64 ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["byte", "uint8"])
+def test_byte_arrays_accept_base64_and_bytes(name: str) -> None:
+    cls = one(unbounded(name))
+    assert cls(v="AQID/w==").v == [1, 2, 3, 255]
+    assert cls.model_validate_json('{"v": "AQID/w=="}').v == [1, 2, 3, 255]
+    assert cls(v=b"\x00\xff").v == [0, 255]
+    assert cls(v=bytearray(b"ab")).v == [97, 98]
+    assert cls(v="").v == []
+    assert cls(v="AQID").model_dump_json() == '{"v":[1,2,3]}'  # always written as a list
+
+
+@pytest.mark.parametrize("bad", ["AQI", "AQ!D", "AQ ID", "é"])
+def test_invalid_base64_is_a_validation_error(bad: str) -> None:
+    errors = errors_of(one(unbounded("uint8")), {"v": bad})
+    assert [(e["path"], e["type"]) for e in errors] == [("v", "base64")]
+    assert errors[0]["message"].startswith("Input should be a list of integers or base64 text")
+
+
+def test_base64_obeys_the_array_bounds() -> None:
+    exact = one(fixed("uint8", 3))
+    assert exact(v=base64.b64encode(b"abc").decode()).v == [97, 98, 99]
+    assert error_types(exact, {"v": base64.b64encode(b"ab").decode()}) == ["too_short"]
+    assert error_types(exact, {"v": base64.b64encode(b"abcd").decode()}) == ["too_long"]
+    assert error_types(one(bounded("byte", 2)), {"v": "AQID"}) == ["too_long"]
+
+
+def test_base64_is_only_for_byte_arrays() -> None:
+    assert error_types(one(unbounded("int8")), {"v": "AQID"}) == ["list_type"]
+    assert error_types(one(unbounded("char")), {"v": "AQID"}) == ["list_type"]
+    assert error_types(one(t("uint8")), {"v": "AQ=="}) == ["int_type"]
+
+
+@given(st.binary(max_size=64))
+def test_base64_round_trip_is_exact(data: bytes) -> None:
+    cls = one(unbounded("byte"))
+    m = cls.model_validate_json(json.dumps({"v": base64.b64encode(data).decode()}))
+    assert bytes(m.v) == data
+    assert cls.model_validate_json(m.model_dump_json()) == m
+
+
+def test_byte_array_schema_offers_base64_only_for_input() -> None:
+    cls = one(bounded("uint8", 4))
+    field = cls.model_json_schema()["properties"]["v"]
+    array, text = field["anyOf"]
+    assert array["maxItems"] == 4
+    assert text == {"type": "string", "contentEncoding": "base64"}
+    written = cls.model_json_schema(mode="serialization")["properties"]["v"]
+    assert written["type"] == "array"
+    assert "anyOf" not in written
+
+
+# --- defaults ------------------------------------------------------------------------------------
+
+ZEROS = msg(
+    "Zeros",
+    *(FieldSpec(t(name), f"{name}_value") for name in sorted(PRIMITIVE_ALIASES)),
+    FieldSpec(fixed("int32", 3), "fixed_ints"),
+    FieldSpec(fixed("string", 2), "fixed_strings"),
+    FieldSpec(bounded("float32", 3), "bounded_floats"),
+    FieldSpec(unbounded("bool"), "bools"),
+    FieldSpec(t("Point", package="geo"), "point"),
+    FieldSpec(fixed("Point", 2, package="geo"), "fixed_points"),
+    FieldSpec(unbounded("Point", package="geo"), "points"),
+)
+
+
+def test_every_field_has_the_ros_zero_value_by_default() -> None:
+    m: Any = build_message(ZEROS, geo_resolver())()
+    assert m.model_dump() == {
+        "bool_value": False,
+        "byte_value": 0,
+        "char_value": 0,
+        "float32_value": 0.0,
+        "float64_value": 0.0,
+        "int16_value": 0,
+        "int32_value": 0,
+        "int64_value": 0,
+        "int8_value": 0,
+        "string_value": "",
+        "uint16_value": 0,
+        "uint32_value": 0,
+        "uint64_value": 0,
+        "uint8_value": 0,
+        "wstring_value": "",
+        "fixed_ints": [0, 0, 0],
+        "fixed_strings": ["", ""],
+        "bounded_floats": [],
+        "bools": [],
+        "point": {"x": 0.0, "y": 0.0},
+        "fixed_points": [{"x": 0.0, "y": 0.0}, {"x": 0.0, "y": 0.0}],
+        "points": [],
+    }
+    assert type(m.float64_value) is float
+
+
+def test_mutable_defaults_are_never_shared() -> None:
+    cls: Any = build_message(ZEROS, geo_resolver())
+    first, second = cls(), cls()
+    first.fixed_ints[0] = 7
+    first.bools.append(True)
+    first.point.x = 1.5
+    first.fixed_points[1].y = 2.5
+    assert second.fixed_ints == [0, 0, 0]
+    assert second.bools == []
+    assert second.point.x == 0.0
+    assert second.fixed_points[1].y == 0.0
+    assert cls().model_dump() == second.model_dump()
+
+
+def test_written_defaults_become_field_defaults() -> None:
+    cls: Any = build_message(
+        msg(
+            "Defaults",
+            FieldSpec(t("int8"), "i", -50),
+            FieldSpec(t("float32"), "f", 1),  # an int written for a float becomes a float
+            FieldSpec(t("string", bound=5), "s", "hi"),
+            FieldSpec(fixed("uint64", 2), "u", (0, 2**64 - 1)),
+            FieldSpec(bounded("float64", 3), "b", (1.5,)),
+            FieldSpec(t("bool"), "flag", True),
+        )
+    )
+    m = cls()
+    assert m.model_dump() == {
+        "i": -50,
+        "f": 1.0,
+        "s": "hi",
+        "u": [0, 2**64 - 1],
+        "b": [1.5],
+        "flag": True,
+    }
+    assert type(m.f) is float
+    m.u[0] = 5
+    assert cls().u == [0, 2**64 - 1]
+    assert cls.model_json_schema()["properties"]["i"]["default"] == -50
+
+
+@pytest.mark.parametrize(
+    ("field", "problem"),
+    [
+        (FieldSpec(t("int8"), "x", 300), "x: Input should be less than or equal to 127"),
+        (FieldSpec(t("string", bound=2), "x", "abc"), "x: String should have at most 2 char"),
+        (FieldSpec(fixed("int32", 2), "x", (1, 2, 3)), "x: List should have at most 2 items"),
+    ],
+)
+def test_invalid_written_defaults_are_refused(field: FieldSpec, problem: str) -> None:
+    with pytest.raises(InterfaceError, match=r"^pkg/msg/Bad: invalid default value") as info:
+        build_message(msg("Bad", field))
+    assert problem in str(info.value)
+
+
+# --- constants -----------------------------------------------------------------------------------
+
+CONSTANTS = msg(
+    "Limits",
+    FieldSpec(t("int32"), "value"),
+    constants=(
+        ConstantSpec(t("int32"), "MAX", 10),
+        ConstantSpec(t("float64"), "RATIO", 2),
+        ConstantSpec(t("string"), "NAME", "limits"),
+        ConstantSpec(t("bool"), "ON", True),
+        ConstantSpec(t("uint64"), "BIG", 2**64 - 1),
+    ),
+)
+
+
+def test_constants_are_class_attributes() -> None:
+    cls: Any = build_message(CONSTANTS)
+    assert (cls.MAX, cls.RATIO, cls.NAME, cls.ON, cls.BIG) == (10, 2.0, "limits", True, 2**64 - 1)
+    assert type(cls.RATIO) is float
+    assert cls().MAX == 10
+    assert cls.spec.constants == CONSTANTS.constants
+    assert list(cls.model_fields) == ["value"]
+    assert cls().model_dump() == {"value": 0}
+
+
+def test_constants_cannot_be_set_on_an_instance() -> None:
+    m: Any = build_message(CONSTANTS)()
+    with pytest.raises(AttributeError, match="ClassVar"):
+        m.MAX = 3
+
+
+# --- names ---------------------------------------------------------------------------------------
+
+CLASHING = [
+    "from",
+    "class",
+    "import",
+    "lambda",
+    "copy",
+    "json",
+    "dict",
+    "schema",
+    "validate",
+    "construct",
+    "model_config",
+    "model_fields",
+    "model_dump",
+    "type_name",
+    "spec",
+]
+
+
+def test_python_name_adds_an_underscore_only_where_needed() -> None:
+    assert [python_name(n) for n in CLASHING] == [f"{n}_" for n in CLASHING]
+    for name in ["fields", "type", "id", "list", "model_name", "data", "text", "value"]:
+        assert python_name(name) == name
+
+
+def test_clashing_field_names_work_without_warnings() -> None:
+    spec = msg("Clash", *(FieldSpec(t("int32"), name, i) for i, name in enumerate(CLASHING)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cls: Any = build_message(spec)
+    assert [str(w.message) for w in caught] == []
+    assert list(cls.model_fields) == [f"{n}_" for n in CLASHING]
+    m = cls.model_validate({"from": 100, "class": 101})
+    assert (m.from_, m.class_, m.copy_) == (100, 101, 4)
+    assert cls(from_=7).from_ == 7  # the Python name works for input too
+    dumped = m.model_dump()
+    assert list(dumped) == CLASHING
+    assert json.loads(m.model_dump_json())["from"] == 100
+    assert list(cls.model_json_schema()["properties"]) == CLASHING
+    assert cls.type_name == "pkg/msg/Clash"
+    assert cls.spec is spec
+    assert callable(m.model_dump)
+    assert errors_of(cls, {"from": "x"})[0]["path"] == "from"
+
+
+def test_unknown_fields_are_refused() -> None:
+    cls = one(t("int32"))
+    assert errors_of(cls, {"v": 1, "w": 2}) == [
+        {"path": "w", "message": "Extra inputs are not permitted", "type": "extra_forbidden"}
+    ]
+    assert cls.model_json_schema()["additionalProperties"] is False
+
+
+def test_class_names_modules_and_type_names() -> None:
+    point: Any = build_message(POINT)
+    assert (point.__name__, point.__qualname__, point.__module__) == ("Point", "Point", "geo.msg")
+    assert point.type_name == "geo/msg/Point"
+    assert repr(point(x=1)) == "Point(x=1.0, y=0.0)"
+    srv = build_service(SERVICE)
+    assert (srv.__name__, srv.__qualname__, srv.__module__) == ("Add", "Add", "calc.srv")
+    assert issubclass(srv, Service)
+    assert srv.Request.__name__ == "Add_Request"
+    assert srv.Request.__module__ == "calc.srv"
+    assert (srv.Request.type_name, srv.Response.type_name) == (
+        "calc/srv/Add_Request",
+        "calc/srv/Add_Response",
+    )
+    assert srv.type_name == "calc/srv/Add"
+    assert srv.spec is SERVICE
+    assert srv.text == SERVICE.text
+    assert srv.Request.spec is SERVICE.request
+
+
+# --- documentation ---------------------------------------------------------------------------
+
+
+def test_comments_become_schema_descriptions() -> None:
+    spec = msg(
+        "Documented",
+        FieldSpec(t("int32"), "speed", doc="Speed in m/s.\nNever negative."),
+        FieldSpec(t("int32"), "from", doc="Where it starts."),
+        FieldSpec(t("int32"), "plain"),
+        doc="A documented message.",
+    )
+    cls = build_message(spec)
+    schema = cls.model_json_schema()
+    assert schema["description"] == "A documented message."
+    assert schema["title"] == "Documented"
+    assert schema["properties"]["speed"]["description"] == "Speed in m/s.\nNever negative."
+    assert schema["properties"]["from"]["description"] == "Where it starts."
+    assert "description" not in schema["properties"]["plain"]
+    assert cls.__doc__ == "A documented message."
+
+
+# --- nested messages and error paths ---------------------------------------------------------
+
+
+def test_nested_types_need_a_resolver() -> None:
+    with pytest.raises(InterfaceError) as info:
+        build_message(POSE)
+    assert str(info.value) == (
+        "geo/msg/Pose: field 'position' has the nested type geo/msg/Point, "
+        "and no resolver was given to find its class"
+    )
+
+
+def test_the_resolver_must_return_a_message_class() -> None:
+    with pytest.raises(InterfaceError, match="the resolver returned <class 'int'>"):
+        build_message(POSE, lambda _: int)  # type: ignore[arg-type, return-value]
+
+
+def test_nested_messages_validate_from_dicts_and_instances() -> None:
+    resolve = geo_resolver()
+    pose_cls, point_cls = resolve(t("Pose", package="geo")), resolve(t("Point", package="geo"))
+    pose = pose_cls.model_validate({"position": {"x": 1}, "points": [{"y": 2}, point_cls(x=3)]})
+    assert pose.model_dump() == {
+        "position": {"x": 1.0, "y": 0.0},
+        "points": [{"x": 0.0, "y": 2.0}, {"x": 3.0, "y": 0.0}],
+    }
+    assert pose.model_json_schema()["$defs"]["Point"]["properties"]["x"]["type"] == "number"
+
+
+def test_validation_errors_point_into_the_payload() -> None:
+    pose_cls = geo_resolver()(t("Pose", package="geo"))
+    bad = {"position": {"x": "far", "z": 1}, "points": [{}, {"y": None}], "extra": 1}
+    assert errors_of(pose_cls, bad) == [
+        {"path": "position.x", "message": "Input should be a valid number", "type": "float_type"},
+        {
+            "path": "position.z",
+            "message": "Extra inputs are not permitted",
+            "type": "extra_forbidden",
+        },
+        {"path": "points[1].y", "message": "Input should be a valid number", "type": "float_type"},
+        {"path": "extra", "message": "Extra inputs are not permitted", "type": "extra_forbidden"},
+    ]
+    values = one(unbounded("uint8"))
+    assert errors_of(values, {"v": [0, 1, 2, 256]}) == [
+        {
+            "path": "v[3]",
+            "message": "Input should be less than or equal to 255",
+            "type": "less_than_equal",
+        }
+    ]
+    assert errors_of(values, [1, 2]) == [
+        {
+            "path": "",
+            "message": "Input should be a valid dictionary or instance of One",
+            "type": "model_type",
+        }
+    ]
+
+
+# --- services and actions ----------------------------------------------------------------------
+
+SERVICE = ServiceSpec(
+    "calc",
+    "Add",
+    msg("Add_Request", FieldSpec(t("int64"), "a"), FieldSpec(t("int64"), "b"), package="calc"),
+    msg("Add_Response", FieldSpec(t("int64"), "sum"), package="calc"),
+    text="int64 a\nint64 b\n---\nint64 sum\n",
+)
+
+
+def test_services_take_defaults_like_ros() -> None:
+    srv: Any = build_service(SERVICE)
+    assert srv.Request().model_dump() == {"a": 0, "b": 0}
+    assert srv.Response(sum=3).sum == 3
+    assert srv.Request.model_validate_json('{"a": 1}') == srv.Request(a=1, b=0)
+
+
+def test_actions_group_goal_result_and_feedback() -> None:
+    spec = ActionSpec(
+        "demo",
+        "Count",
+        msg("Count_Goal", FieldSpec(t("int32"), "order"), package="demo"),
+        msg("Count_Result", FieldSpec(unbounded("int32"), "sequence"), package="demo"),
+        msg("Count_Feedback", FieldSpec(unbounded("int32"), "partial"), package="demo"),
+        text="int32 order\n---\nint32[] sequence\n---\nint32[] partial\n",
+    )
+    action: Any = build_action(spec)
+    assert issubclass(action, Action)
+    assert action.type_name == "demo/action/Count"
+    assert action.text == spec.text
+    assert action.spec is spec
+    assert [action.Goal.__name__, action.Result.__name__, action.Feedback.__name__] == [
+        "Count_Goal",
+        "Count_Result",
+        "Count_Feedback",
+    ]
+    assert action.Feedback.type_name == "demo/action/Count_Feedback"
+    assert action.Result(sequence=[1, 1, 2]).sequence == [1, 1, 2]
+
+
+def test_each_build_makes_a_new_class() -> None:
+    assert build_message(POINT) is not build_message(POINT)
+
+
+# --- the ROS 2 test corpus -----------------------------------------------------------------------
+
+
+def corpus_classes() -> tuple[dict[str, Any], dict[str, Any]]:
+    root = ros_test_interfaces()
+    specs: dict[str, Any] = {
+        p.stem: parse_file(p, "test_msgs") for p in sorted((root / "msg").glob("*.msg"))
+    }
+    built: dict[str, type[Message]] = {}
+
+    def resolve(type_: TypeSpec) -> type[Message]:
+        if type_.name not in built:
+            built[type_.name] = build_message(specs[type_.name], resolve)
+        return built[type_.name]
+
+    for name in specs:
+        resolve(t(name, package="test_msgs"))
+    others = {
+        p.name: parse_file(p, "test_msgs")
+        for kind in ("srv", "action")
+        for p in sorted((root / kind).iterdir())
+    }
+    groups: dict[str, Any] = {}
+    for name, spec in others.items():
+        if isinstance(spec, ServiceSpec):
+            groups[name] = build_service(spec, resolve)
+        else:
+            assert isinstance(spec, ActionSpec)
+            groups[name] = build_action(spec, resolve)
+    return built, groups
+
+
+def test_the_whole_ros_corpus_builds_and_round_trips() -> None:
+    messages, groups = corpus_classes()
+    assert sorted(messages) == sorted(p.stem for p in (ros_test_interfaces() / "msg").iterdir())
+    parts = [*messages.values()]
+    for group in groups.values():
+        parts += [
+            getattr(group, a)
+            for a in ("Request", "Response", "Goal", "Result", "Feedback")
+            if hasattr(group, a)
+        ]
+    for cls in parts:
+        m = cls()
+        assert cls.model_validate_json(m.model_dump_json()) == m
+        assert cls.model_validate(m.model_dump()) == m
+        assert set(cls.model_json_schema()["properties"]) == {f.name for f in cls.spec.fields}
+
+
+def test_corpus_defaults_and_constants_match_the_files() -> None:
+    messages, _ = corpus_classes()
+    arrays = messages["Arrays"]()
+    assert arrays.int64_values_default == [0, 2**63 - 1, -(2**63)]
+    assert arrays.uint64_values_default == [0, 1, 2**64 - 1]
+    assert arrays.string_values_default == ["", "max value", "min value"]
+    assert arrays.float32_values_default == [1.125, 0.0, -1.125]
+    assert arrays.basic_types_values == [messages["BasicTypes"]()] * 3
+    assert arrays.defaults_values[0].int8_value == -50
+    assert len(arrays.bool_values) == 3
+    strings = messages["Strings"]()
+    assert strings.string_value_default4 == "Hello'world!"
+    assert messages["Strings"].STRING_CONST == "Hello world!"
+    assert messages["Constants"].UINT64_CONST == 50000000
+    assert messages["WStrings"]().wstring_value_default3 == "ハローワールド"
+    assert messages["Empty"]().model_dump() == {}
+    error = errors_of(messages["BoundedSequences"], {"uint8_values": [1, 2, 3, 4]})
+    assert error == [
+        {
+            "path": "uint8_values",
+            "message": "List should have at most 3 items after validation, not 4",
+            "type": "too_long",
+        }
+    ]
+
+
+# --- property: random valid instances survive JSON ---------------------------------------------
+
+
+def element_strategy(type_: TypeSpec, nested: dict[str, type[Message]]) -> st.SearchStrategy[Any]:
+    name = type_.name
+    if not type_.is_primitive:
+        return instances(nested[name], nested)
+    if name == "bool":
+        return st.booleans()
+    if name in INTEGER_RANGES:
+        low, high = INTEGER_RANGES[name]
+        return st.integers(low, high)
+    if name == "float32":
+        return st.floats(width=32, allow_nan=False)
+    if name == "float64":
+        return st.floats(allow_nan=False)
+    return st.text(max_size=type_.string_bound if type_.string_bound is not None else 20)
+
+
+def value_strategy(type_: TypeSpec, nested: dict[str, type[Message]]) -> st.SearchStrategy[Any]:
+    element = element_strategy(type_, nested)
+    if type_.array is ArrayKind.FIXED:
+        return st.lists(element, min_size=type_.size or 0, max_size=type_.size)
+    if type_.array is ArrayKind.BOUNDED:
+        return st.lists(element, max_size=type_.size)
+    if type_.array is ArrayKind.UNBOUNDED:
+        return st.lists(element, max_size=4)
+    return element
+
+
+def instances(cls: type[Message], nested: dict[str, type[Message]]) -> st.SearchStrategy[Any]:
+    fields = {f.name: value_strategy(f.type, nested) for f in cls.spec.fields}
+    return st.fixed_dictionaries({}, optional=fields).map(cls.model_validate)
+
+
+EVERYTHING = msg(
+    "Everything",
+    *(FieldSpec(t(name), f"{name}_value") for name in sorted(PRIMITIVE_ALIASES)),
+    *(FieldSpec(unbounded(name), f"{name}_list") for name in sorted(PRIMITIVE_ALIASES)),
+    FieldSpec(t("string", bound=4), "short"),
+    FieldSpec(bounded("wstring", 2, bound=3), "shorts"),
+    FieldSpec(fixed("uint8", 4), "four_bytes"),
+    FieldSpec(fixed("float32", 2), "pair"),
+    FieldSpec(t("Pose", package="geo"), "pose"),
+    FieldSpec(bounded("Point", 2, package="geo"), "corners"),
+    FieldSpec(t("int32"), "from"),
+    FieldSpec(t("int32"), "model_dump"),
+)
+
+
+def everything_classes() -> dict[str, type[Message]]:
+    resolve = geo_resolver()
+    return {
+        "Everything": build_message(EVERYTHING, resolve),
+        "Pose": resolve(t("Pose", package="geo")),
+        "Point": resolve(t("Point", package="geo")),
+    }
+
+
+EVERYTHING_CLASSES = everything_classes()
+
+
+@settings(max_examples=60, deadline=None)
+@given(instances(EVERYTHING_CLASSES["Everything"], EVERYTHING_CLASSES))
+def test_random_valid_instances_round_trip_through_json(instance: Message) -> None:
+    cls = type(instance)
+    text = instance.model_dump_json()
+    assert cls.model_validate_json(text) == instance
+    assert cls.model_validate(instance.model_dump()) == instance
+    assert cls.model_validate_json(text).model_dump_json() == text
+
+
+def test_every_primitive_has_an_alias() -> None:
+    import srvwire.models as models
+
+    assert set(PRIMITIVE_ALIASES) == {"bool", "string", "wstring", "float32", "float64"} | set(
+        INTEGER_RANGES
+    )
+    for alias in PRIMITIVE_ALIASES.values():
+        assert hasattr(models, alias)
