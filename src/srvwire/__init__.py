@@ -1,5 +1,7 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
+from srvwire.dispatch import Context
 from srvwire.errors import (
     Cancelled,
     ConnectionLost,
@@ -29,13 +31,16 @@ from srvwire.loader import (
     load_service,
 )
 from srvwire.models import Action, Message, Service
+from srvwire.server import RunningServer, Server, serve
 
 __version__ = "0.1.0"
 
 __all__ = [
     "Action",
     "Cancelled",
+    "Client",
     "ConnectionLost",
+    "Context",
     "DeadlineExceeded",
     "ErrorCode",
     "InterfaceError",
@@ -50,15 +55,21 @@ __all__ = [
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
+    "RunningServer",
+    "Server",
     "Service",
     "ServiceError",
+    "ServiceInfo",
     "ServiceNotFound",
+    "ServiceProxy",
     "ServiceUnavailable",
     "SrvwireError",
     "Unauthenticated",
     "__version__",
+    "connect",
     "default_search_path",
     "load_action",
     "load_message",
     "load_service",
+    "serve",
 ]

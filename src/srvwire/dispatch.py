@@ -1,0 +1,564 @@
+"""The service registry, and the dispatch of one decoded request to one handler.
+
+Nothing here knows about sockets: :class:`ServiceRegistry` maps names to
+:class:`ServiceEntry` values, and :func:`dispatch` takes the ``params`` of one request, runs the
+handler under the caller's deadline, and returns the response as JSON text or raises an
+:class:`~srvwire.errors.RPCError`. The server moves text in and out around it.
+
+Invariants:
+
+* **Names are canonical once registered.** A service name is segments of
+  ``[A-Za-z][A-Za-z0-9_]*`` joined by ``/``, stored with a leading ``/``. A caller may leave the
+  slash out; :meth:`ServiceRegistry.resolve` adds it. A bad name or a second registration under
+  the same name is a :class:`~srvwire.errors.RegistrationError` at registration time, never at
+  call time.
+* **Handlers are introspected once.** Whether a handler is ``async``, whether it takes the
+  pre-built response (the ROS shape ``handler(request, response)``), and which parameter receives
+  the :class:`Context` are decided when it is registered; a call does no introspection.
+* **A handler's failure is the call's failure, never the server's.** An exception from the
+  handler becomes :class:`~srvwire.errors.InternalError` (its traceback goes to the log, not to
+  the caller); an :class:`~srvwire.errors.RPCError` it raises, typically
+  :class:`~srvwire.errors.ServiceError`, is sent as it is; a return value that is not a valid
+  response is ``INTERNAL`` too, with the reason logged.
+* **Sync handlers never run on the event loop.** A plain ``def`` handler runs in the executor the
+  server was given, or in asyncio's default one. It cannot be interrupted: when its call is
+  cancelled or its deadline passes, the caller is answered at once and
+  :attr:`Context.cancelled` turns true so the handler can stop early.
+* **A deadline is the caller's.** ``_meta.timeout`` is measured from the moment the request was
+  read; an already-expired deadline answers ``DEADLINE_EXCEEDED`` without running the handler.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import difflib
+import functools
+import inspect
+import logging
+import re
+import time
+import typing
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from importlib import metadata
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+from pydantic_core import PydanticSerializationError
+
+from srvwire.errors import (
+    DeadlineExceeded,
+    InternalError,
+    InvalidParams,
+    RegistrationError,
+    RPCError,
+    ServiceNotFound,
+)
+from srvwire.models import Service, validation_errors
+from srvwire.protocol import Id, encode_json
+
+__all__ = [
+    "Context",
+    "Handler",
+    "ServiceEntry",
+    "ServiceRegistry",
+    "dispatch",
+    "normalize_name",
+]
+
+Handler = Callable[..., Any]
+"""A service handler: ``(request)``, ``(request, response)``, optionally with a context."""
+
+_SEGMENT = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+_NAME_RULE = (
+    "a name is segments of letters, digits and '_', each starting with a letter, joined by '/'"
+)
+
+
+def normalize_name(name: str) -> str:
+    """Return the canonical form of a service name (with a leading ``/``), or raise.
+
+    Raise :class:`~srvwire.errors.RegistrationError` saying what is wrong with a bad name.
+    """
+    if not isinstance(name, str):
+        raise RegistrationError(f"a service name must be a string, not {type(name).__name__}")
+    canonical = name if name.startswith("/") else "/" + name
+    if canonical == "/":
+        raise RegistrationError(f"service name {name!r} is empty; {_NAME_RULE}")
+    if canonical.endswith("/"):
+        raise RegistrationError(f"service name {name!r} ends with '/'; {_NAME_RULE}")
+    for segment in canonical[1:].split("/"):
+        if not segment:
+            raise RegistrationError(f"service name {name!r} contains '//'; {_NAME_RULE}")
+        if not _SEGMENT.fullmatch(segment):
+            raise RegistrationError(
+                f"service name {name!r} has the bad segment {segment!r}; {_NAME_RULE}"
+            )
+    return canonical
+
+
+class Context:
+    """What a handler may know about the call it serves.
+
+    A handler receives it through a parameter annotated ``Context`` or named ``context``.
+    """
+
+    __slots__ = ("_cancel_error", "_cancelled", "deadline", "peer", "request_id", "service")
+
+    def __init__(
+        self,
+        *,
+        service: str = "",
+        request_id: Id = None,
+        peer: Any = None,
+        deadline: float | None = None,
+    ) -> None:
+        self.service = service
+        """The canonical name of the service called, such as ``/add_two_ints``."""
+        self.request_id = request_id
+        """The JSON-RPC id of the call; ``None`` for a notification."""
+        self.peer = peer
+        """The caller's address, as the socket reports it (``(host, port)`` for TCP)."""
+        self.deadline = deadline
+        """When the caller stops waiting, on the :func:`time.monotonic` clock; None for never."""
+        self._cancelled = False
+        self._cancel_error: RPCError | None = None
+
+    def time_remaining(self) -> float | None:
+        """Seconds until the caller's deadline (0 once passed), or None without a deadline."""
+        if self.deadline is None:
+            return None
+        return max(0.0, self.deadline - time.monotonic())
+
+    @property
+    def cancelled(self) -> bool:
+        """Whether the call was cancelled or its deadline passed; the answer is already sent."""
+        return self._cancelled
+
+    def _mark_cancelled(self, error: RPCError | None = None) -> None:
+        """Record that the call is over, and the error it is to answer (server use only)."""
+        self._cancelled = True
+        if error is not None and self._cancel_error is None:
+            self._cancel_error = error
+
+    def __repr__(self) -> str:
+        return (
+            f"Context(service={self.service!r}, request_id={self.request_id!r}, "
+            f"peer={self.peer!r}, time_remaining={self.time_remaining()!r}, "
+            f"cancelled={self._cancelled!r})"
+        )
+
+
+def _is_context_annotation(annotation: Any) -> bool:
+    if annotation is Context:
+        return True
+    return isinstance(annotation, str) and annotation.rsplit(".", 1)[-1] == "Context"
+
+
+def _introspect(name: str, handler: Handler) -> tuple[bool, bool, str | None]:
+    """Return (is_async, takes_response, context parameter) for ``handler``, or raise."""
+    if not callable(handler):
+        raise RegistrationError(
+            f"the handler for {name} must be callable, not {type(handler).__name__}"
+        )
+    is_async = inspect.iscoroutinefunction(handler) or inspect.iscoroutinefunction(
+        getattr(handler, "__call__", None)  # noqa: B004 - an object with an async __call__
+    )
+    try:
+        signature = inspect.signature(handler)
+    except (TypeError, ValueError) as exc:
+        raise RegistrationError(f"the handler for {name} has no readable signature") from exc
+    try:
+        hints = typing.get_type_hints(handler)
+    except Exception:  # annotations that do not resolve: fall back to their text
+        hints = {}
+    context_param: str | None = None
+    positional: list[inspect.Parameter] = []
+    for param in signature.parameters.values():
+        annotation = hints.get(param.name, param.annotation)
+        if param.name == "context" or _is_context_annotation(annotation):
+            if param.kind is inspect.Parameter.POSITIONAL_ONLY:
+                raise RegistrationError(
+                    f"the handler for {name} takes its context parameter {param.name!r} "
+                    "positionally only; it must accept it by keyword"
+                )
+            context_param = param.name
+        elif param.kind in (
+            inspect.Parameter.POSITIONAL_ONLY,
+            inspect.Parameter.POSITIONAL_OR_KEYWORD,
+        ):
+            if param.default is inspect.Parameter.empty or len(positional) < 2:
+                positional.append(param)
+        elif param.kind is inspect.Parameter.KEYWORD_ONLY and param.default is param.empty:
+            raise RegistrationError(
+                f"the handler for {name} has the keyword-only parameter {param.name!r} "
+                "without a default; srvwire passes only the request, the response and a context"
+            )
+    required = [p for p in positional if p.default is inspect.Parameter.empty]
+    if len(required) > 2 or not positional:
+        raise RegistrationError(
+            f"the handler for {name} must take (request) or (request, response), plus optionally "
+            f"a context parameter; it takes {len(required)} required positional parameters"
+        )
+    return is_async, len(positional) == 2, context_param
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ServiceEntry:
+    """One registered service: its canonical name, type and handler, introspected once."""
+
+    name: str
+    srv_type: type[Service]
+    handler: Handler
+    is_async: bool
+    takes_response: bool
+    context_param: str | None
+    request_model: type[BaseModel]
+    response_model: type[BaseModel]
+    field_names: tuple[str, ...]
+    _description: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def type_name(self) -> str:
+        """The service type's name, such as ``example_interfaces/srv/AddTwoInts``."""
+        return str(getattr(self.srv_type, "type_name", self.srv_type.__name__))
+
+    def validate(self, params: dict[str, Any] | list[Any] | None) -> BaseModel:
+        """Build the request from ``params``, or raise :class:`~srvwire.errors.InvalidParams`."""
+        if params is None:
+            params = {}
+        elif type(params) is list:
+            if len(params) > len(self.field_names):
+                raise InvalidParams(
+                    f"invalid params for {self.name}: {len(params)} positional params, but the "
+                    f"request has {len(self.field_names)} fields",
+                    {
+                        "errors": [
+                            {
+                                "path": f"[{len(self.field_names)}]",
+                                "message": f"expected at most {len(self.field_names)} params",
+                                "type": "too_long",
+                            }
+                        ]
+                    },
+                    service=self.name,
+                )
+            params = dict(zip(self.field_names, params, strict=False))
+        try:
+            return self.request_model.model_validate(params)
+        except ValidationError as exc:
+            errors = validation_errors(exc)
+            first = errors[0]
+            more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+            where = f"{first['path']}: " if first["path"] else ""
+            raise InvalidParams(
+                f"invalid params for {self.name}: {where}{first['message']}{more}",
+                {"errors": errors},
+                service=self.name,
+            ) from None
+
+    def describe(self) -> dict[str, Any]:
+        """Return this service's OpenRPC method object (built once, then cached)."""
+        if not self._description:
+            self._description.update(_describe(self))
+        return self._description
+
+
+def _inline_refs(schema: Any, defs: dict[str, Any], seen: tuple[str, ...] = ()) -> Any:
+    """Replace ``#/$defs/X`` references by the definitions, so each schema stands alone."""
+    if isinstance(schema, list):
+        return [_inline_refs(item, defs, seen) for item in schema]
+    if not isinstance(schema, dict):
+        return schema
+    ref = schema.get("$ref")
+    if isinstance(ref, str) and ref.startswith("#/$defs/"):
+        key = ref.removeprefix("#/$defs/")
+        if key in defs and key not in seen:
+            rest = {k: v for k, v in schema.items() if k != "$ref"}
+            return {**_inline_refs(defs[key], defs, (*seen, key)), **rest}
+    return {k: _inline_refs(v, defs, seen) for k, v in schema.items() if k != "$defs"}
+
+
+def _standalone_schema(model: type[BaseModel]) -> dict[str, Any]:
+    schema = model.model_json_schema(by_alias=True)
+    defs = schema.get("$defs", {})
+    inlined: dict[str, Any] = _inline_refs(schema, defs)
+    return inlined
+
+
+def _describe(entry: ServiceEntry) -> dict[str, Any]:
+    request_schema = _standalone_schema(entry.request_model)
+    properties = request_schema.get("properties", {})
+    params = []
+    for name in entry.field_names:
+        descriptor: dict[str, Any] = {
+            "name": name,
+            "schema": copy.deepcopy(properties.get(name, {})),
+            "required": False,
+        }
+        description = properties.get(name, {}).get("description")
+        if description:
+            descriptor["description"] = description
+        params.append(descriptor)
+    method: dict[str, Any] = {
+        "name": entry.name,
+        "paramStructure": "by-name",
+        "params": params,
+        "result": {"name": "response", "schema": _standalone_schema(entry.response_model)},
+        "x-srvwire-type": entry.type_name,
+        "x-srvwire-srv": str(getattr(entry.srv_type, "text", "")),
+        "x-srvwire-request-schema": request_schema,
+    }
+    doc = request_schema.get("description")
+    if doc:
+        method["description"] = doc
+    return method
+
+
+@functools.cache
+def _version() -> str:
+    try:
+        return metadata.version("srvwire")
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        return "0.0.0"
+
+
+class ServiceRegistry:
+    """The services one server offers, by canonical name."""
+
+    def __init__(self) -> None:
+        self._entries: dict[str, ServiceEntry] = {}
+        self._discovery: str | None = None
+
+    def add(self, name: str, srv_type: type[Service], handler: Handler) -> ServiceEntry:
+        """Register ``handler`` for ``srv_type`` under ``name``; raise RegistrationError."""
+        canonical = normalize_name(name)
+        existing = self._entries.get(canonical)
+        if existing is not None:
+            raise RegistrationError(
+                f"a service named {canonical} is already registered "
+                f"({existing.type_name}); remove it first"
+            )
+        request_model = getattr(srv_type, "Request", None)
+        response_model = getattr(srv_type, "Response", None)
+        if not (
+            isinstance(request_model, type)
+            and issubclass(request_model, BaseModel)
+            and isinstance(response_model, type)
+            and issubclass(response_model, BaseModel)
+        ):
+            raise RegistrationError(
+                f"the type of {canonical} must be a service type with Request and Response "
+                f"models (such as load_service('example_interfaces/srv/AddTwoInts')), "
+                f"not {srv_type!r}"
+            )
+        is_async, takes_response, context_param = _introspect(canonical, handler)
+        entry = ServiceEntry(
+            name=canonical,
+            srv_type=srv_type,
+            handler=handler,
+            is_async=is_async,
+            takes_response=takes_response,
+            context_param=context_param,
+            request_model=request_model,
+            response_model=response_model,
+            field_names=tuple(
+                info.alias or field_name for field_name, info in request_model.model_fields.items()
+            ),
+        )
+        self._entries[canonical] = entry
+        self._discovery = None
+        return entry
+
+    def remove(self, name: str) -> ServiceEntry:
+        """Unregister the service ``name`` and return its entry; raise RegistrationError."""
+        canonical = normalize_name(name)
+        entry = self._entries.pop(canonical, None)
+        if entry is None:
+            raise RegistrationError(f"no service named {canonical} is registered")
+        self._discovery = None
+        return entry
+
+    def get(self, name: str) -> ServiceEntry | None:
+        """Return the service called ``name`` (the leading ``/`` optional), or None."""
+        entry = self._entries.get(name)
+        if entry is None and not name.startswith("/"):
+            entry = self._entries.get("/" + name)
+        return entry
+
+    def resolve(self, name: str) -> ServiceEntry:
+        """Return the service called ``name``, or raise ServiceNotFound listing close names."""
+        entry = self.get(name)
+        if entry is not None:
+            return entry
+        wanted = name if name.startswith("/") else "/" + name
+        candidates = difflib.get_close_matches(wanted, list(self._entries), n=3, cutoff=0.6)
+        hint = f"; did you mean {', '.join(candidates)}?" if candidates else ""
+        raise ServiceNotFound(
+            f"no service named {wanted}{hint}", {"candidates": candidates}, service=wanted
+        )
+
+    def __contains__(self, name: object) -> bool:
+        return isinstance(name, str) and self.get(name) is not None
+
+    def __iter__(self) -> Iterator[ServiceEntry]:
+        return iter(sorted(self._entries.values(), key=lambda e: e.name))
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def services(self) -> list[tuple[str, str]]:
+        """Return ``(name, type name)`` of every service, sorted by name."""
+        return [(entry.name, entry.type_name) for entry in self]
+
+    def discover(self) -> dict[str, Any]:
+        """Return the OpenRPC 1.3.2 document describing every service."""
+        return {
+            "openrpc": "1.3.2",
+            "info": {"title": "srvwire", "version": _version()},
+            "methods": [entry.describe() for entry in self],
+        }
+
+    def discover_json(self) -> str:
+        """Return :meth:`discover` as JSON text, cached until the services change."""
+        if self._discovery is None:
+            self._discovery = encode_json(self.discover())
+        return self._discovery
+
+
+def _invalid_return(
+    entry: ServiceEntry, result: object, reason: str, logger: logging.Logger | None
+) -> InternalError:
+    (logger or logging.getLogger("srvwire.server")).error(
+        "handler for %s returned %s, which is not a valid %s response: %s",
+        entry.name,
+        type(result).__name__,
+        entry.type_name,
+        reason,
+    )
+    return InternalError(
+        f"handler for {entry.name} returned an invalid response", service=entry.name
+    )
+
+
+def _encode_response(
+    entry: ServiceEntry, result: Any, prebuilt: BaseModel | None, logger: logging.Logger | None
+) -> str:
+    model = entry.response_model
+    if result is None:
+        if prebuilt is not None:
+            result = prebuilt
+        elif not model.model_fields:
+            result = model()
+    if isinstance(result, model):
+        try:
+            return result.model_dump_json(by_alias=True, warnings="error")
+        except PydanticSerializationError as exc:
+            raise _invalid_return(entry, result, str(exc), logger) from None
+    if isinstance(result, dict):
+        try:
+            return model.model_validate(result).model_dump_json(by_alias=True)
+        except ValidationError as exc:
+            reasons = "; ".join(
+                f"{e['path'] or '(response)'}: {e['message']}" for e in validation_errors(exc)
+            )
+            raise _invalid_return(entry, result, reasons, logger) from None
+    raise _invalid_return(entry, result, f"expected {model.__name__} or a dict", logger)
+
+
+async def _invoke(
+    entry: ServiceEntry,
+    request: BaseModel,
+    context: Context,
+    executor: Executor | None,
+) -> tuple[Any, BaseModel | None]:
+    """Call the handler the way it was registered to be called, and return what it returns."""
+    args: tuple[Any, ...]
+    prebuilt: BaseModel | None = None
+    if entry.takes_response:
+        prebuilt = entry.response_model()
+        args = (request, prebuilt)
+    else:
+        args = (request,)
+    kwargs = {entry.context_param: context} if entry.context_param else {}
+    if entry.is_async:
+        result = await entry.handler(*args, **kwargs)
+    else:
+        call = functools.partial(entry.handler, *args, **kwargs)
+        result = await asyncio.get_running_loop().run_in_executor(executor, call)
+        if inspect.isawaitable(result):
+            result = await result
+    return result, prebuilt
+
+
+async def dispatch(
+    entry: ServiceEntry,
+    params: dict[str, Any] | list[Any] | None,
+    context: Context,
+    *,
+    executor: Executor | None = None,
+    logger: logging.Logger | None = None,
+) -> str:
+    """Validate ``params``, run the handler within the context's deadline, return the response.
+
+    Return the response as JSON text (by .srv field names). Raise an
+    :class:`~srvwire.errors.RPCError` for the caller: InvalidParams, DeadlineExceeded,
+    InternalError, or whatever RPCError the handler raised. Cancelling the task that runs this
+    cancels the handler and marks ``context`` cancelled.
+    """
+    try:
+        request = entry.validate(params)
+    except InvalidParams:
+        raise
+    except Exception as exc:  # a validator in the model raised something pydantic does not wrap
+        raise _handler_raised(entry, context, exc, logger, "validating the request") from None
+    deadline = context.deadline
+    scope: asyncio.Timeout | None = None
+    try:
+        if deadline is None:
+            result, prebuilt = await _invoke(entry, request, context, executor)
+        else:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise _deadline_exceeded(entry, context)
+            async with asyncio.timeout(remaining) as scope:
+                result, prebuilt = await _invoke(entry, request, context, executor)
+            if scope.expired():  # the handler swallowed its cancellation; the caller is gone
+                raise _deadline_exceeded(entry, context)
+    except RPCError as exc:
+        if exc.service is None:
+            exc.service = entry.name
+        raise
+    except TimeoutError as exc:
+        if scope is not None and scope.expired():
+            raise _deadline_exceeded(entry, context) from None
+        raise _handler_raised(entry, context, exc, logger) from None
+    except asyncio.CancelledError:
+        context._mark_cancelled()
+        raise
+    except Exception as exc:
+        raise _handler_raised(entry, context, exc, logger) from None
+    return _encode_response(entry, result, prebuilt, logger)
+
+
+def _deadline_exceeded(entry: ServiceEntry, context: Context) -> DeadlineExceeded:
+    context._mark_cancelled()
+    return DeadlineExceeded(
+        f"the deadline for {entry.name} passed before the handler finished", service=entry.name
+    )
+
+
+def _handler_raised(
+    entry: ServiceEntry,
+    context: Context,
+    exc: BaseException,
+    logger: logging.Logger | None,
+    doing: str = "",
+) -> InternalError:
+    what = f"{doing} for {entry.name}" if doing else f"handler for {entry.name}"
+    (logger or logging.getLogger("srvwire.server")).error(
+        "%s raised an exception (request id %r)", what, context.request_id, exc_info=exc
+    )
+    return InternalError(f"{what} raised an exception", service=entry.name)

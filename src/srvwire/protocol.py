@@ -1,0 +1,396 @@
+"""JSON-RPC 2.0 without I/O: text in, messages out; messages in, text out.
+
+Nothing here awaits, touches a socket or knows about WebSockets. The server and the client move
+text between the network and the functions below, which makes every rule of the protocol testable
+without an event loop.
+
+Invariants:
+
+* **Parsing never raises on input from a peer** (server side). :func:`parse_incoming` turns any
+  text or bytes into an :class:`Incoming`: every item is a :class:`Request`, a
+  :class:`Notification` or an :class:`ErrorResponse` ready to be sent back. Input that is not JSON,
+  not UTF-8, or nested deeper than :data:`MAX_DEPTH` is one ``PARSE_ERROR``; an empty batch is one
+  ``INVALID_REQUEST`` (not a batch, as the specification says); an invalid item of a batch is an
+  ``INVALID_REQUEST`` in its place.
+* **An id is echoed exactly as it came** (string, number or null). An invalid item whose id can be
+  read gets its id back; otherwise ``null``. A message without an ``id`` member is a notification
+  and is never answered, unless it is so malformed that it is not a notification at all.
+* **``params._meta`` belongs to the protocol, not to the service.** It is taken out of ``params``
+  while parsing: ``{"timeout": seconds}`` becomes :attr:`Request.timeout`; other members of
+  ``_meta`` are ignored so that later versions can add some. A bad ``_meta`` is an
+  ``INVALID_PARAMS`` error with the path ``_meta.timeout``.
+* **Serializing is total.** Every message serializes to compact JSON text; data that is not JSON
+  (a set, an object) is written with ``str()`` and a non-finite float as ``null`` rather than
+  failing, because an error reply must always be sendable.
+* **Pre-encoded JSON is embedded, never decoded again.** :class:`RawJSON` wraps text that already
+  is JSON (a pydantic ``model_dump_json``); as a result or as params it is spliced into the
+  envelope as it is.
+
+:func:`parse_replies` is the client's side: it parses what a server sends and raises
+:class:`~srvwire.errors.ParseError` or :class:`~srvwire.errors.InvalidRequest` when that is not
+JSON-RPC, since a server that breaks the protocol is a bug to report, not a peer to answer.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, TypeAlias
+
+from pydantic_core import from_json, to_json
+
+from srvwire.errors import (
+    InvalidParams,
+    InvalidRequest,
+    ParseError,
+    RPCError,
+    error_from_code,
+)
+
+__all__ = [
+    "CANCEL_METHOD",
+    "DISCOVER_METHOD",
+    "MAX_DEPTH",
+    "SERVICES_METHOD",
+    "ErrorResponse",
+    "Id",
+    "Incoming",
+    "Notification",
+    "Params",
+    "RawJSON",
+    "Reply",
+    "Request",
+    "Response",
+    "cancel_notification",
+    "decode_json",
+    "encode_json",
+    "encode_result",
+    "parse_incoming",
+    "parse_replies",
+    "serialize",
+    "serialize_batch",
+    "services_notification",
+]
+
+CANCEL_METHOD = "$/cancel"
+"""Notification a client sends to cancel one of its calls: ``{"id": <request id>}``."""
+
+SERVICES_METHOD = "$/services"
+"""Notification the server sends with the full, sorted list of services it offers."""
+
+DISCOVER_METHOD = "rpc.discover"
+"""Method that returns the OpenRPC document describing every service."""
+
+MAX_DEPTH = 200
+"""How deeply arrays and objects may nest in one message; deeper input is a parse error."""
+
+Id: TypeAlias = str | int | float | None
+"""A JSON-RPC id: a string, a number, or null."""
+
+
+@dataclass(frozen=True, slots=True)
+class RawJSON:
+    """Text that already is one JSON value, embedded into a message without re-encoding."""
+
+    text: str
+
+
+Params: TypeAlias = dict[str, Any] | list[Any] | RawJSON | None
+"""What ``params`` may hold: an object, an array, pre-encoded JSON, or nothing."""
+
+
+def encode_json(value: Any) -> str:
+    """Return ``value`` as compact JSON text; never fails (see the module's invariants)."""
+    if isinstance(value, RawJSON):
+        return value.text
+    return to_json(value, fallback=str, inf_nan_mode="null").decode()
+
+
+def decode_json(data: str | bytes) -> Any:
+    """Parse one JSON value strictly, or raise :class:`~srvwire.errors.ParseError`.
+
+    Bytes must be UTF-8. Trailing text and nesting deeper than :data:`MAX_DEPTH` are refused.
+    Integers of any size are read exactly. The tokens ``NaN``, ``Infinity`` and ``-Infinity``
+    are accepted, as Python's ``json`` accepts them, because srvwire's models write non-finite
+    floats that way.
+    """
+    try:
+        if isinstance(data, bytes | bytearray | memoryview):
+            data = bytes(data).decode("utf-8")
+        return from_json(data, allow_inf_nan=True)
+    except UnicodeDecodeError as exc:
+        raise ParseError(
+            f"Parse error: invalid UTF-8 at byte {exc.start}", {"detail": exc.reason}
+        ) from None
+    except (ValueError, TypeError) as exc:
+        # pydantic_core reports nesting past MAX_DEPTH as "recursion limit exceeded", and a
+        # str holding a lone surrogate as a TypeError.
+        raise ParseError(f"Parse error: {exc}") from None
+
+
+def _encode_id(id: Id) -> str:
+    if type(id) is int:
+        return str(id)
+    return encode_json(id)
+
+
+def _encode_params(params: Params, timeout: float | None) -> str | None:
+    """Return the JSON text of ``params`` with ``_meta`` added when there is a timeout."""
+    if timeout is None:
+        return None if params is None else encode_json(params)
+    meta = '{"_meta":{"timeout":' + encode_json(timeout) + "}"
+    if params is None:
+        return meta + "}"
+    if isinstance(params, RawJSON):
+        body = params.text.strip()
+        if not body.startswith("{"):
+            raise ValueError("a timeout needs params that are a JSON object")
+        rest = body[1:].lstrip()
+        return meta + ("}" if rest.startswith("}") else "," + rest)
+    if isinstance(params, list):
+        raise ValueError("a timeout needs params by name, not an array")
+    return encode_json({**params, "_meta": {"timeout": timeout}})
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """A call that expects a reply: ``method`` with ``params``, answered under ``id``.
+
+    ``timeout`` is the caller's remaining deadline in seconds, carried as ``params._meta``.
+    """
+
+    id: Id
+    method: str
+    params: Params = None
+    timeout: float | None = None
+
+    def serialize(self) -> str:
+        """Return this request as JSON text."""
+        params = _encode_params(self.params, self.timeout)
+        text = '{"jsonrpc":"2.0","id":' + _encode_id(self.id) + ',"method":'
+        text += encode_json(self.method)
+        if params is not None:
+            text += ',"params":' + params
+        return text + "}"
+
+
+@dataclass(frozen=True, slots=True)
+class Notification:
+    """A message that expects no reply: ``method`` with ``params``."""
+
+    method: str
+    params: Params = None
+    timeout: float | None = None
+
+    def serialize(self) -> str:
+        """Return this notification as JSON text."""
+        params = _encode_params(self.params, self.timeout)
+        text = '{"jsonrpc":"2.0","method":' + encode_json(self.method)
+        if params is not None:
+            text += ',"params":' + params
+        return text + "}"
+
+
+@dataclass(frozen=True, slots=True)
+class Response:
+    """A successful reply: the ``result`` of the request with this ``id``."""
+
+    id: Id
+    result: Any
+
+    def serialize(self) -> str:
+        """Return this response as JSON text; a :class:`RawJSON` result is embedded as is."""
+        return (
+            '{"jsonrpc":"2.0","id":' + _encode_id(self.id) + ',"result":'
+            f"{encode_json(self.result)}}}"
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorResponse:
+    """A failed reply: ``error`` for the request with this ``id`` (null if it was unreadable)."""
+
+    id: Id
+    error: RPCError
+
+    def serialize(self) -> str:
+        """Return this error response as JSON text."""
+        return (
+            '{"jsonrpc":"2.0","id":' + _encode_id(self.id) + ',"error":'
+            f"{encode_json(self.error.to_error_object())}}}"
+        )
+
+
+Reply: TypeAlias = Response | ErrorResponse
+Message: TypeAlias = Request | Notification | Response | ErrorResponse
+
+
+@dataclass(frozen=True, slots=True)
+class Incoming:
+    """What one WebSocket message from a client holds, as the server sees it.
+
+    ``items`` keeps the order of the batch. An :class:`ErrorResponse` item is an invalid item,
+    already answered; the server sends it back with the replies to the others.
+    """
+
+    items: tuple[Request | Notification | ErrorResponse, ...]
+    is_batch: bool = False
+
+
+def encode_result(id: Id, result_json: str) -> str:
+    """Return a response whose result is ``result_json``, already JSON text, as it is.
+
+    The same as ``Response(id, RawJSON(result_json)).serialize()``, without the objects; the
+    server's hot path.
+    """
+    return '{"jsonrpc":"2.0","id":' + _encode_id(id) + ',"result":' + result_json + "}"
+
+
+def serialize(message: Message) -> str:
+    """Return one message as JSON text."""
+    return message.serialize()
+
+
+def serialize_batch(messages: Iterable[Message | str]) -> str:
+    """Return a batch (a JSON array) of messages; a ``str`` item is already-serialized text."""
+    return "[" + ",".join(m if isinstance(m, str) else m.serialize() for m in messages) + "]"
+
+
+def cancel_notification(id: Id) -> Notification:
+    """Return the ``$/cancel`` notification that cancels the call with this ``id``."""
+    return Notification(CANCEL_METHOD, {"id": id})
+
+
+def services_notification(services: Iterable[tuple[str, str]]) -> Notification:
+    """Return the ``$/services`` notification for ``(name, type)`` pairs, sorted by name."""
+    listed = [{"name": name, "type": type_name} for name, type_name in sorted(services)]
+    return Notification(SERVICES_METHOD, {"services": listed})
+
+
+# --- server side: parsing what clients send ---------------------------------------------------
+
+
+_JSON_TYPES = {
+    dict: "an object",
+    list: "an array",
+    str: "a string",
+    int: "a number",
+    float: "a number",
+    bool: "a boolean",
+    type(None): "null",
+}
+
+
+def _kind(value: Any) -> str:
+    return _JSON_TYPES.get(type(value), type(value).__name__)
+
+
+def _valid_id(value: Any) -> bool:
+    return value is None or (type(value) in (str, int, float))
+
+
+def _invalid(id: Id, message: str) -> ErrorResponse:
+    return ErrorResponse(id, InvalidRequest(f"Invalid Request: {message}"))
+
+
+def _bad_meta(id: Id, path: str, message: str, type_: str) -> ErrorResponse:
+    error = {"path": path, "message": message, "type": type_}
+    return ErrorResponse(id, InvalidParams(f"invalid {path}: {message}", {"errors": [error]}))
+
+
+def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
+    """Turn one decoded JSON value into a request, a notification, or the error answering it."""
+    if type(item) is not dict:
+        return _invalid(None, f"expected an object, got {_kind(item)}")
+    has_id = "id" in item
+    id = item.get("id")
+    if not _valid_id(id):
+        return _invalid(None, f"'id' must be a string, a number or null, not {_kind(id)}")
+    if item.get("jsonrpc") != "2.0":
+        return _invalid(id, "'jsonrpc' must be exactly \"2.0\"")
+    method = item.get("method")
+    if type(method) is not str:
+        what = "missing" if method is None and "method" not in item else _kind(method)
+        return _invalid(id, f"'method' must be a string, not {what}")
+    params: Any = item.get("params")
+    timeout: float | None = None
+    if type(params) is dict:
+        if "_meta" in params:
+            params = dict(params)
+            meta = params.pop("_meta")
+            if type(meta) is not dict:
+                return _bad_meta(id, "_meta", f"must be an object, not {_kind(meta)}", "dict_type")
+            raw = meta.get("timeout")
+            if raw is not None:
+                if type(raw) not in (int, float) or not math.isfinite(raw) or raw < 0:
+                    return _bad_meta(
+                        id,
+                        "_meta.timeout",
+                        f"must be a number of seconds >= 0, not {encode_json(raw)}",
+                        "timeout",
+                    )
+                timeout = float(raw)
+    elif type(params) is not list and "params" in item:
+        return _invalid(id, f"'params' must be an object or an array, not {_kind(params)}")
+    if has_id:
+        return Request(id, method, params, timeout)
+    return Notification(method, params, timeout)
+
+
+def parse_incoming(data: str | bytes) -> Incoming:
+    """Parse one WebSocket message from a client; never raises (see the invariants)."""
+    try:
+        decoded = decode_json(data)
+    except ParseError as exc:
+        return Incoming((ErrorResponse(None, exc),))
+    if type(decoded) is list:
+        if not decoded:
+            return Incoming((_invalid(None, "empty batch"),))
+        return Incoming(tuple(_parse_item(item) for item in decoded), is_batch=True)
+    return Incoming((_parse_item(decoded),))
+
+
+# --- client side: parsing what servers send ---------------------------------------------------
+
+
+def _parse_reply(item: Any) -> Response | ErrorResponse | Notification:
+    if type(item) is not dict:
+        raise InvalidRequest(f"Invalid reply: expected an object, got {_kind(item)}")
+    if item.get("jsonrpc") != "2.0":
+        raise InvalidRequest("Invalid reply: 'jsonrpc' must be exactly \"2.0\"")
+    if "method" in item:
+        method = item["method"]
+        params = item.get("params")
+        if type(method) is not str or not (params is None or type(params) in (dict, list)):
+            raise InvalidRequest("Invalid reply: malformed notification")
+        return Notification(method, params)
+    if "id" not in item or not _valid_id(item["id"]):
+        raise InvalidRequest("Invalid reply: 'id' missing or not a string, a number or null")
+    id = item["id"]
+    if "result" in item:
+        if "error" in item:
+            raise InvalidRequest("Invalid reply: both 'result' and 'error'")
+        return Response(id, item["result"])
+    error = item.get("error")
+    if type(error) is not dict:
+        raise InvalidRequest("Invalid reply: neither 'result' nor an 'error' object")
+    code = error.get("code")
+    message = error.get("message")
+    if type(code) is not int or type(message) is not str:
+        raise InvalidRequest("Invalid reply: 'error' needs an integer code and a string message")
+    return ErrorResponse(id, error_from_code(code, message, error.get("data")))
+
+
+def parse_replies(data: str | bytes) -> list[Response | ErrorResponse | Notification]:
+    """Parse one WebSocket message from a server: a reply, a notification, or a batch of them.
+
+    Raise :class:`~srvwire.errors.ParseError` when it is not JSON and
+    :class:`~srvwire.errors.InvalidRequest` when it is not JSON-RPC 2.0.
+    """
+    decoded = decode_json(data)
+    if type(decoded) is list:
+        if not decoded:
+            raise InvalidRequest("Invalid reply: empty batch")
+        return [_parse_reply(item) for item in decoded]
+    return [_parse_reply(decoded)]

@@ -1,0 +1,606 @@
+"""The asyncio WebSocket server: connections, concurrency limits, cancellation and shutdown.
+
+Theory of operation
+-------------------
+
+A :class:`Server` holds a :class:`~srvwire.dispatch.ServiceRegistry` and its options; it does not
+listen by itself. :func:`serve` binds it to a host and port and returns a :class:`RunningServer`.
+Each WebSocket connection gets a :class:`_Connection` whose *reader* is the only code that receives
+from the socket. For every message the reader calls :func:`~srvwire.protocol.parse_incoming`,
+answers what can be answered at once (errors, ``rpc.discover``, ``$/cancel``) and starts one task
+per service call, which replies by itself when the handler is done. A batch gets one more task that
+waits for its calls and sends their replies as one array.
+
+Invariants:
+
+* **The reader never waits for a handler.** Calls on one connection run concurrently; a handler
+  that hangs holds only its own task. The reader waits only to send an immediate error reply, which
+  is what pushes back on a client that writes faster than it reads.
+* **In flight is bounded per connection.** At most ``max_in_flight`` calls and notifications run at
+  once on a connection; past that a call is answered ``RESOURCE_EXHAUSTED`` at once (a notification
+  is dropped and logged), and the connection carries on. Messages are bounded by
+  ``max_message_size``: websockets closes the connection with 1009 past it.
+* **Every request gets exactly one reply**, while the connection is open: its result, or an error.
+  A call whose ``id`` can be cancelled is listed in ``_Connection.calls`` until its reply is built,
+  so ``$/cancel`` finds it only while the handler runs. The cancel reason (``CANCELLED``,
+  ``UNAVAILABLE``) is recorded in the call's :class:`~srvwire.dispatch.Context` *before* the task is
+  cancelled, so the task knows which error to send; a task cancelled without a reason (the
+  connection went away) sends nothing.
+* **Nothing a client sends stops the server.** Only this module knows websockets' exceptions; a
+  closed connection ends that connection's reader and cancels that connection's calls, nothing
+  more. Handler exceptions are turned into replies by :func:`~srvwire.dispatch.dispatch`.
+* **Shutdown is graceful and bounded.** :meth:`RunningServer.close` stops listening, answers new
+  calls ``UNAVAILABLE``, waits up to ``grace_period`` for calls in flight, cancels the rest (they
+  answer ``UNAVAILABLE``), then closes every connection with 1001 (going away).
+* **Clients learn of services without polling.** Each connection gets ``$/services`` as its first
+  message, and again whenever a service is added or removed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable, Generator
+from concurrent.futures import Executor
+from types import TracebackType
+from typing import Any, TypeVar
+
+from websockets.asyncio.server import (
+    Server as _WebSocketServer,
+    ServerConnection,
+    serve as _ws_serve,
+)
+from websockets.exceptions import ConnectionClosed
+
+from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch
+from srvwire.errors import (
+    Cancelled,
+    InvalidRequest,
+    ResourceExhausted,
+    RPCError,
+    ServiceUnavailable,
+)
+from srvwire.models import Service
+from srvwire.protocol import (
+    CANCEL_METHOD,
+    DISCOVER_METHOD,
+    ErrorResponse,
+    Id,
+    Notification,
+    RawJSON,
+    Request,
+    Response,
+    encode_result,
+    parse_incoming,
+    serialize_batch,
+    services_notification,
+)
+
+__all__ = ["RunningServer", "Server", "serve"]
+
+H = TypeVar("H", bound=Handler)
+
+_PROTOCOL_PREFIX = "$/"
+
+
+class Server:
+    """A set of services and the options to serve them with; :func:`serve` makes it listen.
+
+    ``max_in_flight`` bounds the calls running at once on one connection; ``max_message_size``
+    the size of one incoming message in bytes (None: no limit); ``grace_period`` how long
+    shutdown waits for calls in flight; ``ping_interval``/``ping_timeout`` the keepalive (None
+    turns it off); ``compression="deflate"`` turns permessage-deflate on (off by default: it
+    slows small calls down); ``executor`` runs sync handlers (default: asyncio's).
+    """
+
+    def __init__(
+        self,
+        *,
+        max_in_flight: int = 256,
+        max_message_size: int | None = 2**20,
+        grace_period: float = 5.0,
+        ping_interval: float | None = 20.0,
+        ping_timeout: float | None = 20.0,
+        compression: str | None = None,
+        executor: Executor | None = None,
+        logger: logging.Logger | None = None,
+    ) -> None:
+        if max_in_flight < 1:
+            raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
+        if grace_period < 0:
+            raise ValueError(f"grace_period must not be negative, not {grace_period}")
+        self.registry = ServiceRegistry()
+        self.max_in_flight = max_in_flight
+        self.max_message_size = max_message_size
+        self.grace_period = grace_period
+        self.ping_interval = ping_interval
+        self.ping_timeout = ping_timeout
+        self.compression = compression
+        self.executor = executor
+        self.logger = logger if logger is not None else logging.getLogger("srvwire.server")
+        self._running: set[RunningServer] = set()
+
+    def __repr__(self) -> str:
+        return f"<Server with {len(self.registry)} services>"
+
+    # --- services ---------------------------------------------------------------------------
+
+    def add_service(self, name: str, srv_type: type[Service], handler: Handler) -> None:
+        """Serve ``handler`` for ``srv_type`` under ``name``; tell connected clients.
+
+        Raise :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
+        a type that is not a service type, or a handler that cannot be called as one.
+        """
+        self.registry.add(name, srv_type, handler)
+        self._services_changed()
+
+    def remove_service(self, name: str) -> None:
+        """Stop serving ``name``; calls already running finish. Tell connected clients."""
+        self.registry.remove(name)
+        self._services_changed()
+
+    def service(self, name: str, srv_type: type[Service]) -> Callable[[H], H]:
+        """Decorate a handler to serve it under ``name``; the handler is returned unchanged."""
+
+        def register(handler: H) -> H:
+            self.add_service(name, srv_type, handler)
+            return handler
+
+        return register
+
+    def _services_changed(self) -> None:
+        if self._running:
+            text = services_notification(self.registry.services()).serialize()
+            for running in list(self._running):
+                running._broadcast(text)
+
+    # --- running ----------------------------------------------------------------------------
+
+    def run(self, host: str = "127.0.0.1", port: int = 8765) -> None:
+        """Serve until Ctrl-C or SIGTERM, then shut down gracefully; for scripts."""
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(self._run_until_signalled(host, port))
+
+    async def _run_until_signalled(self, host: str, port: int) -> None:
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+        installed: list[signal.Signals] = []
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                try:
+                    loop.add_signal_handler(signum, stop.set)
+                except (NotImplementedError, RuntimeError):  # Windows: KeyboardInterrupt instead
+                    continue
+                installed.append(signum)
+        try:
+            async with serve(self, host, port) as running:
+                self.logger.info("serving %d services on %s", len(self.registry), running.url)
+                await stop.wait()
+                self.logger.info("shutting down")
+        finally:
+            for signum in installed:
+                loop.remove_signal_handler(signum)
+
+
+class serve:
+    """Serve ``server`` on ``host``:``port`` (0 picks a free port).
+
+    Use it as ``async with serve(server) as running: ...`` (closed on exit) or as
+    ``running = await serve(server)`` (then ``await running.close()``).
+    """
+
+    def __init__(self, server: Server, host: str = "127.0.0.1", port: int = 8765) -> None:
+        self._server = server
+        self._host = host
+        self._port = port
+        self._running: RunningServer | None = None
+
+    async def _start(self) -> RunningServer:
+        running = RunningServer(self._server)
+        await running._start(self._host, self._port)
+        self._running = running
+        return running
+
+    def __await__(self) -> Generator[Any, None, RunningServer]:
+        return self._start().__await__()
+
+    async def __aenter__(self) -> RunningServer:
+        return await self._start()
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._running is not None:
+            await self._running.close()
+
+
+class RunningServer:
+    """A server listening on a socket: where it listens, its connections, and how to stop it."""
+
+    host: str
+    port: int
+
+    def __init__(self, server: Server) -> None:
+        self.server = server
+        self.closing = False
+        self._connections: set[_Connection] = set()
+        self._ws_server: _WebSocketServer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._close_task: asyncio.Task[None] | None = None
+
+    async def _start(self, host: str, port: int) -> None:
+        options = self.server
+        self._loop = asyncio.get_running_loop()
+        self._ws_server = await _ws_serve(
+            self._handle,
+            host,
+            port,
+            compression=options.compression,
+            max_size=options.max_message_size,
+            ping_interval=options.ping_interval,
+            ping_timeout=options.ping_timeout,
+        )
+        name = self._ws_server.sockets[0].getsockname()
+        self.host = host
+        self.port = int(name[1])
+        options._running.add(self)
+
+    @property
+    def url(self) -> str:
+        """``ws://host:port``, the address clients connect to."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}"
+
+    def __repr__(self) -> str:
+        state = "closing" if self.closing else "serving"
+        return f"<RunningServer {state} on {self.url}, {len(self._connections)} connections>"
+
+    async def __aenter__(self) -> RunningServer:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        """Shut down gracefully (see the module's invariants); safe to call more than once."""
+        if self._close_task is None:
+            self._close_task = asyncio.create_task(self._close())
+        await asyncio.shield(self._close_task)
+
+    aclose = close
+
+    async def wait_closed(self) -> None:
+        """Wait until the server has been closed by :meth:`close`."""
+        assert self._ws_server is not None
+        await self._ws_server.wait_closed()
+
+    async def _close(self) -> None:
+        assert self._ws_server is not None
+        options = self.server
+        self.closing = True
+        options._running.discard(self)
+        self._ws_server.close(close_connections=False)  # stop listening; keep connections
+        tasks = {task for conn in self._connections for task in conn.tasks}
+        if tasks:
+            _, pending = await asyncio.wait(tasks, timeout=options.grace_period)
+            if pending:
+                options.logger.warning(
+                    "cancelling %d calls still running after the %.3g s grace period",
+                    len(pending),
+                    options.grace_period,
+                )
+                for conn in list(self._connections):
+                    conn.cancel_all(
+                        ServiceUnavailable("the server shut down before the call finished")
+                    )
+                # The cancelled calls reply at once; do not wait on a peer that does not read.
+                await asyncio.wait(pending, timeout=1.0)
+        closes = [conn.ws.close(1001, "server shutting down") for conn in self._connections]
+        if closes:
+            await asyncio.gather(*closes, return_exceptions=True)
+        await self._ws_server.wait_closed()
+
+    def _broadcast(self, text: str) -> None:
+        """Send ``text`` to every connection; callable from any thread."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            running_loop = asyncio.get_running_loop()
+        except RuntimeError:
+            running_loop = None
+        if running_loop is not loop:
+            loop.call_soon_threadsafe(self._broadcast, text)
+            return
+        for conn in list(self._connections):
+            conn.spawn(conn.send(text))
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        conn = _Connection(self, ws)
+        self._connections.add(conn)
+        log = self.server.logger
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("connection from %s opened", conn.peer)
+        try:
+            await ws.send(services_notification(self.server.registry.services()).serialize())
+            await conn.read()
+        except ConnectionClosed as exc:
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("connection from %s closed: %s", conn.peer, exc)
+        finally:
+            self._connections.discard(conn)
+            conn.cancel_all(None)
+
+
+class _Call:
+    """A call in flight: its task, its context, and whether the task has started running."""
+
+    __slots__ = ("context", "started", "task")
+
+    def __init__(self, context: Context) -> None:
+        self.context = context
+        self.started = False
+        self.task: asyncio.Task[Any] | None = None
+
+    def cancel(self, error: RPCError | None) -> None:
+        """Cancel the call; with ``error`` it answers that error, without it stays silent.
+
+        A task cancelled before its first step never runs a line of its coroutine, so it could
+        not answer; a call that has not started is only marked, and answers when it starts.
+        """
+        self.context._mark_cancelled(error)
+        if self.task is not None and (self.started or error is None):
+            self.task.cancel()
+
+
+class _Connection:
+    """One client connection: its reader, and the calls it has in flight."""
+
+    __slots__ = ("calls", "in_flight", "peer", "running", "tasks", "ws")
+
+    def __init__(self, running: RunningServer, ws: ServerConnection) -> None:
+        self.running = running
+        self.ws = ws
+        self.peer: Any = ws.remote_address
+        self.calls: dict[Id, _Call] = {}  # calls that $/cancel can reach, by id
+        self.tasks: set[asyncio.Task[Any]] = set()
+        self.in_flight = 0  # calls and notifications whose task has not finished
+
+    def spawn(self, coro: Any) -> asyncio.Task[Any]:
+        task: asyncio.Task[Any] = asyncio.create_task(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
+    def spawn_counted(self, coro: Any) -> asyncio.Task[Any]:
+        """Spawn a call or notification task; it counts as in flight until it is done."""
+        self.in_flight += 1
+        task = self.spawn(coro)
+        task.add_done_callback(self._uncount)
+        return task
+
+    def _uncount(self, task: asyncio.Task[Any]) -> None:
+        self.in_flight -= 1
+
+    def _forget(self, id: Id, call: _Call) -> None:
+        if id is not None and self.calls.get(id) is call:
+            del self.calls[id]
+
+    async def send(self, text: str) -> None:
+        try:
+            await self.ws.send(text)
+        except ConnectionClosed:
+            pass  # the caller left; its calls are being cancelled
+
+    def cancel_all(self, error: RPCError | None) -> None:
+        """Cancel every call in flight; with ``error`` they answer it, without they stay silent."""
+        for call in list(self.calls.values()):
+            call.cancel(error)
+        if error is None:
+            for task in list(self.tasks):
+                task.cancel()
+
+    async def read(self) -> None:
+        async for message in self.ws:
+            incoming = parse_incoming(message)
+            if incoming.is_batch:
+                self.spawn(self.batch(incoming.items))
+                continue
+            item = incoming.items[0]
+            if type(item) is Request:
+                reply = self.start(item, send=True)
+                if isinstance(reply, str):
+                    await self.send(reply)
+            elif type(item) is Notification:
+                self.notify(item)
+            else:
+                assert isinstance(item, ErrorResponse)
+                await self.send(item.serialize())
+
+    def start(self, request: Request, *, send: bool) -> str | asyncio.Task[str | None] | None:
+        """Start ``request``; return the reply text if it is answered at once, else its task.
+
+        With ``send``, the task sends its reply itself and None is returned.
+        """
+        running = self.running
+        server = running.server
+        id = request.id
+        if running.closing:
+            return ErrorResponse(id, ServiceUnavailable("the server is shutting down")).serialize()
+        entry = server.registry.get(request.method)
+        if entry is None:
+            return self.special(request)
+        if self.in_flight >= server.max_in_flight:
+            exhausted = ResourceExhausted(
+                f"too many calls in flight on this connection (the limit is "
+                f"{server.max_in_flight})",
+                {"limit": server.max_in_flight},
+                service=entry.name,
+            )
+            return ErrorResponse(id, exhausted).serialize()
+        if id is not None and id in self.calls:
+            duplicate = InvalidRequest(
+                f"Invalid Request: id {id!r} is already used by a call in flight on this "
+                "connection",
+                service=entry.name,
+            )
+            return ErrorResponse(id, duplicate).serialize()
+        timeout = request.timeout
+        call = _Call(
+            Context(
+                service=entry.name,
+                request_id=id,
+                peer=self.peer,
+                deadline=None if timeout is None else time.monotonic() + timeout,
+            )
+        )
+        if send:
+            call.task = self.spawn_counted(self.call_and_send(entry, request, call))
+        else:
+            call.task = self.spawn_counted(self.call(entry, request, call))
+        if id is not None:
+            self.calls[id] = call
+            call.task.add_done_callback(lambda _: self._forget(id, call))
+        return None if send else call.task
+
+    def special(self, request: Request) -> str:
+        """Answer a request for a method that is not a service: discovery, protocol, unknown."""
+        server = self.running.server
+        if request.method == DISCOVER_METHOD:
+            return encode_result(request.id, server.registry.discover_json())
+        if request.method == CANCEL_METHOD:
+            self.cancel(request.params)
+            return Response(request.id, None).serialize()
+        try:
+            server.registry.resolve(request.method)
+        except RPCError as exc:
+            return ErrorResponse(request.id, exc).serialize()
+        raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
+
+    async def call(self, entry: ServiceEntry, request: Request, call: _Call) -> str | None:
+        """Run one call and return its reply text; None if it was cancelled silently."""
+        call.started = True
+        context = call.context
+        server = self.running.server
+        log = server.logger
+        try:
+            if context._cancel_error is not None:  # cancelled before it started
+                return ErrorResponse(request.id, context._cancel_error).serialize()
+            result = await dispatch(
+                entry,
+                request.params if not isinstance(request.params, RawJSON) else None,
+                context,
+                executor=server.executor,
+                logger=log,
+            )
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s id %r from %s: ok", entry.name, request.id, self.peer)
+            return encode_result(request.id, result)
+        except RPCError as exc:
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s id %r from %s: %s", entry.name, request.id, self.peer, exc)
+            return ErrorResponse(request.id, exc).serialize()
+        except asyncio.CancelledError:
+            error = context._cancel_error
+            if error is None:
+                raise
+            task = asyncio.current_task()
+            if task is not None:
+                task.uncancel()
+            return ErrorResponse(request.id, error).serialize()
+        finally:
+            self._forget(request.id, call)  # from here on, $/cancel no longer finds it
+
+    async def call_and_send(self, entry: ServiceEntry, request: Request, call: _Call) -> None:
+        reply = await self.call(entry, request, call)
+        if reply is not None:
+            await self.send(reply)
+
+    def cancel(self, params: Any) -> None:
+        """Handle ``$/cancel``: cancel the call with ``params["id"]``, if it is still running."""
+        if not isinstance(params, dict) or "id" not in params:
+            return
+        try:
+            call = self.calls.get(params["id"])
+        except TypeError:  # an unhashable id: no call has it
+            return
+        if call is not None:
+            call.cancel(Cancelled("the caller cancelled the call"))
+
+    def notify(self, note: Notification) -> None:
+        """Handle a notification: protocol ones here, a service's in a task; never a reply."""
+        method = note.method
+        if method.startswith(_PROTOCOL_PREFIX):
+            if method == CANCEL_METHOD:
+                self.cancel(note.params)
+            return
+        running = self.running
+        entry = running.server.registry.get(method)
+        if entry is None or running.closing:
+            return
+        log = running.server.logger
+        if self.in_flight >= running.server.max_in_flight:
+            log.warning(
+                "dropped a notification to %s from %s: too many calls in flight",
+                entry.name,
+                self.peer,
+            )
+            return
+        timeout = note.timeout
+        context = Context(
+            service=entry.name,
+            peer=self.peer,
+            deadline=None if timeout is None else time.monotonic() + timeout,
+        )
+        self.spawn_counted(self.run_notification(entry, note, context))
+
+    async def run_notification(
+        self, entry: ServiceEntry, note: Notification, context: Context
+    ) -> None:
+        server = self.running.server
+        try:
+            await dispatch(
+                entry,
+                note.params if not isinstance(note.params, RawJSON) else None,
+                context,
+                executor=server.executor,
+                logger=server.logger,
+            )
+        except RPCError as exc:
+            if server.logger.isEnabledFor(logging.INFO):
+                server.logger.info("notification to %s failed: %s", entry.name, exc)
+
+    async def batch(self, items: tuple[Request | Notification | ErrorResponse, ...]) -> None:
+        """Answer a batch: run its calls concurrently, send their replies as one array."""
+        replies: list[str | asyncio.Task[str | None]] = []
+        for item in items:
+            if type(item) is Request:
+                started = self.start(item, send=False)
+                if started is not None:
+                    replies.append(started)
+            elif type(item) is Notification:
+                self.notify(item)
+            else:
+                assert isinstance(item, ErrorResponse)
+                replies.append(item.serialize())
+        if not replies:
+            return
+        texts: list[str] = []
+        for reply in replies:
+            text = reply if isinstance(reply, str) else await reply
+            if text is not None:
+                texts.append(text)
+        if texts:
+            await self.send(serialize_batch(texts))

@@ -1,0 +1,762 @@
+"""The client against a scripted peer (faults a real server never makes) and a real server.
+
+The scripted peer, :class:`FakePeer`, is a bare ``websockets`` server that records every message
+it receives and answers only what a test tells it to. Proving a deadline against it is safe:
+a peer that never answers leaves the deadline as the only possible outcome.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+from websockets.asyncio.server import Server as WsServer, ServerConnection, serve as ws_serve
+from websockets.exceptions import ConnectionClosed
+
+from srvwire.client import Client, ServiceInfo, connect
+from srvwire.errors import (
+    Cancelled,
+    ConnectionLost,
+    DeadlineExceeded,
+    InterfaceNotFoundError,
+    InternalError,
+    InvalidParams,
+    InvalidRequest,
+    ParseError,
+    ResourceExhausted,
+    RPCError,
+    ServiceError,
+    ServiceNotFound,
+    ServiceUnavailable,
+    Unauthenticated,
+)
+from srvwire.loader import load_service
+from srvwire.models import Service
+from srvwire.server import RunningServer, Server, serve
+from support import scaled
+
+ADD = "/add_two_ints"
+ADD_TYPE = "example_interfaces/srv/AddTwoInts"
+SERVICES = [{"name": ADD, "type": ADD_TYPE}, {"name": "/trigger", "type": "std_srvs/srv/Trigger"}]
+
+Reply = Callable[[ServerConnection, dict[str, Any]], Awaitable[None]]
+
+
+def services_text(services: list[dict[str, str]]) -> str:
+    return json.dumps({"jsonrpc": "2.0", "method": "$/services", "params": {"services": services}})
+
+
+class FakePeer:
+    """A scripted peer: advertises ``services``, records what it gets, answers via ``reply``."""
+
+    def __init__(self, services: list[dict[str, str]] | None = None, *, advertise: bool = True):
+        self.services = SERVICES if services is None else services
+        self.advertise = advertise
+        self.reply: Reply | None = None
+        self.received: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
+        self.connections: list[ServerConnection] = []
+        self.server: WsServer | None = None
+
+    async def start(self, port: int = 0) -> None:
+        self.server = await ws_serve(self._handle, "127.0.0.1", port)
+
+    async def stop(self) -> None:
+        assert self.server is not None
+        self.server.close()
+        await self.server.wait_closed()
+
+    @property
+    def url(self) -> str:
+        assert self.server is not None
+        port = self.server.sockets[0].getsockname()[1]
+        return f"ws://127.0.0.1:{port}"
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        self.connections.append(ws)
+        if self.advertise:
+            await ws.send(services_text(self.services))
+        try:
+            async for text in ws:
+                message = json.loads(text)
+                await self.received.put(message)
+                if self.reply is not None:
+                    await self.reply(ws, message)
+        except ConnectionClosed:
+            pass  # tests close and abort connections on purpose
+
+    async def next(self, method: str | None = None) -> dict[str, Any]:
+        """Return the next message received (skipping others when ``method`` is given)."""
+        while True:
+            message = await asyncio.wait_for(self.received.get(), scaled(5))
+            if method is None or message.get("method") == method:
+                return message
+
+
+async def answer_add(ws: ServerConnection, message: dict[str, Any]) -> None:
+    """Answer AddTwoInts calls the way a real server would; ignore everything else."""
+    if message.get("method") == ADD and "id" in message:
+        params = message["params"]
+        result = {"sum": params.get("a", 0) + params.get("b", 0)}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": result}))
+
+
+@pytest.fixture
+async def peer() -> AsyncIterator[FakePeer]:
+    fake = FakePeer()
+    await fake.start()
+    yield fake
+    await fake.stop()
+
+
+@pytest.fixture
+async def client(peer: FakePeer) -> AsyncIterator[Client]:
+    async with connect(peer.url, timeout=scaled(5)) as opened:
+        yield opened
+
+
+@pytest.fixture
+def add_two_ints() -> type[Service]:
+    return load_service(ADD_TYPE)
+
+
+def free_port() -> int:
+    """Return a TCP port on 127.0.0.1 that nothing listens on (it was free a moment ago)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+# --- opening and closing ----------------------------------------------------------------------
+
+
+async def test_connect_works_as_await_and_as_async_with(peer: FakePeer) -> None:
+    peer.reply = answer_add
+    client = await connect(peer.url)
+    assert client.connected
+    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    await client.close()
+    assert not client.connected
+    async with connect(peer.url) as other:
+        assert (await other.call(ADD, a=2, b=2)).sum == 4
+    assert not other.connected
+
+
+async def test_connect_to_a_closed_port_is_a_typed_error() -> None:
+    url = f"ws://127.0.0.1:{free_port()}"
+    with pytest.raises(ServiceUnavailable) as caught:
+        await connect(url, open_timeout=scaled(5))
+    assert type(caught.value) is ServiceUnavailable
+    assert caught.value.data == {"url": url}
+    assert isinstance(caught.value.__cause__, OSError)
+    assert str(caught.value).startswith(f"UNAVAILABLE (-32003): cannot connect to {url}: ")
+
+
+async def test_a_server_that_never_advertises_is_not_a_srvwire_server() -> None:
+    silent = FakePeer(advertise=False)
+    await silent.start()
+    try:
+        with pytest.raises(ServiceUnavailable, match="not ready within"):
+            await connect(silent.url, open_timeout=scaled(0.2))
+    finally:
+        await silent.stop()
+
+
+async def test_a_server_whose_first_message_is_not_the_services_list_is_refused() -> None:
+    odd = FakePeer(advertise=False)
+
+    async def greet(ws: ServerConnection) -> None:
+        await ws.send('{"jsonrpc":"2.0","method":"hello","params":{}}')
+        await ws.wait_closed()
+
+    odd.server = await ws_serve(greet, "127.0.0.1", 0)
+    try:
+        with pytest.raises(ServiceUnavailable, match=r"first message was not \$/services"):
+            await connect(odd.url, open_timeout=scaled(5))
+    finally:
+        await odd.stop()
+
+
+def test_bad_arguments_are_refused_at_once() -> None:
+    with pytest.raises(ValueError, match="not a WebSocket URL"):
+        Client("http://localhost:8765")
+    with pytest.raises(ValueError, match="finite number of seconds"):
+        Client(timeout=float("inf"))
+    with pytest.raises(ValueError, match="finite number of seconds"):
+        Client(timeout=0)
+    with pytest.raises(TypeError, match="number of seconds"):
+        Client(timeout="5")  # type: ignore[arg-type]
+
+
+async def test_a_closed_client_fails_calls_at_once(peer: FakePeer) -> None:
+    client = await connect(peer.url)
+    await client.close()
+    await client.close()  # idempotent
+    with pytest.raises(ConnectionLost, match="the client is closed") as caught:
+        await client.call(ADD, a=1, b=2)
+    assert caught.value.service == ADD
+
+
+# --- requests and responses -------------------------------------------------------------------
+
+
+async def test_requests_as_model_dict_or_fields(
+    peer: FakePeer, client: Client, add_two_ints: type[Service]
+) -> None:
+    peer.reply = answer_add
+    by_model = await client.call(ADD, add_two_ints.Request.model_validate({"a": 1, "b": 2}))
+    by_dict = await client.call("add_two_ints", {"a": 3, "b": 4})
+    by_fields = await client.call(ADD, a=5, b=6)
+    defaults = await client.call(ADD)
+    assert [r.sum for r in (by_model, by_dict, by_fields, defaults)] == [3, 7, 11, 0]
+    assert all(isinstance(r, add_two_ints.Response) for r in (by_model, by_dict, by_fields))
+
+
+async def test_the_request_on_the_wire(peer: FakePeer, client: Client) -> None:
+    peer.reply = answer_add
+    await client.call("add_two_ints", a=1, b=2, timeout=scaled(3))
+    await client.call(ADD, {"a": 7})
+    first, second = await peer.next(), await peer.next()
+    assert first["jsonrpc"] == "2.0"
+    assert first["method"] == ADD
+    assert isinstance(first["id"], int)
+    assert second["id"] > first["id"]
+    meta = first["params"].pop("_meta")
+    assert 0 < meta["timeout"] <= scaled(3)
+    assert first["params"] == {"a": 1, "b": 2}
+    assert second["params"]["b"] == 0  # the typed request filled in the default
+
+
+async def test_an_invalid_request_is_refused_locally(peer: FakePeer, client: Client) -> None:
+    peer.reply = answer_add
+    with pytest.raises(InvalidParams) as caught:
+        await client.call(ADD, {"a": "one", "b": 2, "c": 3})
+    error = caught.value
+    assert error.service == ADD
+    assert error.errors == [
+        {"path": "a", "message": "Input should be a valid integer", "type": "int_type"},
+        {"path": "c", "message": "Extra inputs are not permitted", "type": "extra_forbidden"},
+    ]
+    assert "checked by the client; nothing was sent" in error.message
+    # Nothing was sent: the first message the peer sees is the next, valid call.
+    assert (await client.call(ADD, a=1, b=1)).sum == 2
+    assert (await peer.next())["params"]["a"] == 1
+
+
+async def test_a_request_of_the_wrong_type_is_a_type_error(client: Client) -> None:
+    trigger = load_service("std_srvs/srv/Trigger")
+    with pytest.raises(TypeError, match="takes example_interfaces/srv/AddTwoInts requests"):
+        await client.call(ADD, trigger.Request())
+    with pytest.raises(TypeError, match="not both"):
+        await client.call(ADD, {"a": 1}, b=2)
+
+
+async def test_a_type_that_cannot_be_loaded_means_plain_dicts() -> None:
+    unknown = FakePeer([{"name": "/echo", "type": "nowhere_msgs/srv/Echo"}])
+
+    async def echo(ws: ServerConnection, message: dict[str, Any]) -> None:
+        params = {k: v for k, v in message["params"].items() if k != "_meta"}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": params}))
+
+    unknown.reply = echo
+    await unknown.start()
+    try:
+        async with connect(unknown.url) as client:
+            assert await client.call("/echo", {"x": [1, 2]}) == {"x": [1, 2]}
+            assert await client.call("/echo", word="hi") == {"word": "hi"}
+            with pytest.raises(InterfaceNotFoundError):
+                await client.call("/echo", srv_type="nowhere_msgs/srv/Echo")
+    finally:
+        await unknown.stop()
+
+
+async def test_srv_type_overrides_the_advertised_type(peer: FakePeer, client: Client) -> None:
+    async def answer_trigger(ws: ServerConnection, message: dict[str, Any]) -> None:
+        result = {"success": True, "message": "done"}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": result}))
+
+    peer.reply = answer_trigger
+    response = await client.call("/unadvertised", srv_type="std_srvs/srv/Trigger")
+    assert (response.success, response.message) == (True, "done")
+
+
+async def test_a_response_that_does_not_match_the_type_is_an_internal_error(
+    peer: FakePeer, client: Client
+) -> None:
+    async def wrong(ws: ServerConnection, message: dict[str, Any]) -> None:
+        result = {"sum": "three"}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": result}))
+
+    peer.reply = wrong
+    with pytest.raises(InternalError, match="does not match example_interfaces") as caught:
+        await client.call(ADD, a=1, b=2)
+    assert caught.value.data["errors"][0]["path"] == "sum"
+
+
+async def test_proxies(peer: FakePeer, client: Client, add_two_ints: type[Service]) -> None:
+    peer.reply = answer_add
+    add = client.service("add_two_ints", add_two_ints)
+    assert add.name == ADD
+    assert (await add(a=2, b=3)).sum == 5
+    assert (await add({"a": 4}, timeout=scaled(2))).sum == 4
+    assert (await add(add_two_ints.Request.model_validate({"a": 1, "b": 1}))).sum == 2
+    untyped = client.service(ADD)  # the type comes from the server's advertisement
+    assert (await untyped(a=10, b=1)).sum == 11
+    assert await untyped.wait_for_service() == ServiceInfo(ADD, ADD_TYPE)
+
+
+async def test_list_services(peer: FakePeer, client: Client) -> None:
+    async def discover(ws: ServerConnection, message: dict[str, Any]) -> None:
+        assert "params" not in message
+        methods = [
+            {"name": "/b", "x-srvwire-type": "std_srvs/srv/Trigger"},
+            {"name": "a", "x-srvwire-type": ADD_TYPE},
+            {"name": "rpc.other"},  # not a srvwire service: left out
+        ]
+        document = {"openrpc": "1.3.2", "methods": methods}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": document}))
+
+    peer.reply = discover
+    assert await client.list_services() == [
+        ServiceInfo("/a", ADD_TYPE),
+        ServiceInfo("/b", "std_srvs/srv/Trigger"),
+    ]
+
+
+# --- errors from the server -------------------------------------------------------------------
+
+
+ERROR_CASES: list[tuple[int, type[RPCError], Any, Any]] = [
+    # code, class, data sent, data the exception carries (the status is taken out)
+    (-32700, ParseError, {"status": "PARSE_ERROR"}, None),
+    (-32600, InvalidRequest, {"status": "INVALID_REQUEST"}, None),
+    (
+        -32601,
+        ServiceNotFound,
+        {"status": "SERVICE_NOT_FOUND", "candidates": ["/add_two_ints"]},
+        {"candidates": ["/add_two_ints"]},
+    ),
+    (
+        -32602,
+        InvalidParams,
+        {"status": "INVALID_PARAMS", "errors": [{"path": "a", "message": "m", "type": "t"}]},
+        {"errors": [{"path": "a", "message": "m", "type": "t"}]},
+    ),
+    (-32603, InternalError, {"status": "INTERNAL"}, None),
+    (-32001, DeadlineExceeded, {"status": "DEADLINE_EXCEEDED"}, None),
+    (-32002, Cancelled, {"status": "CANCELLED"}, None),
+    (-32003, ServiceUnavailable, {"status": "UNAVAILABLE"}, None),
+    (-32004, ResourceExhausted, {"status": "RESOURCE_EXHAUSTED", "limit": 8}, {"limit": 8}),
+    (-32005, Unauthenticated, {"status": "UNAUTHENTICATED"}, None),
+    (4001, ServiceError, {"battery": 0.1}, {"battery": 0.1}),
+    (-1, ServiceError, None, None),
+    (-32050, RPCError, {"x": 1}, {"x": 1}),
+]
+
+
+@pytest.mark.parametrize(("code", "cls", "sent", "carried"), ERROR_CASES)
+async def test_every_error_code_raises_its_class(
+    peer: FakePeer, client: Client, code: int, cls: type[RPCError], sent: Any, carried: Any
+) -> None:
+    async def fail(ws: ServerConnection, message: dict[str, Any]) -> None:
+        error: dict[str, Any] = {"code": code, "message": f"failed with {code}"}
+        if sent is not None:
+            error["data"] = sent
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "error": error}))
+
+    peer.reply = fail
+    with pytest.raises(RPCError) as caught:
+        await client.call(ADD, a=1, b=2)
+    error = caught.value
+    assert type(error) is cls
+    assert (error.code, error.message, error.data, error.service) == (
+        code,
+        f"failed with {code}",
+        carried,
+        ADD,
+    )
+    assert client.in_flight == 0
+    # The connection is still good after any error reply.
+    peer.reply = answer_add
+    assert (await client.call(ADD, a=1, b=2)).sum == 3
+
+
+async def test_invalid_params_from_the_server_point_into_the_request(
+    peer: FakePeer, client: Client
+) -> None:
+    async def refuse(ws: ServerConnection, message: dict[str, Any]) -> None:
+        errors = [{"path": "b", "message": "too big", "type": "less_than_equal"}]
+        error = {
+            "code": -32602,
+            "message": "bad b",
+            "data": {"status": "INVALID_PARAMS", "errors": errors},
+        }
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "error": error}))
+
+    peer.reply = refuse
+    with pytest.raises(InvalidParams) as caught:
+        await client.call(ADD, a=1, b=2)
+    assert caught.value.errors == [{"path": "b", "message": "too big", "type": "less_than_equal"}]
+
+
+# --- deadlines and cancellation ---------------------------------------------------------------
+
+
+async def test_a_deadline_against_a_peer_that_never_answers(peer: FakePeer, client: Client) -> None:
+    with pytest.raises(DeadlineExceeded) as caught:
+        await client.call(ADD, a=1, b=2, timeout=scaled(0.2))
+    error = caught.value
+    assert isinstance(error, TimeoutError)
+    assert (error.code, error.service) == (-32001, ADD)
+    assert error.data == {"timeout": scaled(0.2)}
+    request = await peer.next(ADD)
+    cancel = await peer.next("$/cancel")
+    assert cancel == {"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": request["id"]}}
+    assert client.in_flight == 0
+
+
+async def test_a_thousand_timeouts_leave_nothing_pending(peer: FakePeer, client: Client) -> None:
+    calls = [client.call(ADD, a=i, b=0, timeout=scaled(0.3)) for i in range(1000)]
+    results = await asyncio.gather(*calls, return_exceptions=True)
+    assert all(isinstance(r, DeadlineExceeded) for r in results)
+    assert client.in_flight == 0
+    requested: set[int] = set()
+    cancelled: set[int] = set()
+    while len(cancelled) < 1000:
+        message = await peer.next()
+        if message["method"] == "$/cancel":
+            cancelled.add(message["params"]["id"])
+        else:
+            requested.add(message["id"])
+    assert cancelled == requested
+
+
+async def test_cancelling_the_caller_cancels_the_call_on_the_server(
+    peer: FakePeer, client: Client
+) -> None:
+    task = asyncio.create_task(client.call(ADD, a=1, b=2))
+    request = await peer.next(ADD)
+    assert client.in_flight == 1
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    cancel = await peer.next("$/cancel")
+    assert cancel["params"] == {"id": request["id"]}
+    assert client.in_flight == 0
+
+
+async def test_a_late_reply_is_ignored(
+    peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    with pytest.raises(DeadlineExceeded):
+        await client.call(ADD, a=1, b=2, timeout=scaled(0.1))
+    late = await peer.next(ADD)
+    caplog.set_level(logging.DEBUG, logger="srvwire.client")
+    ws = peer.connections[0]
+    await ws.send(json.dumps({"jsonrpc": "2.0", "id": late["id"], "result": {"sum": 3}}))
+    await ws.send(json.dumps({"jsonrpc": "2.0", "id": "nobody", "result": {}}))
+    peer.reply = answer_add
+    assert (await client.call(ADD, a=2, b=2)).sum == 4
+    dropped = [r.getMessage() for r in caplog.records if "no call waits" in r.getMessage()]
+    assert dropped == [
+        f"dropping a reply for id {late['id']}: no call waits for it",
+        "dropping a reply for id 'nobody': no call waits for it",
+    ]
+
+
+# --- a connection that drops or goes bad ------------------------------------------------------
+
+
+@pytest.mark.parametrize("how", ["close", "abort"])
+async def test_a_peer_that_closes_mid_call_fails_every_pending_call(
+    peer: FakePeer, client: Client, how: str
+) -> None:
+    # The deadline is long: a call that waited for it would fail DeadlineExceeded, not
+    # ConnectionLost, so the exception type proves the calls failed when the connection did.
+    calls = [asyncio.create_task(client.call(ADD, a=i, timeout=scaled(30))) for i in range(20)]
+    for _ in calls:
+        await peer.next(ADD)
+    ws = peer.connections[0]
+    if how == "close":
+        await ws.close(1011, "going down")
+    else:
+        ws.transport.abort()
+    results = await asyncio.gather(*calls, return_exceptions=True)
+    assert all(type(r) is ConnectionLost for r in results), results
+    errors = [r for r in results if isinstance(r, ConnectionLost)]
+    assert {e.service for e in errors} == {ADD}
+    if how == "close":
+        assert errors[0].message == "the connection closed with code 1011 (going down)"
+        assert errors[0].data == {
+            "close_code": 1011,
+            "close_reason": "going down",
+            "url": peer.url,
+        }
+    else:
+        assert errors[0].message == "the connection dropped (no close frame)"
+    assert client.in_flight == 0
+    assert not client.connected
+    # Without reconnect=True the connection stays down: calls and waits fail fast.
+    with pytest.raises(ConnectionLost, match="not connected"):
+        await client.call(ADD, a=1)
+    with pytest.raises(ConnectionLost, match="not connected"):
+        await client.wait_for_service(ADD)
+
+
+@pytest.mark.parametrize(
+    ("garbage", "reason"),
+    [
+        ("this is not JSON", "Parse error"),
+        (b"\xff\xfe", "invalid UTF-8"),
+        ("[1, 2]", "expected an object, got a number"),
+        ('{"jsonrpc": "2.0", "id": 1}', "neither 'result' nor an 'error' object"),
+        ('{"jsonrpc": "2.0", "method": "$/services", "params": {}}', "needs params"),
+    ],
+)
+async def test_garbage_from_the_server_fails_the_connection(
+    peer: FakePeer,
+    client: Client,
+    garbage: str | bytes,
+    reason: str,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    task = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+    await peer.next(ADD)
+    ws = peer.connections[0]
+    await ws.send(garbage)
+    with pytest.raises(ConnectionLost) as caught:
+        await task
+    assert caught.value.message.startswith("the server broke the protocol: ")
+    assert reason in caught.value.message
+    assert caught.value.data["close_code"] == 1008
+    await ws.wait_closed()
+    assert ws.close_code == 1008
+    assert client.in_flight == 0
+    assert any("not JSON-RPC" in r.getMessage() for r in caplog.records)
+
+
+async def test_unknown_notifications_are_ignored(peer: FakePeer, client: Client) -> None:
+    peer.reply = answer_add
+    await peer.connections[0].send('{"jsonrpc":"2.0","method":"$/progress","params":{"n":1}}')
+    assert (await client.call(ADD, a=1, b=1)).sum == 2
+
+
+async def test_a_reply_larger_than_max_message_size_drops_the_connection(
+    peer: FakePeer,
+) -> None:
+    async def huge(ws: ServerConnection, message: dict[str, Any]) -> None:
+        result = {"success": True, "message": "x" * 2000}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": result}))
+
+    peer.reply = huge
+    async with connect(peer.url, max_message_size=1000) as client:
+        with pytest.raises(ConnectionLost) as caught:
+            await client.call("/trigger")
+    assert caught.value.data["close_code"] == 1009
+
+
+# --- waiting for services and for the server --------------------------------------------------
+
+
+async def test_wait_for_service_wakes_when_the_service_is_advertised(
+    peer: FakePeer, client: Client
+) -> None:
+    waiter = asyncio.create_task(client.wait_for_service("late", timeout=scaled(5)))
+    await asyncio.sleep(0)  # let the waiter start waiting (no message will satisfy it yet)
+    assert not waiter.done()
+    ws = peer.connections[0]
+    await ws.send(services_text([*SERVICES, {"name": "/other", "type": ADD_TYPE}]))
+    await ws.send(services_text([*SERVICES, {"name": "/late", "type": "std_srvs/srv/Empty"}]))
+    assert await waiter == ServiceInfo("/late", "std_srvs/srv/Empty")
+    assert peer.received.empty()  # woken by $/services, not by asking the server
+
+
+async def test_wait_for_service_gives_up_with_service_unavailable(client: Client) -> None:
+    with pytest.raises(ServiceUnavailable) as caught:
+        await client.wait_for_service("/never", timeout=scaled(0.2))
+    assert type(caught.value) is ServiceUnavailable
+    assert caught.value.service == "/never"
+    assert caught.value.message == f"the service was not advertised within {scaled(0.2):g} s"
+
+
+async def test_an_advertised_service_is_there_at_once(client: Client) -> None:
+    assert await client.wait_for_service(ADD, timeout=scaled(1)) == ServiceInfo(ADD, ADD_TYPE)
+
+
+async def test_wait_for_ready_waits_for_a_server_that_comes_up_later() -> None:
+    port = free_port()
+    late = FakePeer()
+    late.reply = answer_add
+    async with connect(f"ws://127.0.0.1:{port}", reconnect=True) as client:
+        assert not client.connected
+        with pytest.raises(ConnectionLost, match="not connected"):
+            await client.call(ADD, a=1, b=2)  # without wait_for_ready: fail fast
+        call = asyncio.create_task(
+            client.call(ADD, a=1, b=2, wait_for_ready=True, timeout=scaled(10))
+        )
+        await late.start(port)
+        try:
+            assert (await call).sum == 3
+            assert client.connected
+        finally:
+            await late.stop()
+
+
+async def test_wait_for_ready_gives_up_within_the_deadline() -> None:
+    url = f"ws://127.0.0.1:{free_port()}"
+    async with connect(url, reconnect=True) as client:
+        with pytest.raises(ServiceUnavailable) as caught:
+            await client.call(ADD, a=1, wait_for_ready=True, timeout=scaled(0.3))
+    assert type(caught.value) is ServiceUnavailable
+    assert caught.value.message == f"the service was not reachable within {scaled(0.3):g} s"
+
+
+async def test_reconnect_after_the_connection_drops(peer: FakePeer) -> None:
+    async with connect(peer.url, reconnect=True) as client:
+        pending = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+        await peer.next(ADD)
+        await peer.connections[0].close(1012, "restarting")
+        with pytest.raises(ConnectionLost):
+            await pending  # a call in flight is never retried: it may have run
+        peer.reply = answer_add
+        response = await client.call(ADD, a=2, b=3, wait_for_ready=True, timeout=scaled(5))
+        assert response.sum == 5
+        assert len(peer.connections) == 2
+
+
+# --- against the real server ------------------------------------------------------------------
+
+
+def add(request: Any) -> dict[str, int]:
+    return {"sum": request.a + request.b}
+
+
+async def query_state(request: Any) -> dict[str, Any]:
+    names = ["x", "y"] if request.query_type == "pose" else []
+    return {"success": bool(names), "values": [1.5, -2.0][: len(names)], "names": names}
+
+
+@pytest.fixture
+async def server() -> AsyncIterator[RunningServer]:
+    srv = Server(max_in_flight=2000)
+    srv.add_service(ADD, load_service(ADD_TYPE), add)
+    srv.add_service(
+        "/robot1/get_robot_state",
+        load_service("advanced_communication_tutorials/srv/RobotStateQuery"),
+        query_state,
+    )
+    async with serve(srv, "127.0.0.1", 0) as running:
+        yield running
+
+
+async def test_round_trips_with_the_real_server(server: RunningServer) -> None:
+    async with connect(server.url, timeout=scaled(5)) as client:
+        assert (await client.call(ADD, a=2**40, b=-(2**62))).sum == 2**40 - 2**62
+        assert (await client.call("add_two_ints", {"a": 1})).sum == 1
+        state = await client.call("/robot1/get_robot_state", query_type="pose")
+        assert (state.success, state.values, state.names) == (True, [1.5, -2.0], ["x", "y"])
+        assert state.message == ""  # every field is present in the result
+        add_proxy = client.service(ADD)
+        assert (await add_proxy(a=20, b=22)).sum == 42
+
+
+async def test_errors_from_the_real_server(server: RunningServer) -> None:
+    async with connect(server.url, timeout=scaled(5)) as client:
+        with pytest.raises(ServiceNotFound) as not_found:
+            await client.call("/add_two_int", a=1)
+        assert not_found.value.service == "/add_two_int"
+        assert ADD in not_found.value.data["candidates"]
+        # A type that validates here but not on the server: the server's InvalidParams.
+        set_bool = load_service("std_srvs/srv/SetBool")
+        with pytest.raises(InvalidParams) as invalid:
+            await client.call(ADD, srv_type=set_bool, data=True)
+        assert [e["path"] for e in invalid.value.errors] == ["data"]
+        assert (await client.call(ADD, a=1, b=1)).sum == 2
+
+
+async def test_list_services_on_the_real_server(server: RunningServer) -> None:
+    async with connect(server.url) as client:
+        assert await client.list_services() == [
+            ServiceInfo(ADD, ADD_TYPE),
+            ServiceInfo(
+                "/robot1/get_robot_state", "advanced_communication_tutorials/srv/RobotStateQuery"
+            ),
+        ]
+
+
+async def test_a_thousand_concurrent_calls_on_one_connection(server: RunningServer) -> None:
+    async with connect(server.url, timeout=scaled(20)) as client:
+        responses = await asyncio.gather(*(client.call(ADD, a=i, b=i) for i in range(1000)))
+        assert [r.sum for r in responses] == [2 * i for i in range(1000)]
+        assert client.in_flight == 0
+
+
+async def test_a_hundred_connections_at_once(server: RunningServer) -> None:
+    async def one(i: int) -> int:
+        async with connect(server.url, timeout=scaled(20), open_timeout=scaled(20)) as client:
+            response = await client.call(ADD, a=i, b=1)
+            return int(response.sum)
+
+    assert await asyncio.gather(*(one(i) for i in range(100))) == [i + 1 for i in range(100)]
+
+
+async def test_wait_for_service_wakes_when_the_real_server_adds_it(
+    server: RunningServer,
+) -> None:
+    trigger = load_service("std_srvs/srv/Trigger")
+    async with connect(server.url) as client:
+        waiter = asyncio.create_task(client.wait_for_service("/late", timeout=scaled(5)))
+        await asyncio.sleep(0)  # the waiter is waiting now; nothing has added /late yet
+        assert not waiter.done()
+        server.server.add_service("/late", trigger, lambda request: {"success": True})
+        assert await waiter == ServiceInfo("/late", "std_srvs/srv/Trigger")
+        assert (await client.call("/late")).success is True
+        server.server.remove_service("/late")
+        with pytest.raises(ServiceUnavailable):
+            await client.wait_for_service("/gone", timeout=scaled(0.2))
+
+
+async def test_wait_for_ready_waits_for_the_real_server_to_come_up() -> None:
+    port = free_port()
+    srv = Server()
+    srv.add_service(ADD, load_service(ADD_TYPE), add)
+    async with connect(f"ws://127.0.0.1:{port}", reconnect=True) as client:
+        call = asyncio.create_task(
+            client.call(ADD, a=3, b=4, wait_for_ready=True, timeout=scaled(10))
+        )
+        assert not client.connected
+        async with serve(srv, "127.0.0.1", port):
+            assert (await call).sum == 7
+
+
+async def test_an_error_without_an_id_is_logged(
+    peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    error = {"code": -32700, "message": "Parse error", "data": {"status": "PARSE_ERROR"}}
+    await peer.connections[0].send(json.dumps({"jsonrpc": "2.0", "id": None, "error": error}))
+    peer.reply = answer_add
+    assert (await client.call(ADD, a=1, b=1)).sum == 2
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        "the server could not read a message: PARSE_ERROR (-32700): Parse error"
+    ]
+
+
+async def test_a_failing_reader_fails_the_calls_instead_of_leaving_them_waiting(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(data: str | bytes) -> None:
+        raise RuntimeError("a bug in the reader")
+
+    monkeypatch.setattr(client, "_receive", broken)
+    task = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+    await peer.next(ADD)
+    await peer.connections[0].send('{"jsonrpc":"2.0","method":"$/progress"}')
+    with pytest.raises(ConnectionLost) as caught:
+        await task
+    assert caught.value.message == "the client failed to process a message from the server"
+    assert client.in_flight == 0

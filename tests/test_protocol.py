@@ -1,0 +1,407 @@
+"""The sans-I/O JSON-RPC layer: text in, messages out, and back. No event loop here."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from srvwire.errors import (
+    DeadlineExceeded,
+    InvalidParams,
+    InvalidRequest,
+    ParseError,
+    ServiceError,
+    ServiceNotFound,
+)
+from srvwire.protocol import (
+    MAX_DEPTH,
+    ErrorResponse,
+    Incoming,
+    Notification,
+    RawJSON,
+    Request,
+    Response,
+    cancel_notification,
+    encode_json,
+    encode_result,
+    parse_incoming,
+    parse_replies,
+    serialize,
+    serialize_batch,
+    services_notification,
+)
+
+
+def error_of(incoming: Incoming, index: int = 0) -> dict[str, Any]:
+    item = incoming.items[index]
+    assert isinstance(item, ErrorResponse), item
+    decoded: dict[str, Any] = json.loads(item.serialize())
+    return decoded
+
+
+# --- parsing what clients send ------------------------------------------------------------------
+
+
+def test_a_request_by_name() -> None:
+    text = '{"jsonrpc": "2.0", "method": "subtract", "params": {"minuend": 42}, "id": 3}'
+    assert parse_incoming(text) == Incoming((Request(3, "subtract", {"minuend": 42}),))
+
+
+def test_a_request_by_position_and_without_params() -> None:
+    assert parse_incoming('{"jsonrpc":"2.0","method":"s","params":[42,23],"id":"a"}').items == (
+        Request("a", "s", [42, 23]),
+    )
+    assert parse_incoming(b'{"jsonrpc":"2.0","method":"s","id":null}').items == (
+        Request(None, "s", None),
+    )
+
+
+def test_a_notification_has_no_id_member() -> None:
+    assert parse_incoming('{"jsonrpc":"2.0","method":"update","params":[1,2]}').items == (
+        Notification("update", [1, 2]),
+    )
+
+
+def test_meta_timeout_is_taken_out_of_params() -> None:
+    text = '{"jsonrpc":"2.0","id":1,"method":"m","params":{"a":1,"_meta":{"timeout":2.5,"x":0}}}'
+    assert parse_incoming(text).items == (Request(1, "m", {"a": 1}, timeout=2.5),)
+    note = '{"jsonrpc":"2.0","method":"m","params":{"_meta":{}}}'
+    assert parse_incoming(note).items == (Notification("m", {}),)
+
+
+@pytest.mark.parametrize(
+    ("meta", "path", "message"),
+    [
+        ('"soon"', "_meta", "invalid _meta: must be an object, not a string"),
+        (
+            '{"timeout":-1}',
+            "_meta.timeout",
+            "invalid _meta.timeout: must be a number of seconds >= 0, not -1",
+        ),
+        (
+            '{"timeout":"1"}',
+            "_meta.timeout",
+            'invalid _meta.timeout: must be a number of seconds >= 0, not "1"',
+        ),
+        (
+            '{"timeout":true}',
+            "_meta.timeout",
+            "invalid _meta.timeout: must be a number of seconds >= 0, not true",
+        ),
+        (
+            '{"timeout":Infinity}',
+            "_meta.timeout",
+            "invalid _meta.timeout: must be a number of seconds >= 0, not null",
+        ),
+    ],
+)
+def test_a_bad_meta_is_invalid_params(meta: str, path: str, message: str) -> None:
+    reply = error_of(
+        parse_incoming('{"jsonrpc":"2.0","id":7,"method":"m","params":{"_meta":' + meta + "}}")
+    )
+    assert reply["id"] == 7
+    assert reply["error"]["code"] == -32602
+    assert reply["error"]["message"] == message
+    assert reply["error"]["data"]["errors"][0]["path"] == path
+
+
+def test_not_json_is_a_parse_error_with_a_null_id() -> None:
+    reply = error_of(parse_incoming('{"jsonrpc": "2.0", "method": "foobar, "params": "bar", "baz]'))
+    assert reply == {
+        "jsonrpc": "2.0",
+        "id": None,
+        "error": {
+            "code": -32700,
+            "message": "Parse error: expected `,` or `}` at line 1 column 40",
+            "data": {"status": "PARSE_ERROR"},
+        },
+    }
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        (b'{"a":"\xff"}', "Parse error: invalid UTF-8 at byte 6"),
+        (b"\xc0\xaf", "Parse error: invalid UTF-8 at byte 0"),
+        (b"\xed\xa0\x80", "Parse error: invalid UTF-8 at byte 0"),  # an encoded surrogate
+        ("", "Parse error: EOF while parsing a value at line 1 column 0"),
+        ("{} {}", "Parse error: trailing characters at line 1 column 4"),
+        ('"\\ud800"', "Parse error: unexpected end of hex escape at line 1 column 8"),
+        ("\ud800", "Parse error: Expected bytes, bytearray or str"),
+    ],
+)
+def test_parse_errors(data: str | bytes, message: str) -> None:
+    assert error_of(parse_incoming(data))["error"]["message"] == message
+
+
+@pytest.mark.parametrize("opener", ["[", '{"a":'])
+def test_deep_nesting_is_a_parse_error_not_a_recursion_error(opener: str) -> None:
+    closer = "]" if opener == "[" else "}"
+    text = opener * 100_000 + closer * 100_000
+    reply = error_of(parse_incoming(text))
+    assert reply["error"]["code"] == -32700
+    assert "recursion limit exceeded" in reply["error"]["message"]
+    assert parse_incoming("[" * (MAX_DEPTH - 1) + "]" * (MAX_DEPTH - 1)).is_batch
+
+
+@pytest.mark.parametrize(
+    ("text", "id", "message"),
+    [
+        (
+            '{"jsonrpc":"2.0","method":1,"params":"bar"}',
+            None,
+            "Invalid Request: 'method' must be a string, not a number",
+        ),
+        ('{"jsonrpc":"2.0","id":4}', 4, "Invalid Request: 'method' must be a string, not missing"),
+        (
+            '{"jsonrpc":"2.0","id":4,"method":null}',
+            4,
+            "Invalid Request: 'method' must be a string, not null",
+        ),
+        ('{"method":"m","id":"x"}', "x", "Invalid Request: 'jsonrpc' must be exactly \"2.0\""),
+        (
+            '{"jsonrpc":2.0,"method":"m","id":1}',
+            1,
+            "Invalid Request: 'jsonrpc' must be exactly \"2.0\"",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"m","id":{"a":1}}',
+            None,
+            "Invalid Request: 'id' must be a string, a number or null, not an object",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"m","id":true}',
+            None,
+            "Invalid Request: 'id' must be a string, a number or null, not a boolean",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"m","id":2,"params":"p"}',
+            2,
+            "Invalid Request: 'params' must be an object or an array, not a string",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"m","id":2,"params":null}',
+            2,
+            "Invalid Request: 'params' must be an object or an array, not null",
+        ),
+        ('"hello"', None, "Invalid Request: expected an object, got a string"),
+        ("[]", None, "Invalid Request: empty batch"),
+    ],
+)
+def test_invalid_requests(text: str, id: Any, message: str) -> None:
+    incoming = parse_incoming(text)
+    assert not incoming.is_batch
+    reply = error_of(incoming)
+    assert reply == {
+        "jsonrpc": "2.0",
+        "id": id,
+        "error": {"code": -32600, "message": message, "data": {"status": "INVALID_REQUEST"}},
+    }
+
+
+def test_a_batch_keeps_its_order_and_answers_invalid_items_in_place() -> None:
+    text = """[
+        {"jsonrpc": "2.0", "method": "sum", "params": [1,2,4], "id": "1"},
+        {"jsonrpc": "2.0", "method": "notify_hello", "params": [7]},
+        {"foo": "boo"},
+        1
+    ]"""
+    incoming = parse_incoming(text)
+    assert incoming.is_batch
+    first, second, third, fourth = incoming.items
+    assert first == Request("1", "sum", [1, 2, 4])
+    assert second == Notification("notify_hello", [7])
+    assert isinstance(third, ErrorResponse) and third.id is None
+    assert isinstance(fourth, ErrorResponse) and isinstance(fourth.error, InvalidRequest)
+
+
+def test_ids_come_back_exactly() -> None:
+    big = 2**64 - 1
+    request = parse_incoming(f'{{"jsonrpc":"2.0","id":{big},"method":"m"}}').items[0]
+    assert isinstance(request, Request) and request.id == big
+    assert encode_result(big, "0") == f'{{"jsonrpc":"2.0","id":{big},"result":0}}'
+    assert encode_result(1.5, "0") == '{"jsonrpc":"2.0","id":1.5,"result":0}'
+    assert encode_result('a"b', "0") == '{"jsonrpc":"2.0","id":"a\\"b","result":0}'
+
+
+# --- building what servers and clients send ----------------------------------------------------
+
+
+def test_responses_embed_raw_json_as_it_is() -> None:
+    raw = '{"sum": 3, "spacing" : [ ]}'
+    assert Response(5, RawJSON(raw)).serialize() == (
+        '{"jsonrpc":"2.0","id":5,"result":{"sum": 3, "spacing" : [ ]}}'
+    )
+    assert Response("x", {"a": [1, None]}).serialize() == (
+        '{"jsonrpc":"2.0","id":"x","result":{"a":[1,null]}}'
+    )
+    assert encode_result(5, raw) == Response(5, RawJSON(raw)).serialize()
+
+
+def test_error_responses_carry_status_and_data() -> None:
+    reply = ErrorResponse(9, ServiceError(42, "out of paper", {"tray": 2})).serialize()
+    assert reply == (
+        '{"jsonrpc":"2.0","id":9,"error":{"code":42,"message":"out of paper","data":{"tray":2}}}'
+    )
+    missing = ErrorResponse(None, ServiceNotFound("no service named /x", {"candidates": []}))
+    assert json.loads(missing.serialize())["error"] == {
+        "code": -32601,
+        "message": "no service named /x",
+        "data": {"status": "SERVICE_NOT_FOUND", "candidates": []},
+    }
+
+
+def test_serializing_never_fails_on_odd_data() -> None:
+    error = ServiceError(1, "odd", {"set": {1}, "nan": float("nan"), "obj": object})
+    data = json.loads(error_response_text(error))["error"]["data"]
+    assert data["set"] == [1]
+    assert data["nan"] is None
+    assert data["obj"].startswith("<class")
+
+
+def error_response_text(error: Any) -> str:
+    return ErrorResponse(1, error).serialize()
+
+
+def test_requests_carry_the_timeout_in_meta() -> None:
+    assert Request(1, "/m").serialize() == '{"jsonrpc":"2.0","id":1,"method":"/m"}'
+    assert Request(1, "/m", {"a": 1}, timeout=2).serialize() == (
+        '{"jsonrpc":"2.0","id":1,"method":"/m","params":{"a":1,"_meta":{"timeout":2}}}'
+    )
+    assert Request(2, "/m", RawJSON(' {"a": 1}'), timeout=0.5).serialize() == (
+        '{"jsonrpc":"2.0","id":2,"method":"/m","params":{"_meta":{"timeout":0.5},"a": 1}}'
+    )
+    assert Request(3, "/m", RawJSON("{ }"), timeout=1.0).serialize() == (
+        '{"jsonrpc":"2.0","id":3,"method":"/m","params":{"_meta":{"timeout":1.0}}}'
+    )
+    assert Request(4, "/m", timeout=1.0).serialize() == (
+        '{"jsonrpc":"2.0","id":4,"method":"/m","params":{"_meta":{"timeout":1.0}}}'
+    )
+    assert Notification("/n", [1]).serialize() == '{"jsonrpc":"2.0","method":"/n","params":[1]}'
+    with pytest.raises(ValueError, match="params by name"):
+        Request(5, "/m", [1], timeout=1.0).serialize()
+    with pytest.raises(ValueError, match="JSON object"):
+        Request(5, "/m", RawJSON("[1]"), timeout=1.0).serialize()
+
+
+@pytest.mark.parametrize(
+    "message",
+    [
+        Request(1, "/m", {"a": [1, 2]}, timeout=3.0),
+        Request("id", "/m", [1, "x"]),
+        Notification("/m", {"a": 1}),
+        Notification("/m"),
+    ],
+)
+def test_what_a_client_sends_the_server_reads_back(message: Request | Notification) -> None:
+    assert parse_incoming(serialize(message)).items == (message,)
+
+
+def test_batches_and_protocol_notifications() -> None:
+    assert serialize_batch([Response(1, 2), '{"pre":"made"}']) == (
+        '[{"jsonrpc":"2.0","id":1,"result":2},{"pre":"made"}]'
+    )
+    assert cancel_notification(7).serialize() == (
+        '{"jsonrpc":"2.0","method":"$/cancel","params":{"id":7}}'
+    )
+    assert services_notification([("/b", "p/srv/B"), ("/a", "p/srv/A")]).serialize() == (
+        '{"jsonrpc":"2.0","method":"$/services","params":{"services":'
+        '[{"name":"/a","type":"p/srv/A"},{"name":"/b","type":"p/srv/B"}]}}'
+    )
+    assert encode_json(RawJSON("[1]")) == "[1]"
+
+
+# --- parsing what servers send -------------------------------------------------------------------
+
+
+def test_parse_replies() -> None:
+    replies = parse_replies(
+        '[{"jsonrpc":"2.0","id":1,"result":{"sum":3}},'
+        '{"jsonrpc":"2.0","id":2,"error":{"code":-32001,"message":"late",'
+        '"data":{"status":"DEADLINE_EXCEEDED"}}},'
+        '{"jsonrpc":"2.0","method":"$/services","params":{"services":[]}}]'
+    )
+    assert replies[0] == Response(1, {"sum": 3})
+    error = replies[1]
+    assert isinstance(error, ErrorResponse) and isinstance(error.error, DeadlineExceeded)
+    assert error.error.message == "late" and error.error.data is None
+    assert replies[2] == Notification("$/services", {"services": []})
+
+
+def test_parse_replies_round_trips_every_error() -> None:
+    for error in (
+        InvalidParams("bad", {"errors": [{"path": "a", "message": "m", "type": "t"}]}),
+        ServiceError(12, "app", [1, 2]),
+    ):
+        (reply,) = parse_replies(ErrorResponse(3, error).serialize())
+        assert isinstance(reply, ErrorResponse)
+        assert type(reply.error) is type(error)
+        assert (reply.error.code, reply.error.message, reply.error.data) == (
+            error.code,
+            error.message,
+            error.data,
+        )
+
+
+@pytest.mark.parametrize(
+    ("text", "error", "message"),
+    [
+        ("nope", ParseError, "Parse error: expected ident at line 1 column 2"),
+        ("[]", InvalidRequest, "Invalid reply: empty batch"),
+        ("3", InvalidRequest, "Invalid reply: expected an object, got a number"),
+        ('{"id":1,"result":1}', InvalidRequest, "Invalid reply: 'jsonrpc' must be exactly \"2.0\""),
+        (
+            '{"jsonrpc":"2.0","result":1}',
+            InvalidRequest,
+            "Invalid reply: 'id' missing or not a string, a number or null",
+        ),
+        (
+            '{"jsonrpc":"2.0","id":1,"result":1,"error":{}}',
+            InvalidRequest,
+            "Invalid reply: both 'result' and 'error'",
+        ),
+        (
+            '{"jsonrpc":"2.0","id":1}',
+            InvalidRequest,
+            "Invalid reply: neither 'result' nor an 'error' object",
+        ),
+        (
+            '{"jsonrpc":"2.0","id":1,"error":{"code":"1","message":"m"}}',
+            InvalidRequest,
+            "Invalid reply: 'error' needs an integer code and a string message",
+        ),
+        ('{"jsonrpc":"2.0","method":5}', InvalidRequest, "Invalid reply: malformed notification"),
+    ],
+)
+def test_parse_replies_refuses_what_is_not_json_rpc(
+    text: str, error: type[Exception], message: str
+) -> None:
+    with pytest.raises(error) as caught:
+        parse_replies(text)
+    assert caught.value.args[0] == message
+
+
+# --- nothing a peer sends makes parsing raise ----------------------------------------------------
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(),
+    lambda children: st.lists(children) | st.dictionaries(st.text(), children),
+    max_leaves=20,
+)
+
+
+@settings(max_examples=200)
+@given(st.one_of(st.text(), st.binary(), json_values.map(json.dumps)))
+def test_parse_incoming_never_raises_and_every_error_serializes(data: str | bytes) -> None:
+    incoming = parse_incoming(data)
+    assert incoming.items
+    for item in incoming.items:
+        if isinstance(item, ErrorResponse):
+            reply = json.loads(item.serialize())
+            assert set(reply) == {"jsonrpc", "id", "error"}
+            assert isinstance(reply["error"]["code"], int)
+        else:
+            assert isinstance(item, Request | Notification)

@@ -1,0 +1,900 @@
+"""The server over real sockets on 127.0.0.1, driven by a raw WebSocket client."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect as sync_connect
+
+from conftest import Echo, Subtract, Wire, build, open_wire, subtract
+from srvwire.dispatch import Context
+from srvwire.errors import RegistrationError, ServiceError
+from srvwire.loader import InterfaceLoader
+from srvwire.server import RunningServer, Server, serve
+from support import ROOT, scaled
+
+Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
+Notify = build("int64[] values\n---\n", "Notify")
+GetData = build("---\nstring text\nint64 count\n", "GetData")
+
+
+def request(method: str, params: Any = None, id: Any = 1) -> dict[str, Any]:
+    message: dict[str, Any] = {"jsonrpc": "2.0", "method": method, "id": id}
+    if params is not None:
+        message["params"] = params
+    return message
+
+
+def error(reply: Any) -> tuple[Any, int, str]:
+    """``(id, code, status)`` of an error reply, checking its shape on the way."""
+    assert set(reply) == {"jsonrpc", "id", "error"}, reply
+    assert reply["jsonrpc"] == "2.0"
+    return reply["id"], reply["error"]["code"], reply["error"]["data"]["status"]
+
+
+async def closed_code(wire: Wire) -> int | None:
+    """Read until the connection closes; return its close code."""
+    with pytest.raises(ConnectionClosed):
+        async with asyncio.timeout(scaled(5)):
+            while True:
+                await wire.ws.recv()
+    return wire.ws.close_code
+
+
+# --- the JSON-RPC 2.0 specification's examples ----------------------------------------------------
+
+
+@pytest.fixture
+def spec_server(server: Server) -> Server:
+    server.add_service("/sum", Sum, lambda r: {"sum": r.a + r.b + r.c})
+    server.add_service("/notify_hello", Notify, lambda r: {})
+    server.add_service("/update", Notify, lambda r: {})
+    server.add_service("/get_data", GetData, lambda r: {"text": "hello", "count": 5})
+    return server
+
+
+@pytest.fixture
+async def spec_wire(spec_server: Server) -> Any:
+    async with serve(spec_server, "127.0.0.1", 0) as running:
+        wire = await open_wire(running.url)
+        yield wire
+        await wire.ws.close()
+
+
+async def test_spec_positional_and_named_params(spec_wire: Wire) -> None:
+    w = spec_wire
+    cases = [
+        ('{"jsonrpc": "2.0", "method": "subtract", "params": [42, 23], "id": 1}', 19, 1),
+        ('{"jsonrpc": "2.0", "method": "subtract", "params": [23, 42], "id": 2}', -19, 2),
+        (
+            '{"jsonrpc": "2.0", "method": "subtract", '
+            '"params": {"subtrahend": 23, "minuend": 42}, "id": 3}',
+            19,
+            3,
+        ),
+        (
+            '{"jsonrpc": "2.0", "method": "subtract", '
+            '"params": {"minuend": 42, "subtrahend": 23}, "id": 4}',
+            19,
+            4,
+        ),
+    ]
+    for text, difference, id in cases:
+        assert await w.call(text) == {
+            "jsonrpc": "2.0",
+            "result": {"difference": difference},
+            "id": id,
+        }
+
+
+async def test_spec_notifications_get_no_reply(spec_wire: Wire) -> None:
+    await spec_wire.send('{"jsonrpc": "2.0", "method": "update", "params": [[1,2,3,4,5]]}')
+    await spec_wire.send('{"jsonrpc": "2.0", "method": "foobar"}')
+    reply = await spec_wire.call(request("subtract", [1, 1], id="after"))
+    assert reply["id"] == "after"  # nothing came before it
+
+
+async def test_spec_errors(spec_wire: Wire) -> None:
+    w = spec_wire
+    reply = await w.call('{"jsonrpc": "2.0", "method": "foobar", "id": "1"}')
+    assert error(reply) == ("1", -32601, "SERVICE_NOT_FOUND")
+    reply = await w.call('{"jsonrpc": "2.0", "method": "foobar, "params": "bar", "baz]')
+    assert error(reply) == (None, -32700, "PARSE_ERROR")
+    reply = await w.call('{"jsonrpc": "2.0", "method": 1, "params": "bar"}')
+    assert error(reply) == (None, -32600, "INVALID_REQUEST")
+
+
+async def test_spec_batches(spec_wire: Wire) -> None:
+    w = spec_wire
+    reply = await w.call(
+        '[{"jsonrpc": "2.0", "method": "sum", "params": [1,2,4], "id": "1"},'
+        '{"jsonrpc": "2.0", "method"]'
+    )
+    assert error(reply) == (None, -32700, "PARSE_ERROR")
+    assert error(await w.call("[]")) == (None, -32600, "INVALID_REQUEST")
+    (one,) = await w.call("[1]")
+    assert error(one) == (None, -32600, "INVALID_REQUEST")
+    three = await w.call("[1,2,3]")
+    assert [error(r) for r in three] == [(None, -32600, "INVALID_REQUEST")] * 3
+
+
+async def test_spec_mixed_batch(spec_wire: Wire) -> None:
+    replies = await spec_wire.call(
+        """[
+        {"jsonrpc": "2.0", "method": "sum", "params": [1,2,4], "id": "1"},
+        {"jsonrpc": "2.0", "method": "notify_hello", "params": [[7]]},
+        {"jsonrpc": "2.0", "method": "subtract", "params": [42,23], "id": "2"},
+        {"foo": "boo"},
+        {"jsonrpc": "2.0", "method": "foo.get", "params": {"name": "myself"}, "id": "5"},
+        {"jsonrpc": "2.0", "method": "get_data", "id": "9"}
+    ]"""
+    )
+    assert replies[0] == {"jsonrpc": "2.0", "result": {"sum": 7}, "id": "1"}
+    assert replies[1] == {"jsonrpc": "2.0", "result": {"difference": 19}, "id": "2"}
+    assert error(replies[2]) == (None, -32600, "INVALID_REQUEST")
+    assert error(replies[3]) == ("5", -32601, "SERVICE_NOT_FOUND")
+    assert replies[4] == {"jsonrpc": "2.0", "result": {"text": "hello", "count": 5}, "id": "9"}
+    assert len(replies) == 5
+
+
+async def test_spec_all_notification_batch_gets_nothing(spec_wire: Wire) -> None:
+    await spec_wire.send(
+        '[{"jsonrpc": "2.0", "method": "notify_sum", "params": [1,2,4]},'
+        '{"jsonrpc": "2.0", "method": "notify_hello", "params": [[7]]}]'
+    )
+    assert (await spec_wire.call(request("subtract", [2, 1], id="next")))["id"] == "next"
+
+
+# --- types: ROS 2's own test services ------------------------------------------------------------
+
+
+def mirror(srv: Any) -> Any:
+    def handler(request: Any) -> Any:
+        return srv.Response.model_validate_json(request.model_dump_json())
+
+    return handler
+
+
+EXTREMES = {
+    "bool_value": True,
+    "byte_value": 255,
+    "char_value": 255,
+    "float32_value": 3.4028234663852886e38,
+    "float64_value": -1.7976931348623157e308,
+    "int8_value": -128,
+    "uint8_value": 255,
+    "int16_value": -32768,
+    "uint16_value": 65535,
+    "int32_value": -(2**31),
+    "uint32_value": 2**32 - 1,
+    "int64_value": -(2**63),
+    "uint64_value": 2**64 - 1,
+    "string_value": "ü" * 20_000,
+}
+
+
+@pytest.fixture
+async def ros_wire(ros_interfaces: InterfaceLoader) -> Any:
+    server = Server()
+    for name in ("BasicTypes", "Arrays", "Empty"):
+        srv = ros_interfaces.load_service(f"ros_test_interfaces/srv/{name}")
+        server.add_service(name.lower(), srv, mirror(srv))
+    async with serve(server, "127.0.0.1", 0) as running:
+        wire = await open_wire(running.url)
+        yield wire
+        await wire.ws.close()
+
+
+async def test_basic_types_round_trip_at_their_extremes(ros_wire: Wire) -> None:
+    reply = await ros_wire.call(request("basictypes", EXTREMES))
+    assert reply == {"jsonrpc": "2.0", "id": 1, "result": EXTREMES}
+    low = {
+        **EXTREMES,
+        "float32_value": -3.4028234663852886e38,
+        "uint64_value": 0,
+        "string_value": "",
+    }
+    assert (await ros_wire.call(request("basictypes", low)))["result"] == low
+
+
+async def test_arrays_round_trip(ros_wire: Wire) -> None:
+    small = {k: v for k, v in EXTREMES.items() if k != "string_value"}
+    params = {
+        "bool_values": [True, False, True],
+        "byte_values": [0, 1, 255],
+        "float32_values": [1.125, 0.0, -3.4028234663852886e38],
+        "int64_values": [-(2**63), 0, 2**63 - 1],
+        "uint64_values": [0, 1, 2**64 - 1],
+        "string_values": ["", "é" * 20_000, "z"],
+        "basic_types_values": [small, small, small],
+    }
+    result = (await ros_wire.call(request("arrays", params)))["result"]
+    for name, value in params.items():
+        assert result[name] == value, name
+    assert result["uint64_values_default"] == [0, 1, 2**64 - 1]
+    assert result["string_values_default"] == ["", "max value", "min value"]
+
+
+async def test_empty_round_trips(ros_wire: Wire) -> None:
+    assert (await ros_wire.call(request("empty")))["result"] == {}
+    assert (await ros_wire.call(request("empty", {})))["result"] == {}
+    assert (await ros_wire.call(request("empty", [])))["result"] == {}
+
+
+@pytest.mark.parametrize(
+    ("method", "params", "paths"),
+    [
+        ("basictypes", {"uint64_value": 2**64}, ["uint64_value"]),
+        (
+            "basictypes",
+            {"int8_value": -129, "float32_value": 3.5e38},
+            ["float32_value", "int8_value"],
+        ),
+        ("basictypes", {"uint32_value": "1", "bool_value": 1}, ["bool_value", "uint32_value"]),
+        ("basictypes", {"no_such_field": 1}, ["no_such_field"]),
+        ("basictypes", {"float64_value": 1e400, "byte_value": -1}, ["byte_value"]),
+        ("arrays", {"int8_values": [0, 0, 128]}, ["int8_values[2]"]),
+        ("arrays", {"bool_values": [True]}, ["bool_values"]),
+        (
+            "arrays",
+            {"basic_types_values": [{}, {"uint8_value": 256}, {}]},
+            ["basic_types_values[1].uint8_value"],
+        ),
+        ("basictypes", [1, 2, 3], ["bool_value"]),
+    ],
+)
+async def test_bad_values_name_their_fields(
+    ros_wire: Wire, method: str, params: Any, paths: list[str]
+) -> None:
+    reply = await ros_wire.call(request(method, params, id=5))
+    assert error(reply) == (5, -32602, "INVALID_PARAMS")
+    assert sorted(e["path"] for e in reply["error"]["data"]["errors"]) == paths
+    assert (await ros_wire.call(request("empty", id=6)))["result"] == {}
+
+
+# --- handlers that fail, hang, refuse ------------------------------------------------------------
+
+
+async def test_a_hanging_handler_meets_the_deadline(server: Server) -> None:
+    entered = asyncio.Event()
+    cancelled = asyncio.Event()
+
+    async def hangs(request: Any) -> Any:
+        entered.set()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            cancelled.set()
+
+    server.add_service("/hangs", Echo, hangs)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        reply = await w.call(request("hangs", {"_meta": {"timeout": scaled(0.05)}}, id=8))
+        assert error(reply) == (8, -32001, "DEADLINE_EXCEEDED")
+        assert reply["error"]["message"] == (
+            "the deadline for /hangs passed before the handler finished"
+        )
+        assert entered.is_set() and cancelled.is_set()
+        assert (await w.call(request("subtract", [3, 1], id=9)))["result"] == {"difference": 2}
+
+
+async def test_a_raising_handler_is_internal_without_a_traceback(
+    server: Server, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken(request: Any) -> Any:
+        raise RuntimeError("the password is hunter2")
+
+    server.add_service("/broken", Echo, broken)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("broken", id=1))
+        raw = await asyncio.wait_for(w.ws.recv(), scaled(5))
+        assert json.loads(raw) == {
+            "jsonrpc": "2.0",
+            "id": 1,
+            "error": {
+                "code": -32603,
+                "message": "handler for /broken raised an exception",
+                "data": {"status": "INTERNAL"},
+            },
+        }
+        assert "hunter2" not in str(raw) and "Traceback" not in str(raw)
+        assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
+    assert any("hunter2" in str(r.exc_info[1]) for r in caplog.records if r.exc_info)
+
+
+async def test_a_service_error_reaches_the_caller_as_it_was_raised(server: Server) -> None:
+    async def refuses(request: Any) -> Any:
+        raise ServiceError(4001, "the robot is e-stopped", {"since": "12:00", "ids": [1, 2]})
+
+    server.add_service("/refuses", Echo, refuses)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        assert await w.call(request("refuses", id="r")) == {
+            "jsonrpc": "2.0",
+            "id": "r",
+            "error": {
+                "code": 4001,
+                "message": "the robot is e-stopped",
+                "data": {"since": "12:00", "ids": [1, 2]},
+            },
+        }
+
+
+async def test_cancel_stops_the_handler_and_answers_cancelled(server: Server) -> None:
+    entered = asyncio.Event()
+    cancelled = asyncio.Event()
+
+    async def hangs(request: Any) -> Any:
+        entered.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            cancelled.set()
+            raise
+
+    server.add_service("/hangs", Echo, hangs)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("hangs", id="c1"))
+        await entered.wait()
+        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": "c1"}})
+        reply = await w.recv_reply()
+        assert error(reply) == ("c1", -32002, "CANCELLED")
+        assert reply["error"]["message"] == "the caller cancelled the call"
+        assert cancelled.is_set()
+        # cancelling what is not running is ignored; as a request it is answered with null
+        assert (await w.call(request("$/cancel", {"id": "c1"}, id=3)))["result"] is None
+        assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
+
+
+async def test_cancel_reaches_a_call_that_has_not_started_yet() -> None:
+    server = Server(max_in_flight=1)
+    ran: list[bool] = []
+
+    async def handler(request: Any) -> Any:
+        ran.append(True)
+        return {"text": "ran"}
+
+    server.add_service("/once", Echo, handler)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        # In one batch the call's task is created, then cancelled before its first step.
+        replies = await w.call(
+            [request("once", id=1), {"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}}]
+        )
+        assert [error(r) for r in replies] == [(1, -32002, "CANCELLED")]
+        assert not ran
+        # The cancelled call no longer counts against the limit of one.
+        assert (await w.call(request("once", id=2)))["result"] == {"text": "ran"}
+
+
+async def test_sync_handlers_do_not_block_the_loop(server: Server) -> None:
+    release = threading.Event()
+    entered = threading.Event()
+
+    def blocks(request: Any) -> Any:
+        entered.set()
+        release.wait(scaled(10))
+        return {"text": "released"}
+
+    server.add_service("/blocks", Echo, blocks)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("blocks", id="slow"))
+        assert await asyncio.to_thread(entered.wait, scaled(5))
+        assert await w.call(request("echo", {"text": "fast"}, id="fast")) == {
+            "jsonrpc": "2.0",
+            "id": "fast",
+            "result": {"text": "fast"},
+        }
+        release.set()
+        assert (await w.recv_reply())["result"] == {"text": "released"}
+
+
+async def test_a_handler_may_ask_for_its_context(server: Server) -> None:
+    seen: list[Context] = []
+
+    async def handler(request: Any, response: Any, context: Context) -> Any:
+        seen.append(context)
+        response.text = f"{context.service} {context.request_id}"
+        return response
+
+    server.add_service("/ctx", Echo, handler)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        reply = await w.call(request("ctx", {"_meta": {"timeout": scaled(30)}}, id=77))
+        assert reply["result"] == {"text": "/ctx 77"}
+        (context,) = seen
+        assert context.peer[0] == "127.0.0.1"
+        remaining = context.time_remaining()
+        assert remaining is not None and 0 < remaining <= scaled(30)
+
+
+async def test_a_notification_runs_its_handler_without_a_reply(server: Server) -> None:
+    ran = asyncio.Event()
+
+    async def handler(request: Any) -> Any:
+        ran.set()
+        raise RuntimeError("not reported to anyone but the log")
+
+    server.add_service("/fire", Echo, handler)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send({"jsonrpc": "2.0", "method": "fire", "params": {"text": "x"}})
+        await ran.wait()
+        assert (await w.call(request("subtract", [1, 1], id="n")))["id"] == "n"
+
+
+async def test_an_id_in_flight_cannot_be_reused(server: Server) -> None:
+    release = asyncio.Event()
+
+    async def waits(request: Any) -> Any:
+        await release.wait()
+        return {"text": "ok"}
+
+    server.add_service("/waits", Echo, waits)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("waits", id=1))
+        reply = await w.call(request("waits", id=1))
+        assert error(reply) == (1, -32600, "INVALID_REQUEST")
+        assert reply["error"]["message"] == (
+            "Invalid Request: id 1 is already used by a call in flight on this connection"
+        )
+        release.set()
+        assert (await w.recv_reply())["result"] == {"text": "ok"}
+
+
+# --- limits --------------------------------------------------------------------------------------
+
+
+async def test_a_flood_past_the_in_flight_limit_is_refused_and_the_connection_lives() -> None:
+    server = Server(max_in_flight=4)
+    release = asyncio.Event()
+    entered = 0
+    all_in = asyncio.Event()
+
+    async def waits(request: Any) -> Any:
+        nonlocal entered
+        entered += 1
+        if entered == 4:
+            all_in.set()
+        await release.wait()
+        return {"text": request.text}
+
+    server.add_service("/waits", Echo, waits)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        for i in range(10):
+            await w.send(request("waits", {"text": str(i)}, id=i))
+        refused = [await w.recv_reply() for _ in range(6)]
+        assert sorted(r["id"] for r in refused) == [4, 5, 6, 7, 8, 9]
+        for reply in refused:
+            assert error(reply)[1:] == (-32004, "RESOURCE_EXHAUSTED")
+            assert reply["error"]["data"]["limit"] == 4
+        await all_in.wait()
+        release.set()
+        done = [await w.recv_reply() for _ in range(4)]
+        assert sorted((r["id"], r["result"]["text"]) for r in done) == [
+            (i, str(i)) for i in range(4)
+        ]
+        assert (await w.call(request("waits", {"text": "again"}, id=99)))["result"] == {
+            "text": "again"
+        }
+
+
+async def test_a_thousand_concurrent_calls_on_one_connection() -> None:
+    server = Server(max_in_flight=1000)
+
+    async def add(request: Any) -> Any:
+        await asyncio.sleep(0)  # let the calls interleave
+        return {"difference": request.minuend - request.subtrahend}
+
+    server.add_service("/subtract", Subtract, add)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        for i in range(1000):
+            await w.send(request("subtract", [i, -i], id=i))
+        replies = [await w.recv_reply() for _ in range(1000)]
+        assert sorted((r["id"], r["result"]["difference"]) for r in replies) == [
+            (i, 2 * i) for i in range(1000)
+        ]
+
+
+async def test_a_hundred_connections_at_once(running: RunningServer) -> None:
+    async def one(i: int) -> Any:
+        w = await open_wire(running.url)
+        try:
+            return await w.call(request("subtract", [i, 1], id=i))
+        finally:
+            await w.ws.close()
+
+    replies = await asyncio.gather(*(one(i) for i in range(100)))
+    assert [r["result"]["difference"] for r in replies] == [i - 1 for i in range(100)]
+
+
+async def test_an_oversized_message_closes_only_that_connection() -> None:
+    server = Server(max_message_size=1024)
+    server.add_service("/subtract", Subtract, subtract)
+    async with serve(server, "127.0.0.1", 0) as running:
+        big = await open_wire(running.url)
+        other = await open_wire(running.url)
+        await big.send(request("subtract", {"minuend": 1, "pad": "x" * 2000}))
+        assert await closed_code(big) == 1009
+        assert (await other.call(request("subtract", [5, 3])))["result"] == {"difference": 2}
+
+
+async def test_invalid_utf8_closes_a_text_frame_but_answers_a_binary_one(wire: Wire) -> None:
+    await wire.ws.send(b'{"jsonrpc":"2.0","id":1,"method":"subtract","params":[2,1]}')
+    assert (await wire.recv_reply())["result"] == {"difference": 1}  # binary JSON is fine
+    await wire.ws.send(b"\xff\xfe{}")
+    reply = await wire.recv_reply()
+    assert error(reply) == (None, -32700, "PARSE_ERROR")
+    assert reply["error"]["message"] == "Parse error: invalid UTF-8 at byte 0"
+    await wire.ws.send(b'"\xff"', text=True)
+    assert await closed_code(wire) == 1007
+
+
+async def test_bad_input_is_answered_and_the_connection_carries_on(wire: Wire) -> None:
+    deep = "[" * 100_000 + "]" * 100_000
+    cases: list[tuple[Any, tuple[Any, int, str]]] = [
+        ("not json", (None, -32700, "PARSE_ERROR")),
+        (deep, (None, -32700, "PARSE_ERROR")),
+        ('{"a":' * 100_000 + "1" + "}" * 100_000, (None, -32700, "PARSE_ERROR")),
+        ('{"jsonrpc":"2.0","id":[1],"method":"subtract"}', (None, -32600, "INVALID_REQUEST")),
+        (request("subtract", "ab", id=2), (2, -32600, "INVALID_REQUEST")),
+        (request("subtract", {"minuend": "ab"}, id=3), (3, -32602, "INVALID_PARAMS")),
+        (request("subtract", {"minuend": 1.5}, id=4), (4, -32602, "INVALID_PARAMS")),
+        (request("subtract", {"minuend": True}, id=5), (5, -32602, "INVALID_PARAMS")),
+        (request("subtract", {"minuend": 2**63}, id=6), (6, -32602, "INVALID_PARAMS")),
+        (request("subtract", {"extra": 1}, id=7), (7, -32602, "INVALID_PARAMS")),
+        (request("subtract", [1, 2, 3], id=8), (8, -32602, "INVALID_PARAMS")),
+        (request("subtract", {"_meta": {"timeout": "x"}}, id=9), (9, -32602, "INVALID_PARAMS")),
+        (request("/a//b", id=10), (10, -32601, "SERVICE_NOT_FOUND")),
+        (request("$/whatever", id=11), (11, -32601, "SERVICE_NOT_FOUND")),
+    ]
+    for message, expected in cases:
+        assert error(await wire.call(message)) == expected, message
+    reply = await wire.call(request("subtract", {"minuend": 2**63, "subtrahend": "x"}, id=12))
+    assert [(e["path"], e["type"]) for e in reply["error"]["data"]["errors"]] == [
+        ("minuend", "less_than_equal"),
+        ("subtrahend", "int_type"),
+    ]
+    # The handler itself fails to build a response that overflows int64: INTERNAL.
+    overflow = await wire.call(request("subtract", [2**62, -(2**62)], id=13))
+    assert error(overflow) == (13, -32603, "INTERNAL")
+    assert (await wire.call(request("subtract", [9, 3])))["result"] == {"difference": 6}
+
+
+# --- services and discovery ----------------------------------------------------------------------
+
+
+async def test_services_are_announced_on_connect_and_on_change(
+    server: Server, running: RunningServer
+) -> None:
+    w = await open_wire(running.url)
+    assert w.services == [
+        {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
+        {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+    ]
+    server.add_service("/robot1/sum", Sum, lambda r: {"sum": r.a + r.b + r.c})
+    note = await w.recv()
+    assert note == {
+        "jsonrpc": "2.0",
+        "method": "$/services",
+        "params": {
+            "services": [
+                {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
+                {"name": "/robot1/sum", "type": "srvwire_tests/srv/Sum"},
+                {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+            ]
+        },
+    }
+    server.remove_service("echo")
+    names = [s["name"] for s in (await w.recv())["params"]["services"]]
+    assert names == ["/robot1/sum", "/subtract"]
+    await asyncio.to_thread(server.add_service, "/from_a_thread", Sum, lambda r: {"sum": 1})
+    names = [s["name"] for s in (await w.recv())["params"]["services"]]
+    assert names == ["/from_a_thread", "/robot1/sum", "/subtract"]
+    assert (await w.call(request("robot1/sum", [1, 2, 3])))["result"] == {"sum": 6}
+    assert error(await w.call(request("echo")))[1] == -32601
+
+
+async def test_registration_errors_reach_the_caller_verbatim(server: Server) -> None:
+    with pytest.raises(RegistrationError) as caught:
+        server.add_service("/subtract", Subtract, subtract)
+    assert str(caught.value) == (
+        "a service named /subtract is already registered (srvwire_tests/srv/Subtract); "
+        "remove it first"
+    )
+    with pytest.raises(RegistrationError) as caught:
+
+        @server.service("/robot//x", Subtract)
+        def handler(request: Any) -> Any: ...
+
+    assert str(caught.value) == (
+        "service name '/robot//x' contains '//'; a name is segments of letters, digits and '_', "
+        "each starting with a letter, joined by '/'"
+    )
+
+    @server.service("/robot/x", Subtract)
+    def decorated(request: Any) -> Any:
+        return {"difference": 0}
+
+    assert decorated(None) == {"difference": 0}
+    assert "/robot/x" in server.registry
+
+
+async def test_rpc_discover(wire: Wire) -> None:
+    doc = (await wire.call(request("rpc.discover", id="d")))["result"]
+    assert doc["openrpc"] == "1.3.2"
+    assert doc["info"] == {"title": "srvwire", "version": "0.1.0"}
+    assert [m["name"] for m in doc["methods"]] == ["/echo", "/subtract"]
+    method = doc["methods"][1]
+    assert method["x-srvwire-type"] == "srvwire_tests/srv/Subtract"
+    assert method["x-srvwire-srv"].startswith("# Subtract one integer")
+    assert [(p["name"], p["schema"]["type"], p["required"]) for p in method["params"]] == [
+        ("minuend", "integer", False),
+        ("subtrahend", "integer", False),
+    ]
+    assert method["result"]["schema"]["properties"]["difference"]["type"] == "integer"
+    assert method["x-srvwire-request-schema"]["title"] == "Subtract_Request"
+
+
+# --- running and shutting down -------------------------------------------------------------------
+
+
+async def test_serve_works_as_await_and_as_async_with(server: Server) -> None:
+    running = await serve(server, "127.0.0.1", 0)
+    assert running.port > 0 and running.url == f"ws://127.0.0.1:{running.port}"
+    w = await open_wire(running.url)
+    await running.close()
+    await running.close()  # idempotent
+    assert await closed_code(w) == 1001
+    with pytest.raises(OSError):
+        await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0) as again:
+        assert (await (await open_wire(again.url)).call(request("subtract", [1, 1])))["result"]
+
+
+async def test_shutdown_lets_calls_finish_and_refuses_new_ones(server: Server) -> None:
+    entered = asyncio.Event()
+    release = asyncio.Event()
+
+    async def slow(request: Any) -> Any:
+        entered.set()
+        await release.wait()
+        return {"text": "finished"}
+
+    server.add_service("/slow", Echo, slow)
+    running = await serve(server, "127.0.0.1", 0)
+    w = await open_wire(running.url)
+    await w.send(request("slow", id="old"))
+    await entered.wait()
+    closing = asyncio.create_task(running.close())
+    reply = await w.call(request("subtract", [1, 1], id="new"))
+    assert error(reply) == ("new", -32003, "UNAVAILABLE")
+    assert reply["error"]["message"] == "the server is shutting down"
+    release.set()
+    assert await w.recv_reply() == {"jsonrpc": "2.0", "id": "old", "result": {"text": "finished"}}
+    await closing
+    assert await closed_code(w) == 1001
+
+
+async def test_shutdown_cancels_calls_past_the_grace_period() -> None:
+    server = Server(grace_period=scaled(0.05))
+    entered = asyncio.Event()
+    cancelled = asyncio.Event()
+
+    async def hangs(request: Any) -> Any:
+        entered.set()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            cancelled.set()
+
+    server.add_service("/hangs", Echo, hangs)
+    running = await serve(server, "127.0.0.1", 0)
+    w = await open_wire(running.url)
+    await w.send(request("hangs", id="h"))
+    await entered.wait()
+    await running.close()
+    reply = await w.recv_reply()
+    assert error(reply) == ("h", -32003, "UNAVAILABLE")
+    assert reply["error"]["message"] == "the server shut down before the call finished"
+    assert cancelled.is_set()
+    assert await closed_code(w) == 1001
+
+
+async def test_a_client_leaving_cancels_its_calls(server: Server) -> None:
+    entered = asyncio.Event()
+    cancelled = asyncio.Event()
+
+    async def hangs(request: Any) -> Any:
+        entered.set()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            cancelled.set()
+
+    server.add_service("/hangs", Echo, hangs)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("hangs"))
+        await entered.wait()
+        await w.ws.close()
+        async with asyncio.timeout(scaled(5)):
+            await cancelled.wait()
+
+
+async def test_run_serves_until_sigterm(tmp_path: Any) -> None:
+    script = tmp_path / "serve.py"
+    script.write_text(
+        "import logging, sys\n"
+        f"sys.path.insert(0, {str(ROOT / 'tests')!r})\n"
+        "from conftest import Subtract, subtract\n"
+        "from srvwire.server import Server\n"
+        "logging.basicConfig(level=logging.INFO, stream=sys.stderr, format='%(message)s')\n"
+        "server = Server()\n"
+        "server.add_service('/subtract', Subtract, subtract)\n"
+        "server.run('127.0.0.1', 0)\n"
+        "print('stopped', flush=True)\n"
+    )
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, str(script), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+    )
+    try:
+        assert process.stderr is not None and process.stdout is not None
+        async with asyncio.timeout(scaled(20)):
+            url = ""
+            while not url:
+                line = (await process.stderr.readline()).decode()
+                assert line, "the server exited before it served"
+                if line.startswith("serving "):
+                    url = line.rsplit(" ", 1)[1].strip()
+            w = await open_wire(url)
+            assert (await w.call(request("subtract", [7, 2])))["result"] == {"difference": 5}
+            process.terminate()
+            assert await closed_code(w) == 1001
+            assert await process.wait() == 0
+            assert (await process.stdout.read()).decode() == "stopped\n"
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+
+
+# --- nothing a client sends breaks the server ----------------------------------------------------
+
+
+@contextmanager
+def server_in_a_thread(server: Server) -> Iterator[str]:
+    """Run ``server`` on its own event loop in a thread, so a sync test can drive it."""
+    loop = asyncio.new_event_loop()
+    running = loop.run_until_complete(serve(server, "127.0.0.1", 0))
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    try:
+        yield running.url
+    finally:
+        asyncio.run_coroutine_threadsafe(running.close(), loop).result(scaled(10))
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(scaled(10))
+        loop.run_until_complete(loop.shutdown_default_executor())
+        loop.close()
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=10),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=5), children, max_size=4)
+    ),
+    max_leaves=12,
+)
+ids = st.none() | st.integers() | st.text(max_size=5) | st.floats(allow_nan=False) | json_values
+methods = st.sampled_from(["subtract", "/subtract", "echo", "rpc.discover", "$/cancel", "nope"])
+messages = st.fixed_dictionaries(
+    {},
+    optional={
+        "jsonrpc": st.just("2.0") | json_values,
+        "id": ids,
+        "method": methods | st.text(max_size=8),
+        "params": json_values,
+    },
+)
+payloads = st.one_of(
+    messages.map(json.dumps),
+    st.lists(messages | json_values, max_size=4).map(json.dumps),
+    json_values.map(json.dumps),
+    st.text(max_size=40),
+)
+
+
+def is_reply(item: Any) -> bool:
+    if not isinstance(item, dict) or item.get("jsonrpc") != "2.0" or "id" not in item:
+        return False
+    if not (item["id"] is None or type(item["id"]) in (str, int, float)):
+        return False
+    if set(item) == {"jsonrpc", "id", "result"}:
+        return True
+    error = item.get("error")
+    return (
+        set(item) == {"jsonrpc", "id", "error"}
+        and isinstance(error, dict)
+        and type(error.get("code")) is int
+        and isinstance(error.get("message"), str)
+    )
+
+
+def all_notifications(payload: str) -> bool:
+    """Whether the spec says ``payload`` gets no reply at all (every item a valid notification)."""
+    try:
+        value = json.loads(payload)
+    except ValueError:
+        return False
+    items = value if isinstance(value, list) else [value]
+    if not items:
+        return False
+    for item in items:
+        if not isinstance(item, dict) or "id" in item or item.get("jsonrpc") != "2.0":
+            return False
+        if not isinstance(item.get("method"), str):
+            return False
+        if "params" in item and not isinstance(item["params"], dict | list):
+            return False
+    return True
+
+
+def test_random_input_gets_valid_replies_and_the_server_keeps_serving() -> None:
+    server = Server()
+    server.add_service("/subtract", Subtract, subtract)
+    server.add_service("/echo", Echo, lambda r: {"text": r.text})
+    with server_in_a_thread(server) as url, sync_connect(url, compression=None) as ws:
+        json.loads(ws.recv(timeout=scaled(5)))  # $/services
+        count = 0
+
+        @settings(
+            max_examples=200,
+            deadline=None,
+            suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+        )
+        @given(payloads)
+        def check(payload: str) -> None:
+            nonlocal count
+            count += 1
+            sentinel = f"sentinel-{count}"
+            ws.send(payload)
+            ws.send(json.dumps(request("subtract", [count, 0], id=sentinel)))
+            replies: list[Any] = []
+            seen_sentinel = False
+            expect_reply = not all_notifications(payload)
+            while not seen_sentinel or (expect_reply and not replies):
+                message = json.loads(ws.recv(timeout=scaled(5)))
+                if isinstance(message, dict) and message.get("id") == sentinel:
+                    assert message["result"] == {"difference": count}
+                    seen_sentinel = True
+                else:
+                    replies.append(message)
+            if not expect_reply:
+                assert replies == [], payload
+                return
+            assert len(replies) == 1, (payload, replies)
+            (reply,) = replies
+            if isinstance(reply, list):
+                assert reply and all(is_reply(item) for item in reply), (payload, reply)
+            else:
+                assert is_reply(reply), (payload, reply)
+
+        check()
+        ws.send(json.dumps(request("subtract", [5, 2], id="end")))
+        assert json.loads(ws.recv(timeout=scaled(5)))["result"] == {"difference": 3}
