@@ -3,8 +3,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 INSTALLED := $(VENV)/.installed
+NODE_INSTALLED := node_modules/.installed
 
-.PHONY: demo test lint typecheck docs pytest clean
+.PHONY: demo test lint typecheck docs pytest bench clean
 
 $(BIN)/python:
 	$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11) and "srvwire needs Python 3.11 or newer")'
@@ -15,8 +16,14 @@ $(INSTALLED): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $@
 
+# wscat, which tests/test_wscat.py drives, comes from npm (package.json, package-lock.json).
+$(NODE_INSTALLED): package.json package-lock.json
+	@command -v npm >/dev/null 2>&1 || { echo 'make test needs Node.js and npm: tests/test_wscat.py runs wscat, installed from npm' >&2; exit 1; }
+	npm ci --no-audit --no-fund --loglevel=error
+	touch $@
+
 demo: $(INSTALLED)
-	@echo "make demo: the robot-state tutorial is coming soon"
+	@$(BIN)/python examples/demo.py
 
 lint: $(INSTALLED)
 	$(BIN)/ruff check .
@@ -28,10 +35,16 @@ typecheck: $(INSTALLED)
 docs: $(INSTALLED)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir site
 
-pytest: $(INSTALLED)
+pytest: $(INSTALLED) $(NODE_INSTALLED)
 	$(BIN)/pytest
 
 test: lint typecheck docs pytest
+
+# Not part of `make test`: several minutes of srvwire against a raw-websockets baseline,
+# asyncio then uvloop (benchmarks/README.md). BENCH_ARGS=--quick for a smoke run.
+bench: $(INSTALLED)
+	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
+	$(BIN)/python benchmarks/run.py --loop asyncio,uvloop $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) site build dist .mypy_cache .ruff_cache .pytest_cache

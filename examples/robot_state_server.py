@@ -1,0 +1,190 @@
+"""A simulated robot that answers two services: the robot-state tutorial's server, on srvwire.
+
+The robot has five joints, a status word and a calibration flag. Two services expose it:
+
+* ``/get_robot_state`` (``advanced_communication_tutorials/srv/RobotStateQuery``) reports the
+  joint positions, the status, or the robot's fixed configuration;
+* ``/execute_robot_command`` (``advanced_communication_tutorials/srv/RobotCommand``) moves the
+  joints, stops the robot, or calibrates it.
+
+Run it, then call it with ``robot_command_client.py`` or by hand with ``wscat``::
+
+    python examples/robot_state_server.py              # ws://127.0.0.1:8765
+    python examples/robot_state_server.py --port 0     # any free port; the URL is logged
+
+Once it listens it logs ``serving 2 services on ws://HOST:PORT`` (with the port it got), then
+logs every request and response, and stops cleanly on Ctrl-C or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+# --8<-- [start:load]
+from srvwire.loader import load_service
+from srvwire.server import Server
+
+# Service types come from .srv files, exactly as in ROS 2: the name is package/srv/Type.
+RobotStateQuery = load_service("advanced_communication_tutorials/srv/RobotStateQuery")
+RobotCommand = load_service("advanced_communication_tutorials/srv/RobotCommand")
+# --8<-- [end:load]
+
+logger = logging.getLogger("robot_state_server")
+
+JOINT_COUNT = 5
+MAX_SPEED = 5.0  # reported by the "configuration" query
+MAX_TORQUE = 10.0
+
+
+# --8<-- [start:state]
+@dataclass
+class RobotState:
+    """Everything the simulated robot knows about itself."""
+
+    joint_positions: list[float] = field(default_factory=lambda: [0.0] * JOINT_COUNT)
+    status: str = "IDLE"
+    calibrated: bool = True
+
+
+# --8<-- [end:state]
+
+
+class RobotStateNode:
+    """The two service handlers, sharing one :class:`RobotState`.
+
+    The handlers use the ROS 2 shape ``handler(request, response) -> response``: srvwire hands
+    them an empty response to fill in, so a ROS callback ports line for line. They are
+    ``async def``, so they run one at a time on the event loop and never race on the state; a
+    plain ``def`` handler would work too, but srvwire runs those in a worker thread.
+    """
+
+    def __init__(self, state: RobotState | None = None) -> None:
+        self.state = state if state is not None else RobotState()
+
+    # --8<-- [start:query]
+    async def get_robot_state(self, request: Any, response: Any) -> Any:
+        """Answer ``/get_robot_state``: ``position``, ``status`` or ``configuration``."""
+        logger.info("query %r (target_frame=%r)", request.query_type, request.target_frame)
+        state = self.state
+        if request.query_type == "position":
+            response.values = list(state.joint_positions)
+            response.names = [f"joint_{i}" for i in range(len(state.joint_positions))]
+            response.message = "Current joint positions"
+            response.success = True
+        elif request.query_type == "status":
+            response.values = [1.0 if state.calibrated else 0.0]
+            response.names = ["is_calibrated"]
+            response.message = f"Robot status: {state.status}"
+            response.success = True
+        elif request.query_type == "configuration":
+            response.values = [float(JOINT_COUNT), MAX_SPEED, MAX_TORQUE]
+            response.names = ["joint_count", "max_speed", "max_torque"]
+            response.message = "Robot configuration"
+            response.success = True
+        else:
+            # An unknown query is an answer, not an error: success=False says why.
+            response.message = f"Unknown query type: {request.query_type}"
+            response.success = False
+        logger.info("query %r -> %s", request.query_type, response)
+        return response
+
+    # --8<-- [end:query]
+
+    # --8<-- [start:command]
+    async def execute_robot_command(self, request: Any, response: Any) -> Any:
+        """Carry out ``/execute_robot_command``: ``move``, ``stop`` or ``calibrate``."""
+        logger.info(
+            "command %r with parameters %s (target_frame=%r)",
+            request.command_type,
+            request.parameters,
+            request.target_frame,
+        )
+        state = self.state
+        if request.command_type == "move":
+            if not request.parameters:
+                response.message = "Move command requires parameters"
+                response.success = False
+            elif len(request.parameters) != len(state.joint_positions):
+                # One target per joint, no more and no fewer: a robot should not guess.
+                response.message = (
+                    f"Move command needs one position per joint: "
+                    f"expected {len(state.joint_positions)}, got {len(request.parameters)}"
+                )
+                response.success = False
+            else:
+                state.joint_positions = list(request.parameters)
+                state.status = "MOVING"
+                response.execution_time = 1.0
+                response.message = "Moving to the requested joint positions"
+                response.success = True
+        elif request.command_type == "stop":
+            state.status = "STOPPED"
+            response.execution_time = 0.1
+            response.message = "Robot stopped"
+            response.success = True
+        elif request.command_type == "calibrate":
+            state.status = "CALIBRATED"
+            state.calibrated = True
+            response.execution_time = 5.0
+            response.message = "Robot calibrated"
+            response.success = True
+        else:
+            response.message = f"Unknown command type: {request.command_type}"
+            response.success = False
+        logger.info("command %r -> %s", request.command_type, response)
+        return response
+
+    # --8<-- [end:command]
+
+
+# --8<-- [start:server]
+def build_server(node: RobotStateNode | None = None) -> Server:
+    """Create a srvwire server offering the robot's two services."""
+    node = node if node is not None else RobotStateNode()
+    server = Server()
+    server.add_service("/get_robot_state", RobotStateQuery, node.get_robot_state)
+    server.add_service("/execute_robot_command", RobotCommand, node.execute_robot_command)
+    return server
+
+
+# --8<-- [end:server]
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on; 0.0.0.0 for every interface (default: %(default)s, "
+        "this machine only)",
+    )
+    parser.add_argument(
+        "--port",
+        type=int,
+        default=8765,
+        help="port to listen on; 0 picks a free one (default: %(default)s)",
+    )
+    return parser.parse_args(argv)
+
+
+# --8<-- [start:main]
+def main(argv: list[str] | None = None) -> int:
+    """Serve the robot until Ctrl-C or SIGTERM."""
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    logging.getLogger("websockets").setLevel(logging.WARNING)  # srvwire already says it all
+    server = build_server()
+    # run() logs "serving 2 services on ws://HOST:PORT" once it listens, then blocks until
+    # Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.
+    server.run(args.host, args.port)
+    return 0
+
+
+# --8<-- [end:main]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

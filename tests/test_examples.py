@@ -1,0 +1,387 @@
+"""The robot-state tutorial's examples, run for real against each other.
+
+The server runs as a child process on a free port (it logs its URL once it listens); the
+client runs in this process through its ``run``/``main`` functions, so a test can watch each
+response as it arrives — and kill the server in the middle of the sequence.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from types import ModuleType
+from typing import IO, Any
+
+import pytest
+
+from support import ROOT, scaled
+
+EXAMPLES = ROOT / "examples"
+URL_LINE = re.compile(r"serving \d+ services on (ws://\S+)")
+
+
+def load_example(name: str) -> ModuleType:
+    """Import ``examples/<name>.py`` as a module of its own."""
+    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+server_example = load_example("robot_state_server")
+client_example = load_example("robot_command_client")
+
+
+class ServerProcess:
+    """``robot_state_server.py`` running in a child process, its log collected as it comes."""
+
+    def __init__(self, *args: str) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, str(EXAMPLES / "robot_state_server.py"), *args],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self.done = False  # whether its stderr has ended
+        self.changed = threading.Condition()
+        assert self.process.stderr is not None
+        self.reader = threading.Thread(target=self._collect, args=(self.process.stderr,))
+        self.reader.start()
+
+    def _collect(self, stream: IO[str]) -> None:
+        for line in stream:
+            with self.changed:
+                self.lines.append(line)
+                self.changed.notify_all()
+        with self.changed:  # the server exited: wake whoever still waits for a line
+            self.done = True
+            self.changed.notify_all()
+
+    def log(self) -> str:
+        with self.changed:
+            return "".join(self.lines)
+
+    def wait_for_log(self, pattern: re.Pattern[str], timeout: float) -> re.Match[str]:
+        """Wait until the server logs a line matching ``pattern``; fail after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        with self.changed:
+            while (match := pattern.search("".join(self.lines))) is None:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self.done:
+                    pytest.fail(
+                        f"the example server did not log {pattern.pattern!r} within "
+                        f"{timeout:g} s (exit status {self.process.poll()}); its log:\n"
+                        + "".join(self.lines)
+                    )
+                self.changed.wait(remaining)
+        return match
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.wait()
+        self.reader.join()  # the pipe ends with the process
+        assert self.process.stderr is not None
+        self.process.stderr.close()
+
+
+@dataclass
+class RunningServer:
+    """The example server, listening at ``url``."""
+
+    server: ServerProcess
+    url: str
+
+    @property
+    def process(self) -> subprocess.Popen[str]:
+        return self.server.process
+
+    def log(self) -> str:
+        return self.server.log()
+
+
+@contextlib.contextmanager
+def start_server() -> Iterator[RunningServer]:
+    """Run ``robot_state_server.py --port 0`` for the duration of the block, then kill it."""
+    server = ServerProcess("--port", "0")
+    try:
+        match = server.wait_for_log(URL_LINE, scaled(10))
+        yield RunningServer(server, match.group(1))
+    finally:
+        server.kill()
+
+
+@pytest.fixture
+def robot_server() -> Iterator[RunningServer]:
+    with start_server() as running:
+        yield running
+
+
+# --- the examples against each other ----------------------------------------------------------
+
+
+async def test_the_demo_sequence(robot_server: RunningServer) -> None:
+    seen: list[tuple[Any, Any]] = []
+    status = await client_example.run(
+        robot_server.url,
+        scaled(5),
+        on_response=lambda step, response: seen.append((step, response)),
+    )
+    assert status == 0
+    asked = [step.describe() for step, _ in seen]
+    assert asked == [
+        "query position",
+        "query status",
+        "query configuration",
+        "command move [1.0, 0.5, -0.5, 0.0, 0.3]",
+        "query position",
+        "command stop",
+        "command calibrate",
+        "query status",
+    ]
+    answers = [response.model_dump() for _, response in seen]
+    joints = ["joint_0", "joint_1", "joint_2", "joint_3", "joint_4"]
+    assert answers == [
+        {
+            "success": True,
+            "message": "Current joint positions",
+            "values": [0.0] * 5,
+            "names": joints,
+        },
+        {
+            "success": True,
+            "message": "Robot status: IDLE",
+            "values": [1.0],
+            "names": ["is_calibrated"],
+        },
+        {
+            "success": True,
+            "message": "Robot configuration",
+            "values": [5.0, 5.0, 10.0],
+            "names": ["joint_count", "max_speed", "max_torque"],
+        },
+        {
+            "success": True,
+            "message": "Moving to the requested joint positions",
+            "execution_time": 1.0,
+        },
+        {
+            "success": True,
+            "message": "Current joint positions",
+            "values": [1.0, 0.5, -0.5, 0.0, 0.3],
+            "names": joints,
+        },
+        {"success": True, "message": "Robot stopped", "execution_time": 0.1},
+        {"success": True, "message": "Robot calibrated", "execution_time": 5.0},
+        {
+            "success": True,
+            "message": "Robot status: CALIBRATED",
+            "values": [1.0],
+            "names": ["is_calibrated"],
+        },
+    ]
+    log = robot_server.log()
+    assert "query 'position'" in log
+    assert "command 'move'" in log
+
+
+def test_the_client_logs_each_answer(
+    robot_server: RunningServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("INFO", logger="robot_command_client")
+    assert client_example.main(["--url", robot_server.url, "--timeout", str(scaled(5))]) == 0
+    lines = [record.getMessage() for record in caplog.records]
+    assert lines[0] == "query position".ljust(40) + (
+        " -> ok: Current joint positions "
+        "[joint_0=0.0, joint_1=0.0, joint_2=0.0, joint_3=0.0, joint_4=0.0]"
+    )
+    assert lines[3] == "command move [1.0, 0.5, -0.5, 0.0, 0.3]".ljust(40) + (
+        " -> ok: Moving to the requested joint positions (took 1.0 s)"
+    )
+    assert lines[-1] == "query status".ljust(40) + (
+        " -> ok: Robot status: CALIBRATED [is_calibrated=1.0]"
+    )
+    assert len(lines) == 8
+
+
+def test_make_demo_runs_the_whole_tutorial() -> None:
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "demo.py")],
+        capture_output=True,
+        text=True,
+        timeout=scaled(30),
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "make demo: robot_state_server.py is serving on ws://127.0.0.1:" in result.stdout
+    assert "command move [1.0, 0.5, -0.5, 0.0, 0.3]" in result.stdout
+    assert "Robot status: CALIBRATED [is_calibrated=1.0]" in result.stdout
+    assert result.stderr == ""
+    assert "make demo: the server has stopped; every call was answered." in result.stdout
+
+
+# --- the client when things go wrong ---------------------------------------------------------
+
+
+async def test_no_server(caplog: pytest.LogCaptureFixture) -> None:
+    # A socket that is bound but does not listen: connecting to its port is refused at once.
+    with socket.socket() as unused:
+        unused.bind(("127.0.0.1", 0))
+        url = f"ws://127.0.0.1:{unused.getsockname()[1]}"
+        started = time.monotonic()
+        status = await client_example.run(url, scaled(5))
+        elapsed = time.monotonic() - started
+    assert status == 1
+    assert elapsed < scaled(1), "the client should give up at once, not wait for its timeout"
+    messages = [record.getMessage() for record in caplog.records]
+    assert messages[0] == (
+        f"no srvwire server answered at {url}: is robot_state_server.py running?"
+    )
+    assert messages[1].startswith(f"ServiceUnavailable (code -32003): cannot connect to {url}")
+
+
+async def test_the_server_dies_mid_sequence(
+    robot_server: RunningServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    seen: list[Any] = []
+
+    def kill_after_first(step: Any, response: Any) -> None:
+        seen.append(response)
+        if len(seen) == 1:
+            robot_server.process.send_signal(signal.SIGKILL)
+            robot_server.process.wait()
+
+    # A deadline far away: the pending call must fail because the connection dropped, at once.
+    started = time.monotonic()
+    status = await client_example.run(robot_server.url, scaled(30), on_response=kill_after_first)
+    assert status == 1
+    assert len(seen) == 1
+    assert time.monotonic() - started < scaled(5)
+    failure = caplog.records[-1].getMessage()
+    assert failure.startswith("ConnectionLost (code -32003) calling /get_robot_state: "), failure
+
+
+# --- the server's handlers, in this process ---------------------------------------------------
+
+RobotStateQuery = server_example.RobotStateQuery
+RobotCommand = server_example.RobotCommand
+
+
+async def query(node: Any, kind: str) -> Any:
+    return await node.get_robot_state(
+        RobotStateQuery.Request(query_type=kind), RobotStateQuery.Response()
+    )
+
+
+async def command(node: Any, kind: str, parameters: list[float] | None = None) -> Any:
+    request = RobotCommand.Request(command_type=kind, parameters=parameters or [])
+    return await node.execute_robot_command(request, RobotCommand.Response())
+
+
+@pytest.fixture
+def node() -> Any:
+    return server_example.RobotStateNode()
+
+
+async def test_query_position(node: Any) -> None:
+    response = await query(node, "position")
+    assert response.success
+    assert response.message == "Current joint positions"
+    assert response.values == [0.0, 0.0, 0.0, 0.0, 0.0]
+    assert response.names == ["joint_0", "joint_1", "joint_2", "joint_3", "joint_4"]
+
+
+async def test_query_status(node: Any) -> None:
+    response = await query(node, "status")
+    assert (response.success, response.message) == (True, "Robot status: IDLE")
+    assert (response.values, response.names) == ([1.0], ["is_calibrated"])
+    node.state.calibrated = False
+    node.state.status = "FAULT"
+    response = await query(node, "status")
+    assert (response.message, response.values) == ("Robot status: FAULT", [0.0])
+
+
+async def test_query_configuration(node: Any) -> None:
+    response = await query(node, "configuration")
+    assert response.success
+    assert response.values == [5.0, 5.0, 10.0]
+    assert response.names == ["joint_count", "max_speed", "max_torque"]
+
+
+async def test_unknown_query(node: Any) -> None:
+    response = await query(node, "battery")
+    assert (response.success, response.message) == (False, "Unknown query type: battery")
+    assert (response.values, response.names) == ([], [])
+
+
+async def test_move(node: Any) -> None:
+    response = await command(node, "move", [1.0, 2.0, 3.0, 4.0, 5.0])
+    assert (response.success, response.execution_time) == (True, 1.0)
+    assert node.state.joint_positions == [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert node.state.status == "MOVING"
+
+
+async def test_move_without_parameters(node: Any) -> None:
+    response = await command(node, "move")
+    assert (response.success, response.message) == (False, "Move command requires parameters")
+    assert response.execution_time == 0.0
+    assert node.state == server_example.RobotState()
+
+
+@pytest.mark.parametrize("count", [1, 4, 6])
+async def test_move_needs_one_position_per_joint(node: Any, count: int) -> None:
+    response = await command(node, "move", [0.5] * count)
+    assert not response.success
+    assert response.message == (
+        f"Move command needs one position per joint: expected 5, got {count}"
+    )
+    assert node.state == server_example.RobotState()
+
+
+async def test_stop(node: Any) -> None:
+    response = await command(node, "stop")
+    assert (response.success, response.message, response.execution_time) == (
+        True,
+        "Robot stopped",
+        0.1,
+    )
+    assert node.state.status == "STOPPED"
+
+
+async def test_calibrate(node: Any) -> None:
+    node.state.calibrated = False
+    response = await command(node, "calibrate")
+    assert (response.success, response.execution_time) == (True, 5.0)
+    assert (node.state.status, node.state.calibrated) == ("CALIBRATED", True)
+
+
+async def test_unknown_command(node: Any) -> None:
+    response = await command(node, "dance", [1.0])
+    assert (response.success, response.message) == (False, "Unknown command type: dance")
+    assert node.state == server_example.RobotState()
+
+
+def test_the_handlers_log_requests_and_responses(
+    node: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    import asyncio
+
+    caplog.set_level("INFO", logger="robot_state_server")
+    asyncio.run(query(node, "status"))
+    messages = [record.getMessage() for record in caplog.records]
+    assert messages[0] == "query 'status' (target_frame='')"
+    assert messages[1].startswith("query 'status' -> ")
+    assert "Robot status: IDLE" in messages[1]
