@@ -1,0 +1,1159 @@
+"""The ``srvwire`` command line, driven through ``main([...])`` with exact output and exit codes."""
+
+from __future__ import annotations
+
+import asyncio
+import importlib.metadata
+import importlib.util
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from srvwire import cli
+from srvwire.cli import ExitCode, main
+from srvwire.errors import ResourceExhausted, ServiceError, ServiceUnavailable
+from srvwire.loader import InterfaceLoader, default_search_path
+from srvwire.server import Server, serve
+from support import scaled
+
+# --- helpers ----------------------------------------------------------------------------------
+
+
+def run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    """Run the command line in-process; return its exit code, stdout and stderr."""
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_error_line(err: str) -> str:
+    """Check that stderr is exactly one ``srvwire: error:`` line and return its message."""
+    assert err.count("\n") == 1 and err.endswith("\n"), err
+    assert err.startswith("srvwire: error: "), err
+    assert "Traceback" not in err
+    return err.removeprefix("srvwire: error: ").rstrip("\n")
+
+
+def write(root: Path, relative: str, text: str) -> Path:
+    path = root / relative
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+VEC = """\
+# A 2-D vector.
+float64 x  # Along x.
+float64 y 1.5  # Along y.
+"""
+
+SEGMENT = """\
+# A straight line between two points.
+
+# Where it starts.
+Vec start
+demo/Vec[2] ends  # Both ends.
+string label "a # b"  # A label; the quoted '#' is not a comment.
+"""
+
+MEASURE = """\
+# Measure a segment.
+Segment segment  # What to measure.
+---
+float64 length  # How long it is.
+Vec direction
+"""
+
+GO = """\
+# Drive to a target.
+Vec target
+---
+bool reached
+---
+float64 remaining  # Distance left.
+"""
+
+
+@pytest.fixture
+def packages(tmp_path: Path) -> Path:
+    """A search-path folder holding the package ``demo``: messages, a service and an action."""
+    root = tmp_path / "interfaces"
+    write(root, "demo/msg/Vec.msg", VEC)
+    write(root, "demo/msg/Segment.msg", SEGMENT)
+    write(root, "demo/srv/Measure.srv", MEASURE)
+    write(root, "demo/action/Go.action", GO)
+    return root
+
+
+# --- the command line itself ------------------------------------------------------------------
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(capsys, "--version")
+    version = importlib.metadata.version("srvwire")
+    assert (code, out, err) == (ExitCode.OK, f"srvwire {version}\n", "")
+
+
+def test_help_lists_every_command_and_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(capsys, "--help")
+    assert code == ExitCode.OK and err == ""
+    for command in ("call", "service", "interface", "gen", "serve"):
+        assert f"    {command} " in out
+    assert "exit codes:" in out
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["call", "--help"],
+        ["service", "list", "--help"],
+        ["service", "type", "--help"],
+        ["service", "find", "--help"],
+        ["interface", "list", "--help"],
+        ["interface", "packages", "--help"],
+        ["interface", "package", "--help"],
+        ["interface", "show", "--help"],
+        ["interface", "proto", "--help"],
+        ["interface", "check", "--help"],
+        ["gen", "--help"],
+        ["serve", "--help"],
+    ],
+)
+def test_every_command_has_help_with_an_example(
+    capsys: pytest.CaptureFixture[str], argv: list[str]
+) -> None:
+    code, out, err = run(capsys, *argv)
+    assert code == ExitCode.OK and err == ""
+    assert out.startswith(f"usage: srvwire {' '.join(argv[:-1])} ")
+    assert "example" in out
+    assert f"  srvwire {' '.join(argv[:-1])} " in out
+
+
+def test_call_help_documents_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
+    _, out, _ = run(capsys, "call", "--help")
+    assert "  4    deadline exceeded (DEADLINE_EXCEEDED)\n" in out
+    assert "  5    no such service (SERVICE_NOT_FOUND)\n" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        ([], "the following arguments are required: COMMAND (see 'srvwire --help')"),
+        (["launch"], "argument COMMAND: invalid choice: 'launch' "),
+        (
+            ["interface"],
+            "the following arguments are required: SUBCOMMAND (see 'srvwire interface --help')",
+        ),
+        (
+            ["interface", "show"],
+            "the following arguments are required: TYPE (see 'srvwire interface show --help')",
+        ),
+        (
+            ["call", "/x", "--timeout", "-1"],
+            "argument --timeout: must be a positive number, not -1 (see 'srvwire call --help')",
+        ),
+        (
+            ["call", "/x", "--count", "0"],
+            "argument -n/--count: must be at least 1, not 0 (see 'srvwire call --help')",
+        ),
+        (
+            ["serve", "app.py", "--port", "70000"],
+            "argument --port: must be between 0 and 65535, not 70000 (see 'srvwire serve --help')",
+        ),
+    ],
+)
+def test_usage_errors_are_one_line_and_exit_2(
+    capsys: pytest.CaptureFixture[str], argv: list[str], message: str
+) -> None:
+    code, out, err = run(capsys, *argv)
+    assert code == ExitCode.USAGE and out == ""
+    assert one_error_line(err).startswith(message)
+
+
+def test_python_dash_m_runs_the_same_main() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "srvwire", "interface", "package", "std_srvs"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+    )
+    assert (done.returncode, done.stderr) == (0, "")
+    assert done.stdout == "std_srvs/srv/Empty\nstd_srvs/srv/SetBool\nstd_srvs/srv/Trigger\n"
+
+
+# --- srvwire interface ------------------------------------------------------------------------
+
+
+def sections(out: str) -> dict[str, list[str]]:
+    """Split ``interface list`` output into its headings and their indented lines."""
+    found: dict[str, list[str]] = {}
+    current: list[str] = []
+    for line in out.splitlines():
+        if line.startswith("    "):
+            current.append(line.removeprefix("    "))
+        else:
+            current = found.setdefault(line, [])
+    return found
+
+
+def test_interface_list_groups_types_by_kind(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    code, out, err = run(capsys, "interface", "list", "--path", str(packages))
+    assert (code, err) == (ExitCode.OK, "")
+    listed = sections(out)
+    assert list(listed) == ["Messages:", "Services:", "Actions:"]
+    assert {"demo/msg/Vec", "geometry_msgs/msg/Pose"} <= set(listed["Messages:"])
+    assert {"demo/srv/Measure", "std_srvs/srv/Trigger"} <= set(listed["Services:"])
+    assert "demo/action/Go" in listed["Actions:"]
+    for heading, kind in (("Messages:", "msg"), ("Services:", "srv"), ("Actions:", "action")):
+        assert listed[heading] == sorted(listed[heading])
+        assert all(name.split("/")[1] == kind for name in listed[heading])
+
+
+@pytest.mark.parametrize(
+    ("flags", "headings"),
+    [
+        (["-m"], ["Messages:"]),
+        (["-s"], ["Services:"]),
+        (["-a"], ["Actions:"]),
+        (["-m", "-a"], ["Messages:", "Actions:"]),
+    ],
+)
+def test_interface_list_filters(
+    capsys: pytest.CaptureFixture[str], packages: Path, flags: list[str], headings: list[str]
+) -> None:
+    code, out, _ = run(capsys, "interface", "list", "--path", str(packages), *flags)
+    assert code == ExitCode.OK
+    assert list(sections(out)) == headings
+
+
+def test_interface_packages(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, err = run(capsys, "interface", "packages", "--path", str(packages))
+    assert (code, err) == (ExitCode.OK, "")
+    names = out.splitlines()
+    assert names == sorted(names)
+    assert {"demo", "std_srvs", "example_interfaces", "geometry_msgs"} <= set(names)
+
+
+def test_interface_package(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, err = run(capsys, "interface", "package", "demo", "--path", str(packages))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == "demo/action/Go\ndemo/msg/Segment\ndemo/msg/Vec\ndemo/srv/Measure\n"
+
+
+def test_interface_package_unknown(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, err = run(capsys, "interface", "package", "dmeo", "--path", str(packages))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    message = one_error_line(err)
+    assert message.startswith("no interface package 'dmeo' in ")
+    assert message.endswith("(did you mean: demo?)")
+
+
+def test_interface_path_from_the_environment(
+    capsys: pytest.CaptureFixture[str], packages: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SRVWIRE_INTERFACE_PATH", str(packages))
+    code, out, _ = run(capsys, "interface", "package", "demo")
+    assert code == ExitCode.OK and "demo/msg/Vec\n" in out
+
+
+def test_interface_show_bundled_pose(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(capsys, "interface", "show", "geometry_msgs/msg/Pose")
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        "# Where something is and which way it faces.\n"
+        "\n"
+        "Point position  # The location.\n"
+        "\tfloat64 x\n"
+        "\tfloat64 y\n"
+        "\tfloat64 z\n"
+        "Quaternion orientation  # The heading, as a rotation from the frame's axes.\n"
+        "\tfloat64 x 0.0\n"
+        "\tfloat64 y 0.0\n"
+        "\tfloat64 z 0.0\n"
+        "\tfloat64 w 1.0\n"
+    )
+
+
+def test_interface_show_keeps_top_level_comments_only(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    code, out, err = run(capsys, "interface", "show", "demo/srv/Measure", "--path", str(packages))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        "# Measure a segment.\n"
+        "Segment segment  # What to measure.\n"
+        "\tVec start\n"
+        "\t\tfloat64 x\n"
+        "\t\tfloat64 y 1.5\n"
+        "\tdemo/Vec[2] ends\n"
+        "\t\tfloat64 x\n"
+        "\t\tfloat64 y 1.5\n"
+        '\tstring label "a # b"\n'
+        "---\n"
+        "float64 length  # How long it is.\n"
+        "Vec direction\n"
+        "\tfloat64 x\n"
+        "\tfloat64 y 1.5\n"
+    )
+
+
+def test_interface_show_all_comments(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, _ = run(
+        capsys, "interface", "show", "demo/Segment", "--all-comments", "--path", str(packages)
+    )
+    assert code == ExitCode.OK
+    assert out == (
+        "# A straight line between two points.\n"
+        "\n"
+        "# Where it starts.\n"
+        "Vec start\n"
+        "\t# A 2-D vector.\n"
+        "\tfloat64 x  # Along x.\n"
+        "\tfloat64 y 1.5  # Along y.\n"
+        "demo/Vec[2] ends  # Both ends.\n"
+        "\t# A 2-D vector.\n"
+        "\tfloat64 x  # Along x.\n"
+        "\tfloat64 y 1.5  # Along y.\n"
+        "string label \"a # b\"  # A label; the quoted '#' is not a comment.\n"
+    )
+
+
+def test_interface_show_no_comments(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, _ = run(
+        capsys, "interface", "show", "demo/action/Go", "--no-comments", "--path", str(packages)
+    )
+    assert code == ExitCode.OK
+    assert out == (
+        "Vec target\n\tfloat64 x\n\tfloat64 y 1.5\n---\nbool reached\n---\nfloat64 remaining\n"
+    )
+
+
+def test_interface_show_comment_flags_exclude_each_other(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, _, err = run(
+        capsys, "interface", "show", "std_srvs/Trigger", "--all-comments", "--no-comments"
+    )
+    assert code == ExitCode.USAGE
+    assert one_error_line(err).startswith(
+        "argument --no-comments: not allowed with argument --all-comments"
+    )
+
+
+def test_interface_show_unknown_type(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(capsys, "interface", "show", "std_srvs/srv/Triger")
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        "no service 'Triger' in package 'std_srvs' (did you mean: std_srvs/srv/Trigger?)"
+    )
+
+
+def test_interface_show_broken_file(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    bad = write(tmp_path, "broken/msg/Bad.msg", "int32 ok\nint32 2bad\n")
+    code, out, err = run(capsys, "interface", "show", "broken/Bad", "--path", str(tmp_path))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err).startswith(f"{bad}:2:7: ")
+
+
+def test_interface_show_all_comments_of_nested_bundled_types(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, out, _ = run(capsys, "interface", "show", "geometry_msgs/Pose", "--all-comments")
+    assert code == ExitCode.OK
+    assert out.startswith(
+        "# Where something is and which way it faces.\n"
+        "\n"
+        "Point position  # The location.\n"
+        "\t# A location in 3-D space.\n"
+        "\n"  # a blank line stays blank: no tab
+        "\tfloat64 x  # Coordinate along the x axis.\n"
+    )
+
+
+def test_interface_proto_of_a_service(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(capsys, "interface", "proto", "example_interfaces/srv/AddTwoInts")
+    assert (code, out, err) == (ExitCode.OK, '"a: 0\nb: 0\n"\n', "")
+
+
+def test_interface_proto_flow_without_quotes(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run(
+        capsys, "interface", "proto", "example_interfaces/AddTwoInts", "--flow", "--no-quotes"
+    )
+    assert (code, out) == (ExitCode.OK, "{a: 0, b: 0}\n")
+
+
+def test_interface_proto_of_nested_messages(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    code, out, _ = run(capsys, "interface", "proto", "demo/Segment", "--path", str(packages))
+    assert code == ExitCode.OK
+    assert out == (
+        '"start:\n'
+        "  x: 0.0\n"
+        "  y: 1.5\n"
+        "ends:\n"
+        "- x: 0.0\n"
+        "  y: 1.5\n"
+        "- x: 0.0\n"
+        "  y: 1.5\n"
+        "label: 'a # b'\n"
+        '"\n'
+    )
+
+
+def test_interface_proto_of_an_action_is_its_goal(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    code, out, _ = run(
+        capsys, "interface", "proto", "demo/Go", "--flow", "--no-quotes", "--path", str(packages)
+    )
+    assert (code, out) == (ExitCode.OK, "{target: {x: 0.0, y: 1.5}}\n")
+
+
+def test_interface_proto_of_an_empty_request(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run(capsys, "interface", "proto", "std_srvs/srv/Trigger")
+    assert (code, out) == (ExitCode.OK, '"{}\n"\n')
+
+
+def test_interface_check_good_files(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, err = run(capsys, "interface", "check", str(packages))
+    assert (code, out, err) == (ExitCode.OK, "checked 4 files, 0 errors\n", "")
+
+
+def test_interface_check_reports_each_broken_file(
+    capsys: pytest.CaptureFixture[str], packages: Path, tmp_path: Path
+) -> None:
+    first = write(packages, "demo/msg/Bad.msg", "int32 ok\nint32 2bad\n")
+    second = write(tmp_path, "other/srv/Half.srv", "int32 a\n")
+    write(packages, "demo/msg/README.md", "not an interface file")
+    code, out, err = run(capsys, "interface", "check", str(packages), str(second))
+    assert (code, err) == (ExitCode.FAILURE, "")
+    lines = out.splitlines()
+    assert len(lines) == 3
+    assert lines[0].startswith(f"{first}:2:7: ")
+    assert lines[1] == (
+        f"{second}:2:1: a service needs a '---' line between the request and the response; "
+        "found none"
+    )
+    assert lines[2] == "checked 6 files, 2 errors"
+
+
+def test_interface_check_one_file(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    code, out, _ = run(capsys, "interface", "check", str(packages / "demo/msg/Vec.msg"))
+    assert (code, out) == (ExitCode.OK, "checked 1 file, 0 errors\n")
+
+
+def test_interface_check_missing_path(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere"
+    code, out, err = run(capsys, "interface", "check", str(missing))
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err) == f"no such file or folder: {missing}"
+
+
+# --- a live server for call and service -------------------------------------------------------
+
+
+@dataclass
+class Remote:
+    """A server running in a thread of its own, and where its extra interfaces live."""
+
+    url: str
+    interfaces: Path
+
+
+def start_in_thread(server: Server) -> tuple[str, Callable[[], None]]:
+    """Serve ``server`` on a free port from a thread with its own loop; return url and stop."""
+    ready = threading.Event()
+    state: dict[str, Any] = {}
+
+    async def serve_until_stopped() -> None:
+        state["loop"] = asyncio.get_running_loop()
+        state["stop"] = stop = asyncio.Event()
+        async with serve(server, "127.0.0.1", 0) as running:
+            state["url"] = running.url
+            ready.set()
+            await stop.wait()
+
+    thread = threading.Thread(target=asyncio.run, args=(serve_until_stopped(),), daemon=True)
+    thread.start()
+    assert ready.wait(scaled(10)), "the test server did not start"
+
+    def stop() -> None:
+        state["loop"].call_soon_threadsafe(state["stop"].set)
+        thread.join(scaled(10))
+        assert not thread.is_alive(), "the test server did not stop"
+
+    return state["url"], stop
+
+
+@pytest.fixture(scope="module")
+def remote(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Remote]:
+    """A server offering the services every call and service test uses."""
+    interfaces = tmp_path_factory.mktemp("remote") / "interfaces"
+    for relative, text in (
+        ("demo/msg/Vec.msg", VEC),
+        ("demo/msg/Segment.msg", SEGMENT),
+        ("demo/srv/Measure.srv", MEASURE),
+    ):
+        write(interfaces, relative, text)
+    loader = InterfaceLoader([interfaces, *default_search_path()])
+    add_two_ints: Any = loader.load_service("example_interfaces/srv/AddTwoInts")
+    trigger: Any = loader.load_service("std_srvs/srv/Trigger")
+    measure = loader.load_service("demo/srv/Measure")
+
+    def add(request: Any) -> Any:
+        return add_two_ints.Response(sum=request.a + request.b)
+
+    def triggered(request: Any) -> Any:
+        return trigger.Response(success=True, message="done")
+
+    async def hang(request: Any) -> Any:
+        await asyncio.Event().wait()  # never set: only the deadline ends this call
+
+    def fail(request: Any) -> Any:
+        raise RuntimeError("the handler broke")
+
+    def refuse(request: Any) -> Any:
+        raise ServiceError(42, "not now", {"retry_after": 5})
+
+    def unavailable(request: Any) -> Any:
+        raise ServiceUnavailable("going down")
+
+    def exhausted(request: Any) -> Any:
+        raise ResourceExhausted("too busy")
+
+    def measured(request: Any) -> Any:
+        start = request.segment.start
+        return {"length": abs(start.x) + abs(start.y), "direction": {"x": 1.0, "y": 0.0}}
+
+    server = Server(grace_period=0)
+    server.add_service("/add_two_ints", add_two_ints, add)
+    server.add_service("/trigger", trigger, triggered)
+    server.add_service("/robot1/trigger", trigger, triggered)
+    server.add_service("/hang", trigger, hang)
+    server.add_service("/fail", trigger, fail)
+    server.add_service("/refuse", trigger, refuse)
+    server.add_service("/unavailable", trigger, unavailable)
+    server.add_service("/exhausted", trigger, exhausted)
+    server.add_service("/measure", measure, measured)
+    url, stop = start_in_thread(server)
+    yield Remote(url, interfaces)
+    stop()
+
+
+@pytest.fixture
+def closed_url() -> str:
+    """A URL nobody listens on: a port that was free a moment ago."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    return f"ws://127.0.0.1:{port}"
+
+
+def call(capsys: pytest.CaptureFixture[str], remote: Remote, *argv: str) -> tuple[int, str, str]:
+    return run(capsys, "call", "--url", remote.url, "--timeout", str(scaled(5)), *argv)
+
+
+# --- srvwire call -----------------------------------------------------------------------------
+
+
+def test_call_prints_request_and_response_like_ros(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/add_two_ints", "{a: 1, b: 2}")
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        "requester: making request: example_interfaces.srv.AddTwoInts_Request(a=1, b=2)\n"
+        "\n"
+        "response:\n"
+        "example_interfaces.srv.AddTwoInts_Response(sum=3)\n"
+    )
+
+
+@pytest.mark.parametrize(
+    "srv_type", ["example_interfaces/srv/AddTwoInts", "example_interfaces/AddTwoInts"]
+)
+def test_call_with_an_explicit_type(
+    capsys: pytest.CaptureFixture[str], remote: Remote, srv_type: str
+) -> None:
+    code, out, _ = call(capsys, remote, "add_two_ints", srv_type, "{a: 40, b: 2}")
+    assert code == ExitCode.OK
+    assert out.endswith("\nresponse:\nexample_interfaces.srv.AddTwoInts_Response(sum=42)\n")
+
+
+def test_call_json_prints_only_the_response(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/add_two_ints", "{a: 1, b: 2}", "--json")
+    assert (code, out, err) == (ExitCode.OK, '{"sum": 3}\n', "")
+
+
+def test_call_type_alone_and_defaults(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, _ = call(capsys, remote, "/trigger", "std_srvs/srv/Trigger")
+    assert code == ExitCode.OK
+    assert out == (
+        "requester: making request: std_srvs.srv.Trigger_Request()\n"
+        "\n"
+        "response:\n"
+        "std_srvs.srv.Trigger_Response(success=True, message='done')\n"
+    )
+
+
+def test_call_nested_types(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, _ = call(
+        capsys,
+        remote,
+        "/measure",
+        "{segment: {start: {x: -3}}}",
+        "--path",
+        str(remote.interfaces),
+    )
+    assert code == ExitCode.OK
+    assert out == (
+        "requester: making request: demo.srv.Measure_Request(segment=demo.msg.Segment("
+        "start=demo.msg.Vec(x=-3.0, y=1.5), "
+        "ends=[demo.msg.Vec(x=0.0, y=1.5), demo.msg.Vec(x=0.0, y=1.5)], label='a # b'))\n"
+        "\n"
+        "response:\n"
+        "demo.srv.Measure_Response(length=4.5, direction=demo.msg.Vec(x=1.0, y=0.0))\n"
+    )
+
+
+def test_call_a_type_not_on_the_local_path_sends_plain_values(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/measure", "{segment: {start: {x: -3}}}")
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        "requester: making request: demo.srv.Measure_Request(segment={'start': {'x': -3}})\n"
+        "\n"
+        "response:\n"
+        "demo.srv.Measure_Response(length=4.5, direction={'x': 1.0, 'y': 0.0})\n"
+    )
+
+
+def test_call_repeats_at_a_rate(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, _ = call(capsys, remote, "/add_two_ints", "{a: 2, b: 2}", "-r", "100", "-n", "3")
+    assert code == ExitCode.OK
+    block = (
+        "requester: making request: example_interfaces.srv.AddTwoInts_Request(a=2, b=2)\n"
+        "\n"
+        "response:\n"
+        "example_interfaces.srv.AddTwoInts_Response(sum=4)\n"
+    )
+    assert out == "\n".join([block] * 3)
+
+
+def test_call_count_with_json(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, _ = call(capsys, remote, "/trigger", "--json", "--count", "2")
+    assert (code, out) == (ExitCode.OK, '{"success": true, "message": "done"}\n' * 2)
+
+
+def test_call_url_from_the_environment(
+    capsys: pytest.CaptureFixture[str], remote: Remote, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SRVWIRE_URL", remote.url)
+    code, out, _ = run(capsys, "call", "/add_two_ints", "{a: 1, b: 1}", "--json")
+    assert (code, out) == (ExitCode.OK, '{"sum": 2}\n')
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        (
+            "{a: 1",
+            "invalid VALUES at line 1, column 6: expected ',' or '}', but got '<stream end>'",
+        ),
+        (
+            "{a: 1}\n b: 2",
+            "invalid VALUES at line 2, column 2: "
+            "expected '<document start>', but found '<block mapping start>'",
+        ),
+        (
+            "[1, 2]",
+            "invalid VALUES: expected a YAML mapping such as '{a: 1, b: 2}', got list [1, 2]",
+        ),
+        ("7", "invalid VALUES: expected a YAML mapping such as '{a: 1, b: 2}', got int 7"),
+    ],
+)
+def test_call_bad_values_exit_2_before_connecting(
+    capsys: pytest.CaptureFixture[str], closed_url: str, values: str, message: str
+) -> None:
+    code, out, err = run(capsys, "call", "/add_two_ints", values, "--url", closed_url)
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err) == message
+
+
+def test_call_unknown_type_exits_1(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, err = call(capsys, remote, "/add_two_ints", "example_interfaces/srv/AddThreeInts")
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        "no service 'AddThreeInts' in package 'example_interfaces' "
+        "(did you mean: example_interfaces/srv/AddTwoInts?)"
+    )
+
+
+def test_call_server_down_exits_3(capsys: pytest.CaptureFixture[str], closed_url: str) -> None:
+    code, out, err = run(capsys, "call", "/add_two_ints", "{a: 1}", "--url", closed_url)
+    assert (code, out) == (ExitCode.UNAVAILABLE, "")
+    assert one_error_line(err).startswith(
+        f"ServiceUnavailable: UNAVAILABLE (-32003): cannot connect to {closed_url}: "
+    )
+
+
+def test_call_server_unavailable_exits_3(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, _, err = call(capsys, remote, "/unavailable")
+    assert code == ExitCode.UNAVAILABLE
+    assert one_error_line(err) == (
+        "ServiceUnavailable: UNAVAILABLE (-32003) [/unavailable]: going down"
+    )
+
+
+def test_call_deadline_exits_4(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    timeout = f"{scaled(0.2):g}"
+    code, out, err = run(capsys, "call", "/hang", "--url", remote.url, "--timeout", timeout)
+    assert code == ExitCode.DEADLINE_EXCEEDED
+    assert out == ("requester: making request: std_srvs.srv.Trigger_Request()\n")
+    assert one_error_line(err).startswith("DeadlineExceeded: DEADLINE_EXCEEDED (-32001) [/hang]: ")
+
+
+def test_call_unknown_service_exits_5_with_candidates(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/add_two_intz", "{a: 1, b: 2}")
+    assert code == ExitCode.SERVICE_NOT_FOUND
+    assert out == "requester: making request: {'a': 1, 'b': 2}\n"
+    assert one_error_line(err) == (
+        "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/add_two_intz]: no service named "
+        '/add_two_intz; did you mean /add_two_ints? (data: {"candidates": ["/add_two_ints"]})'
+    )
+
+
+def test_call_invalid_values_checked_locally_exit_6(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/add_two_ints", "{a: one, c: 2}")
+    assert (code, out) == (ExitCode.INVALID_PARAMS, "")
+    assert one_error_line(err) == (
+        "InvalidParams: INVALID_PARAMS (-32602) [/add_two_ints]: VALUES do not fit "
+        "example_interfaces/srv/AddTwoInts (checked locally, not sent): "
+        "a: Input should be a valid integer; c: Extra inputs are not permitted "
+        '(data: {"errors": [{"path": "a", "message": "Input should be a valid integer"}, '
+        '{"path": "c", "message": "Extra inputs are not permitted"}]})'
+    )
+
+
+def test_call_invalid_params_from_the_server_exit_6(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, _, err = call(capsys, remote, "/measure", "{segment: {start: {x: far}}}")
+    assert code == ExitCode.INVALID_PARAMS
+    assert one_error_line(err).startswith(
+        "InvalidParams: INVALID_PARAMS (-32602) [/measure]: invalid params for /measure: "
+        "segment.start.x: "
+    )
+
+
+@pytest.mark.parametrize(
+    ("service", "message"),
+    [
+        ("/fail", "InternalError: INTERNAL (-32603) [/fail]: "),
+        (
+            "/refuse",
+            'ServiceError: application error (42) [/refuse]: not now (data: {"retry_after": 5})',
+        ),
+    ],
+)
+def test_call_handler_failures_exit_7(
+    capsys: pytest.CaptureFixture[str], remote: Remote, service: str, message: str
+) -> None:
+    code, _, err = call(capsys, remote, service)
+    assert code == ExitCode.SERVICE_FAILED
+    assert one_error_line(err).startswith(message)
+
+
+def test_call_other_errors_exit_8(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, _, err = call(capsys, remote, "/exhausted")
+    assert code == ExitCode.OTHER_RPC_ERROR
+    assert one_error_line(err) == (
+        "ResourceExhausted: RESOURCE_EXHAUSTED (-32004) [/exhausted]: too busy"
+    )
+
+
+def test_call_bad_url_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run(capsys, "call", "/trigger", "--url", "http://localhost:1")
+    assert code == ExitCode.USAGE
+    assert one_error_line(err).startswith("bad --url: not a WebSocket URL: 'http://localhost:1'")
+
+
+@pytest.mark.parametrize(("argv", "expected"), [([], ExitCode.INTERRUPTED), (["-r", "1"], 0)])
+def test_call_interrupted(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    argv: list[str],
+    expected: int,
+) -> None:
+    def interrupt(*args: Any, **kwargs: Any) -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "connect", interrupt)
+    code, out, err = run(capsys, "call", "/trigger", *argv)
+    assert (code, out) == (expected, "")
+    if expected:
+        assert one_error_line(err) == "interrupted"
+    else:
+        assert err == ""
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["/add_two_ints", "--json", "{a: 1, b: 2}"],
+        ["/add_two_ints", "--json", "example_interfaces/AddTwoInts", "{a: 1, b: 2}"],
+        ["/add_two_ints", "example_interfaces/AddTwoInts", "--json", "{a: 1, b: 2}"],
+        ["--json", "/add_two_ints", "{a: 1, b: 2}"],
+    ],
+)
+def test_call_positionals_around_options(
+    capsys: pytest.CaptureFixture[str], remote: Remote, argv: list[str]
+) -> None:
+    code, out, _ = call(capsys, remote, *argv)
+    assert (code, out) == (ExitCode.OK, '{"sum": 3}\n')
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["/add_two_ints", "--json", "example_interfaces/AddTwoInts", "{a: 1}", "{b: 2}"],
+        ["/add_two_ints", "--json", "{a: 1}", "-x"],
+    ],
+)
+def test_call_too_many_arguments(capsys: pytest.CaptureFixture[str], argv: list[str]) -> None:
+    code, out, err = run(capsys, "call", *argv)
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err).startswith("unrecognized arguments: ")
+
+
+def test_unrecognized_arguments_elsewhere(capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run(capsys, "interface", "packages", "extra")
+    assert code == ExitCode.USAGE
+    assert one_error_line(err) == "unrecognized arguments: extra (see 'srvwire --help')"
+
+
+def test_call_with_the_wrong_type_exits_2(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/trigger", "std_srvs/srv/Empty")
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert (
+        one_error_line(err) == "/trigger is a std_srvs/srv/Trigger service, not std_srvs/srv/Empty"
+    )
+
+
+# --- srvwire service --------------------------------------------------------------------------
+
+
+def service(capsys: pytest.CaptureFixture[str], remote: Remote, *argv: str) -> tuple[int, str, str]:
+    return run(capsys, "service", *argv, "--url", remote.url, "--timeout", str(scaled(5)))
+
+
+SERVICES = [
+    ("/add_two_ints", "example_interfaces/srv/AddTwoInts"),
+    ("/exhausted", "std_srvs/srv/Trigger"),
+    ("/fail", "std_srvs/srv/Trigger"),
+    ("/hang", "std_srvs/srv/Trigger"),
+    ("/measure", "demo/srv/Measure"),
+    ("/refuse", "std_srvs/srv/Trigger"),
+    ("/robot1/trigger", "std_srvs/srv/Trigger"),
+    ("/trigger", "std_srvs/srv/Trigger"),
+    ("/unavailable", "std_srvs/srv/Trigger"),
+]
+
+
+def test_service_list(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, err = service(capsys, remote, "list")
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == "".join(f"{name}\n" for name, _ in SERVICES)
+
+
+def test_service_list_with_types(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, _ = service(capsys, remote, "list", "-t")
+    assert code == ExitCode.OK
+    assert out == "".join(f"{name} [{type_name}]\n" for name, type_name in SERVICES)
+
+
+def test_service_list_count(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, _ = service(capsys, remote, "list", "--count-services")
+    assert (code, out) == (ExitCode.OK, f"{len(SERVICES)}\n")
+
+
+def test_service_list_server_down_exits_3(
+    capsys: pytest.CaptureFixture[str], closed_url: str
+) -> None:
+    code, out, err = run(capsys, "service", "list", "--url", closed_url)
+    assert (code, out) == (ExitCode.UNAVAILABLE, "")
+    assert one_error_line(err).startswith("ServiceUnavailable: UNAVAILABLE (-32003): ")
+
+
+@pytest.mark.parametrize("name", ["/add_two_ints", "add_two_ints"])
+def test_service_type(capsys: pytest.CaptureFixture[str], remote: Remote, name: str) -> None:
+    code, out, _ = service(capsys, remote, "type", name)
+    assert (code, out) == (ExitCode.OK, "example_interfaces/srv/AddTwoInts\n")
+
+
+def test_service_type_unknown_exits_5(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, err = service(capsys, remote, "type", "/trigerr")
+    assert (code, out) == (ExitCode.SERVICE_NOT_FOUND, "")
+    assert one_error_line(err) == (
+        "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/trigerr]: no service named /trigerr; "
+        "did you mean /trigger, /robot1/trigger? "
+        '(data: {"candidates": ["/trigger", "/robot1/trigger"]})'
+    )
+
+
+@pytest.mark.parametrize("srv_type", ["std_srvs/srv/Trigger", "std_srvs/Trigger"])
+def test_service_find(capsys: pytest.CaptureFixture[str], remote: Remote, srv_type: str) -> None:
+    code, out, _ = service(capsys, remote, "find", srv_type)
+    assert code == ExitCode.OK
+    assert out == "".join(f"{name}\n" for name, t in SERVICES if t == "std_srvs/srv/Trigger")
+
+
+def test_service_find_nothing(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
+    code, out, err = service(capsys, remote, "find", "std_srvs/srv/SetBool")
+    assert (code, out, err) == (ExitCode.OK, "", "")
+
+
+# --- srvwire gen ------------------------------------------------------------------------------
+
+
+def import_file(path: Path) -> Any:
+    spec = importlib.util.spec_from_file_location(f"generated_{path.stem}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_gen_one_module(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    target = tmp_path / "app" / "interfaces.py"
+    code, out, err = run(
+        capsys, "gen", "std_srvs", "example_interfaces/srv/AddTwoInts", "-o", str(target)
+    )
+    assert (code, out, err) == (ExitCode.OK, f"wrote {target} (4 interfaces)\n", "")
+    module = import_file(target)
+    assert module.AddTwoInts.type_name == "example_interfaces/srv/AddTwoInts"
+    assert module.Trigger.Response().model_dump() == {"success": False, "message": ""}
+    assert module.SetBool.Request(data=True).data is True
+
+
+def test_gen_one_module_per_package(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
+    folder = packages.parent / "generated"
+    code, out, _ = run(
+        capsys, "gen", "demo", "std_srvs", "-o", str(folder), "--path", str(packages)
+    )
+    assert code == ExitCode.OK
+    assert out == (
+        f"wrote {folder / 'demo.py'} (4 interfaces)\n"
+        f"wrote {folder / 'std_srvs.py'} (3 interfaces)\n"
+    )
+    demo = import_file(folder / "demo.py")
+    assert demo.Measure.Request().segment.start.y == 1.5
+    assert import_file(folder / "std_srvs.py").Empty.type_name == "std_srvs/srv/Empty"
+
+
+def test_gen_unknown_package_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    target = tmp_path / "out.py"
+    code, out, err = run(capsys, "gen", "std_srv", "-o", str(target))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err).startswith("no interface package 'std_srv' in ")
+    assert not target.exists()
+
+
+def test_gen_cannot_write_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    code, _, err = run(capsys, "gen", "std_srvs", "-o", str(blocker / "out.py"))
+    assert code == ExitCode.FAILURE
+    assert one_error_line(err).startswith(f"cannot write {blocker / 'out.py'}: ")
+
+
+# --- srvwire serve ----------------------------------------------------------------------------
+
+APP = """\
+from srvwire.loader import load_service
+from srvwire.server import Server
+
+AddTwoInts = load_service("example_interfaces/srv/AddTwoInts")
+server = Server(grace_period=0)
+
+
+@server.service("/add_two_ints", AddTwoInts)
+def add(request):
+    return AddTwoInts.Response(sum=request.a + request.b)
+"""
+
+
+def test_serve_a_file_until_ctrl_c(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    app = tmp_path / "cli_app.py"
+    app.write_text(APP, encoding="utf-8")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", str(app), "--port", "0", "--log-level", "debug"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout is not None
+        first = process.stdout.readline()
+        match = re.fullmatch(r"serving 1 service on (ws://127\.0\.0\.1:\d+)\n", first)
+        assert match, first
+        assert process.stdout.readline() == "  /add_two_ints [example_interfaces/srv/AddTwoInts]\n"
+        url = match.group(1)
+        code, out, _ = run(capsys, "call", "/add_two_ints", "{a: 2, b: 3}", "--json", "--url", url)
+        assert (code, out) == (ExitCode.OK, '{"sum": 5}\n')
+        process.send_signal(signal.SIGINT)
+        rest, err = process.communicate(timeout=scaled(10))
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 0, err
+    assert rest == "shutting down\nstopped\n"
+    assert "Traceback" not in err
+    assert "DEBUG srvwire.server: connection from" in err
+
+
+@pytest.mark.parametrize(
+    ("source", "target", "message"),
+    [
+        (None, "{tmp}/missing.py", "no such file: {tmp}/missing.py"),
+        (
+            "x = 1\n",
+            "{tmp}/no_server.py",
+            "{tmp}/no_server.py has no attribute 'server' or 'app'; "
+            "name the Server object as {tmp}/no_server.py:NAME",
+        ),
+        (
+            "handler = print\n",
+            "{tmp}/not_server.py:handler",
+            "{tmp}/not_server.py:handler is 'builtin_function_or_method', not a srvwire Server",
+        ),
+        (
+            "raise ValueError('boom')\n",
+            "{tmp}/broken_app.py:server",
+            "importing {tmp}/broken_app.py failed: ValueError: boom",
+        ),
+        (None, "srvwire_no_such_module:server", "no module named 'srvwire_no_such_module'"),
+        (
+            None,
+            "srvwire.errors:ErrorCode",
+            "srvwire.errors:ErrorCode is 'EnumType', not a srvwire Server",
+        ),
+    ],
+)
+def test_serve_bad_targets_exit_1(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    source: str | None,
+    target: str,
+    message: str,
+) -> None:
+    target = target.format(tmp=tmp_path)
+    if source is not None:
+        Path(target.partition(":")[0]).write_text(source, encoding="utf-8")
+    code, out, err = run(capsys, "serve", target, "--port", "0")
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == message.format(tmp=tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("source", "target", "flags"),
+    [
+        ("app = Server()\n", "busy_app.py", []),
+        ("def make():\n    return Server()\n", "busy_factory.py:make", ["--factory"]),
+    ],
+)
+def test_serve_port_in_use_exits_1(
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    source: str,
+    target: str,
+    flags: list[str],
+) -> None:
+    app = tmp_path / target.partition(":")[0]
+    app.write_text(f"from srvwire.server import Server\n{source}", encoding="utf-8")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen()
+        port = sock.getsockname()[1]
+        code, out, err = run(capsys, "serve", str(tmp_path / target), "--port", str(port), *flags)
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err).startswith(f"cannot listen on 127.0.0.1:{port}: ")
+
+
+@pytest.mark.parametrize(
+    ("source", "target", "message"),
+    [
+        (
+            "server = 5\n",
+            "{tmp}/not_callable.py:server",
+            "{tmp}/not_callable.py:server is not callable, so it is not a factory",
+        ),
+        (
+            "def make():\n    return 5\n",
+            "{tmp}/factory_int.py:make",
+            "{tmp}/factory_int.py:make() returned 'int', not a srvwire Server",
+        ),
+        (
+            "def make():\n    raise OSError('no config')\n",
+            "{tmp}/factory_fails.py:make",
+            "{tmp}/factory_fails.py:make() failed: OSError: no config",
+        ),
+    ],
+)
+def test_serve_bad_factories_exit_1(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, source: str, target: str, message: str
+) -> None:
+    target = target.format(tmp=tmp_path)
+    Path(target.partition(":")[0]).write_text(source, encoding="utf-8")
+    code, out, err = run(capsys, "serve", target, "--factory", "--port", "0")
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == message.format(tmp=tmp_path)
+
+
+# --- failures no command expects --------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("error", "message"),
+    [
+        (PermissionError(13, "Permission denied", "/x"), "[Errno 13] Permission denied: '/x'"),
+        (RuntimeError("boom"), "unexpected RuntimeError: boom"),
+    ],
+)
+def test_unexpected_errors_are_one_line(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    error: Exception,
+    message: str,
+) -> None:
+    def fail(args: Any) -> int:
+        raise error
+
+    monkeypatch.setattr(cli, "_cmd_interface_packages", fail)
+    code, out, err = run(capsys, "interface", "packages")
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == message
