@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import importlib.metadata
 import importlib.util
+import os
 import re
 import signal
 import socket
@@ -20,7 +21,14 @@ import pytest
 
 from srvwire import cli
 from srvwire.cli import ExitCode, main
-from srvwire.errors import ResourceExhausted, ServiceError, ServiceUnavailable
+from srvwire.client import Client
+from srvwire.errors import (
+    ResourceExhausted,
+    RPCError,
+    ServiceError,
+    ServiceNotFound,
+    ServiceUnavailable,
+)
 from srvwire.loader import InterfaceLoader, default_search_path
 from srvwire.server import Server, serve
 from support import scaled
@@ -189,6 +197,28 @@ def test_python_dash_m_runs_the_same_main() -> None:
     )
     assert (done.returncode, done.stderr) == (0, "")
     assert done.stdout == "std_srvs/srv/Empty\nstd_srvs/srv/SetBool\nstd_srvs/srv/Trigger\n"
+
+
+@pytest.mark.parametrize(
+    "argv", [["interface", "list"], ["interface", "show", "geometry_msgs/msg/Pose"]]
+)
+def test_a_closed_stdout_ends_quietly(argv: list[str]) -> None:
+    # As `srvwire interface list | head -1` once head has exited: the pipe's only reader is
+    # closed before the process starts, so its first write of output is sure to fail.
+    reader, writer = os.pipe()
+    os.close(reader)
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "srvwire", *argv],
+            stdout=writer,
+            stderr=subprocess.PIPE,
+            text=True,
+            check=False,
+            timeout=60,
+        )
+    finally:
+        os.close(writer)
+    assert (done.returncode, done.stderr) == (ExitCode.FAILURE, "")
 
 
 # --- srvwire interface ------------------------------------------------------------------------
@@ -739,7 +769,7 @@ def test_call_unknown_service_exits_5_with_candidates(
     assert out == "requester: making request: {'a': 1, 'b': 2}\n"
     assert one_error_line(err) == (
         "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/add_two_intz]: no service named "
-        '/add_two_intz; did you mean /add_two_ints? (data: {"candidates": ["/add_two_ints"]})'
+        "/add_two_intz; did you mean /add_two_ints?"
     )
 
 
@@ -784,6 +814,40 @@ def test_call_handler_failures_exit_7(
     code, _, err = call(capsys, remote, service)
     assert code == ExitCode.SERVICE_FAILED
     assert one_error_line(err).startswith(message)
+
+
+@pytest.mark.parametrize(
+    ("error", "line"),
+    [
+        # The message offers the candidates: the data does not repeat them.
+        (
+            ServiceNotFound("no service named /ad; did you mean /add?", {"candidates": ["/add"]}),
+            "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/ad]: no service named /ad; "
+            "did you mean /add?",
+        ),
+        # A peer whose message does not offer them: the data still does, with the rest.
+        (
+            ServiceNotFound("unknown method", {"candidates": ["/add"], "hint": "x"}),
+            "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/ad]: unknown method "
+            '(data: {"candidates": ["/add"], "hint": "x"})',
+        ),
+        # Mentioning /add_two_ints is not offering /add_two.
+        (
+            ServiceNotFound("did you mean /add_two_ints?", {"candidates": ["/add_two"]}),
+            "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/ad]: did you mean /add_two_ints? "
+            '(data: {"candidates": ["/add_two"]})',
+        ),
+        # Other errors keep all their data.
+        (
+            ServiceError(42, "not now, /add", {"candidates": ["/add"]}),
+            "ServiceError: application error (42) [/ad]: not now, /add "
+            '(data: {"candidates": ["/add"]})',
+        ),
+    ],
+)
+def test_an_error_line_says_each_fact_once(error: RPCError, line: str) -> None:
+    error.service = "/ad"
+    assert cli._describe_rpc_error(error) == line
 
 
 def test_call_other_errors_exit_8(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
@@ -854,6 +918,25 @@ def test_unrecognized_arguments_elsewhere(capsys: pytest.CaptureFixture[str]) ->
     assert one_error_line(err) == "unrecognized arguments: extra (see 'srvwire --help')"
 
 
+@pytest.fixture
+def no_discover(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make ``rpc.discover`` fail, to prove ``call`` reads the advertised types instead."""
+
+    async def refuse(self: Client, **kwargs: Any) -> Any:
+        raise AssertionError("call asked the server for rpc.discover")
+
+    monkeypatch.setattr(Client, "list_services", refuse)
+
+
+@pytest.mark.usefixtures("no_discover")
+def test_call_takes_the_type_from_the_advertisement_without_a_round_trip(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = call(capsys, remote, "/add_two_ints", "{a: 1, b: 2}", "--json")
+    assert (code, out, err) == (ExitCode.OK, '{"sum": 3}\n', "")
+
+
+@pytest.mark.usefixtures("no_discover")
 def test_call_with_the_wrong_type_exits_2(
     capsys: pytest.CaptureFixture[str], remote: Remote
 ) -> None:
@@ -920,8 +1003,7 @@ def test_service_type_unknown_exits_5(capsys: pytest.CaptureFixture[str], remote
     assert (code, out) == (ExitCode.SERVICE_NOT_FOUND, "")
     assert one_error_line(err) == (
         "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/trigerr]: no service named /trigerr; "
-        "did you mean /trigger, /robot1/trigger? "
-        '(data: {"candidates": ["/trigger", "/robot1/trigger"]})'
+        "did you mean /trigger, /robot1/trigger?"
     )
 
 

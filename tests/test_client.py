@@ -193,6 +193,44 @@ def test_bad_arguments_are_refused_at_once() -> None:
         Client(timeout="5")  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("reconnect", [False, True])
+async def test_close_closes_the_socket(peer: FakePeer, reconnect: bool) -> None:
+    peer.reply = answer_add
+    client = await connect(peer.url, reconnect=reconnect)
+    # A round trip lets the reconnect supervisor start watching the connection's reader.
+    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    await client.close()
+    (ws,) = peer.connections
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    assert ws.close_code == 1000  # the client said goodbye; the connection did not just drop
+    assert not client.connected
+
+
+async def test_close_during_a_reconnect_dial_closes_that_socket() -> None:
+    dialled: asyncio.Queue[ServerConnection] = asyncio.Queue()
+
+    async def first_advertises_then_leaves_the_rest_silent(ws: ServerConnection) -> None:
+        await dialled.put(ws)
+        if dialled.qsize() == 1:  # the first connection: advertise, then drop it
+            await ws.send(services_text(SERVICES))
+            await ws.close(1012, "restarting")
+        await ws.wait_closed()
+
+    server = await ws_serve(first_advertises_then_leaves_the_rest_silent, "127.0.0.1", 0)
+    try:
+        port = server.sockets[0].getsockname()[1]
+        client = await connect(f"ws://127.0.0.1:{port}", reconnect=True, open_timeout=scaled(30))
+        await asyncio.wait_for(dialled.get(), scaled(5))
+        redial = await asyncio.wait_for(dialled.get(), scaled(5))
+        # The supervisor now waits for the $/services that will never come.
+        await client.close()
+        await asyncio.wait_for(redial.wait_closed(), scaled(5))
+        assert not client.connected
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
 async def test_a_closed_client_fails_calls_at_once(peer: FakePeer) -> None:
     client = await connect(peer.url)
     await client.close()
@@ -308,6 +346,26 @@ async def test_proxies(peer: FakePeer, client: Client, add_two_ints: type[Servic
     untyped = client.service(ADD)  # the type comes from the server's advertisement
     assert (await untyped(a=10, b=1)).sum == 11
     assert await untyped.wait_for_service() == ServiceInfo(ADD, ADD_TYPE)
+
+
+async def test_the_advertised_services_are_a_read_only_snapshot(
+    peer: FakePeer, client: Client
+) -> None:
+    services = client.services
+    assert dict(services) == {ADD: ADD_TYPE, "/trigger": "std_srvs/srv/Trigger"}
+    with pytest.raises(TypeError):
+        services["/x"] = "pkg/srv/X"  # type: ignore[index]
+    ws = peer.connections[0]
+    await ws.send(services_text([{"name": "late", "type": "std_srvs/srv/Empty"}]))
+    assert await client.wait_for_service("/late") == ServiceInfo("/late", "std_srvs/srv/Empty")
+    assert dict(client.services) == {"/late": "std_srvs/srv/Empty"}
+    assert dict(services) == {ADD: ADD_TYPE, "/trigger": "std_srvs/srv/Trigger"}  # unchanged
+    await ws.close()
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    with pytest.raises(ConnectionLost):
+        await client.wait_for_service("/late")  # returns once the client saw the connection end
+    assert dict(client.services) == {}
+    assert peer.received.empty()  # no rpc.discover was needed for any of it
 
 
 async def test_list_services(peer: FakePeer, client: Client) -> None:
@@ -448,6 +506,30 @@ async def test_cancelling_the_caller_cancels_the_call_on_the_server(
     cancel = await peer.next("$/cancel")
     assert cancel["params"] == {"id": request["id"]}
     assert client.in_flight == 0
+
+
+async def test_a_cancellation_that_races_the_reply_still_cancels(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The reply resolves the call, and in the same step the caller is cancelled, before the
+    # call resumes: Python 3.11's wait_for would return the reply and lose the cancellation.
+    peer.reply = answer_add
+    receive = client._receive
+    call: asyncio.Task[Any] | None = None
+
+    def receive_then_cancel(data: str | bytes) -> None:
+        receive(data)
+        if call is not None and client.in_flight == 0:
+            call.cancel()
+
+    monkeypatch.setattr(client, "_receive", receive_then_cancel)
+    call = asyncio.create_task(client.call(ADD, a=1, b=2))
+    with pytest.raises(asyncio.CancelledError):
+        await call
+    assert client.in_flight == 0
+    monkeypatch.setattr(client, "_receive", receive)
+    assert (await client.call(ADD, a=2, b=2)).sum == 4  # answered: no $/cancel was needed
+    assert [(await peer.next())["method"] for _ in range(2)] == [ADD, ADD]
 
 
 async def test_a_late_reply_is_ignored(

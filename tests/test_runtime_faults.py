@@ -185,6 +185,20 @@ async def test_shutdown_answers_unavailable_then_the_connection_is_lost(
             await client.call("/hang")
 
 
+async def test_a_reconnecting_client_that_closes_leaves_no_connection_on_the_server() -> None:
+    # Closing a reconnect=True client once forgot its socket: the supervisor's cancellation
+    # reached the reader, which dropped the connection from the client without closing it.
+    server = Server()
+    server.add_service("/add", ADD, lambda request: {"sum": request.a + request.b})
+    async with serve(server, "127.0.0.1", 0) as running:
+        client = await connect(running.url, reconnect=True, timeout=scaled(5))
+        assert (await client.call("/add", a=1, b=2)).sum == 3
+        (connection,) = running._connections  # the server's record of its one connection
+        await client.close()
+        await asyncio.wait_for(connection.ws.wait_closed(), scaled(5))
+        assert connection.ws.close_code == 1000  # closed by the client, not by the shutdown
+
+
 async def test_a_request_larger_than_the_server_accepts_loses_the_connection() -> None:
     server = Server(max_message_size=1000)
     robot = load_service("advanced_communication_tutorials/srv/RobotCommand")

@@ -6,9 +6,10 @@ Theory of operation
 :func:`main` builds one :mod:`argparse` parser, runs the chosen command and returns its exit
 code; it never raises and never prints a traceback. Commands report failure by raising
 :class:`CommandError` (a message and an exit code) or by letting a srvwire error escape, which
-:func:`main` turns into one line on stderr, ``srvwire: error: ...``, and the code below. Commands
-that talk to a server run their own event loop with :func:`asyncio.run`, so ``main`` must be
-called from a thread that has no running loop.
+:func:`main` turns into one line on stderr, ``srvwire: error: ...``, and the code below. A
+standard output closed early (``srvwire ... | head``) ends the command quietly with code 1.
+Commands that talk to a server run their own event loop with :func:`asyncio.run`, so ``main``
+must be called from a thread that has no running loop.
 
 Exit codes
 ----------
@@ -149,6 +150,32 @@ class _Parser(argparse.ArgumentParser):
 
 def main(argv: list[str] | None = None) -> int:
     """Run the ``srvwire`` command line with ``argv`` (default ``sys.argv[1:]``)."""
+    try:
+        code = _run(argv)
+        sys.stdout.flush()  # so a closed pipe shows up here, not at interpreter exit
+    except BrokenPipeError:  # the reader went away (`srvwire ... | head`): stop quietly
+        _discard_stdout()
+        return ExitCode.FAILURE
+    return code
+
+
+def _discard_stdout() -> None:
+    """Point stdout's file descriptor at devnull, so the interpreter's last flush succeeds.
+
+    The standard recipe from the :mod:`signal` documentation ("Note on SIGPIPE").
+    """
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by an object without a descriptor
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
+
+
+def _run(argv: list[str] | None) -> int:
     parser = build_parser()
     try:
         args, extras = parser.parse_known_args(argv)
@@ -174,6 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _error("interrupted")
         return ExitCode.INTERRUPTED
+    except BrokenPipeError:
+        raise  # stdout was closed: main() ends quietly
     except OSError as exc:  # a file that cannot be read or written
         _error(str(exc))
         return ExitCode.FAILURE
@@ -751,11 +780,27 @@ def _exit_code_for(exc: RPCError) -> ExitCode:
 
 
 def _describe_rpc_error(exc: RPCError) -> str:
-    """One line: the class, status and code, the service, the message, and the data as JSON."""
+    """One line: the class, status and code, the service, the message, and the data as JSON.
+
+    Each fact is said once: a ServiceNotFound's candidates are left out of the data when the
+    message already offers them ("did you mean ..."), as srvwire's server writes it.
+    """
     text = f"{type(exc).__name__}: {exc}"
-    if exc.data is not None:
-        text += f" (data: {json.dumps(exc.data, default=str, ensure_ascii=False)})"
+    data = exc.data
+    if isinstance(exc, ServiceNotFound) and isinstance(data, dict):
+        candidates = data.get("candidates")
+        if isinstance(candidates, list) and all(
+            isinstance(name, str) and _names(exc.message, name) for name in candidates
+        ):
+            data = {key: value for key, value in data.items() if key != "candidates"} or None
+    if data is not None:
+        text += f" (data: {json.dumps(data, default=str, ensure_ascii=False)})"
     return text
+
+
+def _names(message: str, name: str) -> bool:
+    """Whether ``message`` mentions the service ``name`` as a whole (not ``/a`` in ``/ab``)."""
+    return re.search(rf"(?<![\w/]){re.escape(name)}(?![\w/])", message) is not None
 
 
 # --- srvwire call -----------------------------------------------------------------------------
@@ -810,16 +855,16 @@ async def _call(
     name = _canonical(args.name)
     async with _connect(args) as client:
         type_name = srv_type.type_name if srv_type is not None else None
-        # Ask the server for the type; an unknown service is left for the call to report.
-        for info in await client.list_services(timeout=args.timeout):
-            if info.name != name:
-                continue
+        # The server advertised its services' types on connecting; an unknown service is left
+        # for the call to report.
+        advertised = client.services.get(name)
+        if advertised is not None:
             if srv_type is None:
-                type_name = info.type
-                srv_type = _try_load_service(args, info.type)
-            elif info.type != type_name:
+                type_name = advertised
+                srv_type = _try_load_service(args, advertised)
+            elif advertised != type_name:
                 raise CommandError(
-                    f"{name} is a {info.type} service, not {type_name}", ExitCode.USAGE
+                    f"{name} is a {advertised} service, not {type_name}", ExitCode.USAGE
                 )
         request: pydantic.BaseModel | dict[str, Any] = values
         if srv_type is not None:
@@ -1020,6 +1065,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         asyncio.run(_serve_until_stopped(server, args.host, args.port))
     except KeyboardInterrupt:  # where signal handlers cannot be installed, Ctrl-C lands here
         pass
+    except BrokenPipeError:
+        raise  # stdout was closed, which is not a listening problem
     except OSError as exc:
         raise CommandError(f"cannot listen on {args.host}:{args.port}: {exc}") from None
     finally:

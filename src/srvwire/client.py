@@ -18,10 +18,18 @@ the other calls on the connection.
 Invariants:
 
 * **Every call ends.** Every call has a finite deadline (the client's ``timeout`` unless the call
-  gives its own). ``asyncio.timeout_at`` enforces it over the send and the wait for the reply; the
-  remaining time travels to the server in ``params._meta.timeout``. That is why calls take a
-  ``timeout`` argument instead of leaving it to an outer ``asyncio.timeout``, which the server
-  could not see.
+  gives its own), fixed as a point in loop time when the call starts. ``asyncio.wait_for`` on
+  the pending reply future enforces it (on a future it adds a timer and a done callback, no
+  task); the send before it is bounded by the same deadline with ``asyncio.timeout_at``, since
+  a send waits only on backpressure and ``wait_for`` would wrap the coroutine in a task on
+  Python 3.11. Waiting for the connection or the service (``wait_for_ready``) spends from the
+  same deadline. The remaining time travels to the server in ``params._meta.timeout``. That is
+  why calls take a ``timeout`` argument instead of leaving it to an outer ``asyncio.timeout``,
+  which the server could not see.
+* **A cancelled caller stays cancelled.** Python 3.11's ``wait_for`` returns the reply instead
+  of raising ``CancelledError`` when the caller is cancelled just after the reply arrived
+  (gh-86296, fixed in 3.12); the call checks ``Task.cancelling()`` and raises it anyway, so a
+  ``TaskGroup`` or an outer ``asyncio.timeout`` still works.
 * **A pending entry lives exactly as long as its caller waits.** The reader removes an entry when
   its reply arrives; the caller removes it in ``finally`` whatever happened (reply, error,
   deadline, cancellation, dropped connection). So the map is empty whenever no call is in flight.
@@ -45,6 +53,14 @@ Invariants:
   re-dials with exponential backoff; calls made while it is down fail fast unless they pass
   ``wait_for_ready=True``, which waits (within the call's deadline) for the connection and the
   service. A call in flight when the connection drops is never retried: it may have run.
+* **The reader belongs to its connection, not to the supervisor.** The supervisor watches the
+  reader with ``asyncio.wait``, which never cancels it, and ``close()`` takes the connection
+  before it stops the supervisor; so ``close()`` always closes the socket it owns, whatever the
+  supervisor was doing (watching, backing off, or dialling: a dial interrupted half-way closes
+  its own socket).
+* **The advertised services are replaced, never mutated.** Each ``$/services`` and each end of a
+  connection installs a new dict, so :attr:`Client.services` can hand out a read-only view of
+  the current one as a snapshot.
 * **Only this module knows websockets' exceptions.** Each is translated once, where it is
   raised, into a :mod:`srvwire.errors` class, with ``raise ... from exc``.
 
@@ -63,9 +79,9 @@ import itertools
 import logging
 import math
 import random
-from collections.abc import Generator, Iterator, Mapping
+from collections.abc import Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from types import TracebackType
+from types import MappingProxyType, TracebackType
 from typing import Any, TypeAlias
 
 from pydantic import BaseModel, ValidationError
@@ -84,7 +100,7 @@ from srvwire.errors import (
     ServiceUnavailable,
 )
 from srvwire.loader import SearchPath, load_service
-from srvwire.models import Service
+from srvwire.models import Service, validation_errors
 from srvwire.protocol import (
     DISCOVER_METHOD,
     SERVICES_METHOD,
@@ -157,21 +173,7 @@ def _backoff() -> Iterator[float]:
         delay = min(delay * _BACKOFF_FACTOR, _BACKOFF_MAX)
 
 
-def _validation_errors(exc: ValidationError) -> list[dict[str, Any]]:
-    """Turn pydantic's errors into the wire's ``[{"path", "message", "type"}]`` shape."""
-    errors = []
-    for error in exc.errors(include_url=False, include_context=False, include_input=False):
-        path = ""
-        for part in error["loc"]:
-            if isinstance(part, int):
-                path += f"[{part}]"
-            else:
-                path += f".{part}" if path else str(part)
-        errors.append({"path": path, "message": error["msg"], "type": error["type"]})
-    return errors
-
-
-def _summarize(errors: list[dict[str, Any]]) -> str:
+def _summarize(errors: Sequence[Mapping[str, str]]) -> str:
     """Say the first validation problem, and how many more there are."""
     first = errors[0]
     where = f"{first['path']}: " if first["path"] else ""
@@ -276,10 +278,12 @@ class Client:
         if self._closed:
             return
         self._closed = True
+        # Take the connection before stopping the supervisor: nothing that happens to the
+        # supervisor may make this client forget a socket it still has to close.
+        ws, reader = self._ws, self._reader
         if self._supervisor is not None:
             self._supervisor.cancel()
             await asyncio.gather(self._supervisor, return_exceptions=True)
-        ws, reader = self._ws, self._reader
         if ws is not None:
             await ws.close()
         if reader is not None:
@@ -310,6 +314,16 @@ class Client:
     def in_flight(self) -> int:
         """How many calls are waiting for a reply."""
         return len(self._pending)
+
+    @property
+    def services(self) -> Mapping[str, str]:
+        """The services the server advertised: canonical name -> type (``pkg/srv/Name``).
+
+        A read-only snapshot of the latest ``$/services``, in the server's order; later
+        advertisements do not change it, so read the property again for fresh news. Empty
+        while not connected. No round trip: :meth:`list_services` asks the server instead.
+        """
+        return MappingProxyType(self._services)  # a snapshot: the dict is replaced, not mutated
 
     async def _dial(self) -> None:
         """Open a connection and read the server's ``$/services``; start its reader task."""
@@ -357,7 +371,9 @@ class Client:
         while True:
             reader = self._reader
             if self._ws is not None and reader is not None:
-                await asyncio.gather(reader, return_exceptions=True)
+                # asyncio.wait, not gather: cancelling the supervisor must not cancel the
+                # reader, which belongs to the connection and ends only when it does.
+                await asyncio.wait({reader})
             for delay in _backoff():
                 if delay:
                     await asyncio.sleep(delay)
@@ -519,7 +535,7 @@ class Client:
         try:
             return srv.Response.model_validate(reply.result)
         except ValidationError as exc:
-            errors = _validation_errors(exc)
+            errors = validation_errors(exc)
             raise InternalError(
                 f"the response does not match {srv.type_name}: {_summarize(errors)}",
                 {"errors": errors},
@@ -655,7 +671,7 @@ class Client:
         try:
             model = request_type.model_validate(payload)
         except ValidationError as exc:
-            errors = _validation_errors(exc)
+            errors = validation_errors(exc)
             raise InvalidParams(
                 f"invalid params for {method}: {_summarize(errors)} "
                 "(checked by the client; nothing was sent)",
@@ -687,10 +703,20 @@ class Client:
         future: asyncio.Future[Response | ErrorResponse] = loop.create_future()
         pending = self._pending
         pending[request_id] = future
+        task = asyncio.current_task()
+        cancelling = task.cancelling() if task is not None else 0
         try:
+            # The send rarely waits (only on backpressure); a timeout context bounds it with no
+            # task, where wait_for would wrap the coroutine in one on Python 3.11.
             async with asyncio.timeout_at(deadline):
                 await ws.send(text)
-                return await future
+            # On a future, wait_for creates no task: a timer and a done callback.
+            reply = await asyncio.wait_for(future, deadline - loop.time())
+            if task is not None and task.cancelling() > cancelling:
+                # Python 3.11's wait_for returns the result when a cancellation arrives after
+                # the reply did (gh-86296); the caller asked to stop, so stop.
+                raise asyncio.CancelledError
+            return reply
         except TimeoutError:
             self._cancel_remote(ws, method, request_id, pending, future)
             raise DeadlineExceeded(
