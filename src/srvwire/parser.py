@@ -45,7 +45,8 @@ Decisions where the reference parser is silent, crashes or surprises
 4. ``bool`` values are ``true``/``false``/``1``/``0`` in any case, as in rosidl.
 5. Integers are decimal, ``0x`` hex, ``0o`` octal or ``0b`` binary, with an optional sign;
    Python's ``_`` digit separators are refused. Floats are decimal with an optional exponent
-   (``1e-3``, ``-.5``, ``2.``); ``inf`` and ``nan`` are refused because JSON cannot carry them.
+   (``1e-3``, ``-.5``, ``2.``); ``inf`` and ``nan`` are refused, so that every type's default
+   instance is standard JSON (values set at run time may still be non-finite).
    A ``float32`` value beyond the largest finite float32 is out of range.
 6. Inside quotes the only escape is a backslash before the enclosing quote, as in rosidl; every
    other backslash is kept. A quoted string therefore cannot end in a backslash.
@@ -746,7 +747,8 @@ def _integer(cur: _Cursor, type_name: str, token: str, pos: int, what: str) -> S
 def _float(cur: _Cursor, type_name: str, token: str, pos: int, what: str) -> Scalar:
     if token.lower().lstrip("+-") in ("inf", "infinity", "nan"):
         raise cur.error(
-            f"{_show(token)} is not allowed for {type_name}: JSON has no infinity or NaN", pos
+            f"{_show(token)} is not allowed for {type_name}: defaults and constants must be finite",
+            pos,
         )
     if not FLOAT.fullmatch(token):
         raise cur.error(
