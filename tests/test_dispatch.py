@@ -420,3 +420,31 @@ async def test_cancelling_the_task_marks_the_context() -> None:
     with pytest.raises(asyncio.CancelledError):
         await task
     assert ctx.cancelled and ctx.time_remaining() is None
+
+
+@pytest.mark.parametrize("deadline", [None, scaled(10)])
+async def test_a_cancellation_nobody_asked_for_is_internal_and_logged(
+    deadline: float | None, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The handler awaits a future something else cancelled: CancelledError, but this task is
+    # not being cancelled. Letting it through would end the call without any reply.
+    async def awaits_a_cancelled_future(request: Any) -> Any:
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        future.cancel()
+        await future
+
+    ctx = context(None if deadline is None else time.monotonic() + deadline)
+    with caplog.at_level(logging.ERROR, "srvwire.server"), pytest.raises(InternalError) as caught:
+        await run(awaits_a_cancelled_future, {}, ctx=ctx)
+    assert caught.value.message == "handler for /t raised an exception"
+    (record,) = caplog.records
+    assert record.exc_info is not None and record.exc_info[0] is asyncio.CancelledError
+    assert not ctx.cancelled
+
+
+async def test_a_sync_handler_raising_a_cancellation_is_internal() -> None:
+    def raises(request: Any) -> Any:
+        raise asyncio.CancelledError
+
+    with pytest.raises(InternalError):
+        await run(raises, {})

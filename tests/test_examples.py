@@ -23,6 +23,7 @@ from typing import IO, Any
 
 import pytest
 
+from srvwire.errors import ServiceUnavailable
 from support import ROOT, scaled
 
 EXAMPLES = ROOT / "examples"
@@ -217,6 +218,17 @@ def test_the_client_logs_each_answer(
     assert len(lines) == 8
 
 
+PORT = re.compile(r"(ws://127\.0\.0\.1:)\d+")
+
+
+def tutorial_demo_transcript() -> str:
+    """The ``make demo`` output the tutorial shows: the ``text`` block after ``make demo``."""
+    tutorial = (ROOT / "docs" / "tutorial.md").read_text(encoding="utf-8")
+    match = re.search(r"```sh\nmake demo\n```\n\n```text\n(.*?)```\n", tutorial, re.DOTALL)
+    assert match, "docs/tutorial.md no longer shows `make demo` and its output"
+    return match.group(1)
+
+
 def test_make_demo_runs_the_whole_tutorial() -> None:
     result = subprocess.run(
         [sys.executable, str(EXAMPLES / "demo.py")],
@@ -226,26 +238,37 @@ def test_make_demo_runs_the_whole_tutorial() -> None:
         check=False,
     )
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "make demo: robot_state_server.py is serving on ws://127.0.0.1:" in result.stdout
-    assert "command move [1.0, 0.5, -0.5, 0.0, 0.3]" in result.stdout
-    assert "Robot status: CALIBRATED [is_calibrated=1.0]" in result.stdout
     assert result.stderr == ""
-    assert "make demo: the server has stopped; every call was answered." in result.stdout
+    # What docs/tutorial.md shows is what the demo prints, but for the free port it picked.
+    assert PORT.sub(r"\g<1>PORT", result.stdout) == PORT.sub(
+        r"\g<1>PORT", tutorial_demo_transcript()
+    )
 
 
 # --- the client when things go wrong ---------------------------------------------------------
 
 
-async def test_no_server(caplog: pytest.LogCaptureFixture) -> None:
+async def test_no_server(caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    reported: list[BaseException] = []
+    report_failure = client_example.report_failure
+
+    def recording_report_failure(exc: Any) -> None:
+        reported.append(exc)
+        report_failure(exc)
+
+    monkeypatch.setattr(client_example, "report_failure", recording_report_failure)
     # A socket that is bound but does not listen: connecting to its port is refused at once.
     with socket.socket() as unused:
         unused.bind(("127.0.0.1", 0))
         url = f"ws://127.0.0.1:{unused.getsockname()[1]}"
-        started = time.monotonic()
         status = await client_example.run(url, scaled(5))
-        elapsed = time.monotonic() - started
     assert status == 1
-    assert elapsed < scaled(1), "the client should give up at once, not wait for its timeout"
+    # The client gave up because the connection was refused, not because its timeout passed
+    # (a TimeoutError is an OSError too, so it is ruled out by name).
+    (failure,) = reported
+    assert isinstance(failure, ServiceUnavailable)
+    assert isinstance(failure.__cause__, OSError), failure.__cause__
+    assert not isinstance(failure.__cause__, TimeoutError), failure.__cause__
     messages = [record.getMessage() for record in caplog.records]
     assert messages[0] == (
         f"no srvwire server answered at {url}: is robot_state_server.py running?"
@@ -264,12 +287,11 @@ async def test_the_server_dies_mid_sequence(
             robot_server.process.send_signal(signal.SIGKILL)
             robot_server.process.wait()
 
-    # A deadline far away: the pending call must fail because the connection dropped, at once.
-    started = time.monotonic()
+    # A deadline far away: the pending call fails because the connection dropped (a
+    # ConnectionLost, not a DeadlineExceeded), so it did not wait for the deadline.
     status = await client_example.run(robot_server.url, scaled(30), on_response=kill_after_first)
     assert status == 1
     assert len(seen) == 1
-    assert time.monotonic() - started < scaled(5)
     failure = caplog.records[-1].getMessage()
     assert failure.startswith("ConnectionLost (code -32003) calling /get_robot_state: "), failure
 

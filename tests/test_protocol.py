@@ -25,6 +25,7 @@ from srvwire.protocol import (
     Request,
     Response,
     cancel_notification,
+    decode_json,
     encode_json,
     encode_result,
     parse_incoming,
@@ -108,6 +109,25 @@ def test_a_bad_meta_is_invalid_params(meta: str, path: str, message: str) -> Non
     assert reply["error"]["data"]["errors"][0]["path"] == path
 
 
+@pytest.mark.parametrize(
+    ("meta", "message"),
+    [
+        ("5", "invalid _meta: must be an object, not a number"),
+        ('{"timeout":-0.5}', "invalid _meta.timeout: must be a number of seconds >= 0, not -0.5"),
+    ],
+)
+def test_a_notification_with_a_bad_meta_carries_the_error_and_is_never_answered(
+    meta: str, message: str
+) -> None:
+    text = '{"jsonrpc":"2.0","method":"echo","params":{"text":"x","_meta":' + meta + "}}"
+    for incoming in (parse_incoming(text), parse_incoming("[" + text + "]")):
+        (item,) = incoming.items
+        assert isinstance(item, Notification), item
+        assert (item.method, item.params, item.timeout) == ("echo", {"text": "x"}, None)
+        assert isinstance(item.error, InvalidParams)
+        assert item.error.message == message
+
+
 def test_not_json_is_a_parse_error_with_a_null_id() -> None:
     reply = error_of(parse_incoming('{"jsonrpc": "2.0", "method": "foobar, "params": "bar", "baz]'))
     assert reply == {
@@ -121,6 +141,12 @@ def test_not_json_is_a_parse_error_with_a_null_id() -> None:
     }
 
 
+def test_binary_input_is_read_as_utf8_json() -> None:
+    text = '{"jsonrpc":"2.0","method":"m","params":["é"],"id":1}'
+    for data in (text.encode(), bytearray(text.encode()), memoryview(text.encode())):
+        assert parse_incoming(data).items == (Request(1, "m", ["é"]),)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize(
     ("data", "message"),
     [
@@ -131,6 +157,8 @@ def test_not_json_is_a_parse_error_with_a_null_id() -> None:
         ("{} {}", "Parse error: trailing characters at line 1 column 4"),
         ('"\\ud800"', "Parse error: unexpected end of hex escape at line 1 column 8"),
         ("\ud800", "Parse error: Expected bytes, bytearray or str"),
+        (b'{"a":1} \xff', "Parse error: invalid UTF-8 at byte 8"),  # UTF-8 is checked first
+        (b'{"\xc3\xa9":x}', "Parse error: expected value at line 1 column 7"),
     ],
 )
 def test_parse_errors(data: str | bytes, message: str) -> None:
@@ -145,6 +173,21 @@ def test_deep_nesting_is_a_parse_error_not_a_recursion_error(opener: str) -> Non
     assert reply["error"]["code"] == -32700
     assert "recursion limit exceeded" in reply["error"]["message"]
     assert parse_incoming("[" * (MAX_DEPTH - 1) + "]" * (MAX_DEPTH - 1)).is_batch
+
+
+@pytest.mark.parametrize("opener", ["[", '{"a":'])
+def test_max_depth_is_exactly_where_nesting_stops(opener: str) -> None:
+    closer = "]" if opener == "[" else "}"
+
+    def nested(depth: int) -> str:
+        return opener * depth + "1" + closer * depth
+
+    value = decode_json(nested(MAX_DEPTH))
+    for _ in range(MAX_DEPTH):
+        value = value[0] if opener == "[" else value["a"]
+    assert value == 1
+    with pytest.raises(ParseError, match="recursion limit exceeded"):
+        decode_json(nested(MAX_DEPTH + 1))
 
 
 @pytest.mark.parametrize(
@@ -218,6 +261,37 @@ def test_a_batch_keeps_its_order_and_answers_invalid_items_in_place() -> None:
     assert isinstance(fourth, ErrorResponse) and isinstance(fourth.error, InvalidRequest)
 
 
+@pytest.mark.parametrize(
+    ("id", "what"),
+    [
+        ("Infinity", "Infinity"),
+        ("-Infinity", "-Infinity"),
+        ("NaN", "NaN"),
+        ("1e400", "Infinity"),  # too large for a double: read as infinity
+        ("-1e400", "-Infinity"),
+    ],
+)
+def test_a_non_finite_id_is_invalid_with_a_null_id(id: str, what: str) -> None:
+    message = f"Invalid Request: 'id' must be a string, a number or null, not {what}"
+    text = '{"jsonrpc":"2.0","method":"m","id":' + id + "}"
+    assert error_of(parse_incoming(text)) == {
+        "jsonrpc": "2.0",
+        "id": None,
+        "error": {"code": -32600, "message": message, "data": {"status": "INVALID_REQUEST"}},
+    }
+    batch = parse_incoming("[" + text + ',{"jsonrpc":"2.0","method":"m","id":2}]')
+    assert error_of(batch, 0)["id"] is None
+    assert batch.items[1] == Request(2, "m")
+    with pytest.raises(InvalidRequest):
+        parse_replies('{"jsonrpc":"2.0","id":' + id + ',"result":1}')
+
+
+def test_a_fractional_id_is_accepted_and_echoed() -> None:
+    # The specification says numbers SHOULD NOT have fractions; a server still answers them.
+    assert parse_incoming('{"jsonrpc":"2.0","method":"m","id":2.5}').items == (Request(2.5, "m"),)
+    assert encode_result(2.5, "0") == '{"jsonrpc":"2.0","id":2.5,"result":0}'
+
+
 def test_ids_come_back_exactly() -> None:
     big = 2**64 - 1
     request = parse_incoming(f'{{"jsonrpc":"2.0","id":{big},"method":"m"}}').items[0]
@@ -276,6 +350,12 @@ def test_requests_carry_the_timeout_in_meta() -> None:
     )
     assert Request(3, "/m", RawJSON("{ }"), timeout=1.0).serialize() == (
         '{"jsonrpc":"2.0","id":3,"method":"/m","params":{"_meta":{"timeout":1.0}}}'
+    )
+    assert Request(3, "/m", RawJSON('\n{\t"a": {"b": []} }\n '), timeout=1).serialize() == (
+        '{"jsonrpc":"2.0","id":3,"method":"/m","params":{"_meta":{"timeout":1},"a": {"b": []} }}'
+    )
+    assert Notification("/n", RawJSON('{"a":1}'), timeout=2).serialize() == (
+        '{"jsonrpc":"2.0","method":"/n","params":{"_meta":{"timeout":2},"a":1}}'
     )
     assert Request(4, "/m", timeout=1.0).serialize() == (
         '{"jsonrpc":"2.0","id":4,"method":"/m","params":{"_meta":{"timeout":1.0}}}'

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
+import signal
 import sys
 import threading
 from collections.abc import Iterator
@@ -12,9 +14,14 @@ from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
+from websockets.asyncio.client import connect as ws_connect
+from websockets.client import ClientProtocol
 from websockets.exceptions import ConnectionClosed
+from websockets.frames import Frame, Opcode
 from websockets.sync.client import connect as sync_connect
+from websockets.uri import parse_uri
 
+import srvwire
 from conftest import Echo, Subtract, Wire, build, open_wire, subtract
 from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
@@ -312,6 +319,26 @@ async def test_a_raising_handler_is_internal_without_a_traceback(
     assert any("hunter2" in str(r.exc_info[1]) for r in caplog.records if r.exc_info)
 
 
+async def test_a_cancellation_nobody_asked_for_is_still_answered(server: Server) -> None:
+    # Awaiting a future that something else cancelled raises CancelledError in the handler
+    # while its task is not being cancelled: the call must still get its one reply.
+    async def awaits_a_cancelled_future(request: Any) -> Any:
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        future.cancel()
+        await future
+
+    server.add_service("/stray", Echo, awaits_a_cancelled_future)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        reply = await w.call(request("stray", {"_meta": {"timeout": scaled(30)}}, id="s"))
+        assert error(reply) == ("s", -32603, "INTERNAL")
+        batch = await w.call([request("stray", id="b1"), request("subtract", [3, 1], id="b2")])
+        assert [r["id"] for r in batch] == ["b1", "b2"]
+        assert error(batch[0]) == ("b1", -32603, "INTERNAL")
+        assert batch[1]["result"] == {"difference": 2}
+        assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
+
+
 async def test_a_service_error_reaches_the_caller_as_it_was_raised(server: Server) -> None:
     async def refuses(request: Any) -> Any:
         raise ServiceError(4001, "the robot is e-stopped", {"since": "12:00", "ids": [1, 2]})
@@ -435,6 +462,32 @@ async def test_a_notification_runs_its_handler_without_a_reply(server: Server) -
         assert (await w.call(request("subtract", [1, 1], id="n")))["id"] == "n"
 
 
+async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
+    server: Server, caplog: pytest.LogCaptureFixture
+) -> None:
+    ran: list[Any] = []
+
+    async def handler(request: Any) -> Any:
+        ran.append(request)
+        return {"text": request.text}
+
+    server.add_service("/note", Echo, handler)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        with caplog.at_level(logging.INFO, "srvwire.server"):
+            await w.send('{"jsonrpc":"2.0","method":"note","params":{"_meta":5}}')
+            await w.send('{"jsonrpc":"2.0","method":"note","params":{"_meta":{"timeout":-1}}}')
+            await w.send('[{"jsonrpc":"2.0","method":"note","params":{"_meta":"x"}}]')
+            # The first reply on the wire must be this call's: nothing answered the above.
+            first = await w.call(request("subtract", [5, 3], id="after"))
+        assert first == {"jsonrpc": "2.0", "id": "after", "result": {"difference": 2}}
+        assert ran == []
+    dropped = [r.getMessage() for r in caplog.records if "dropped a notification" in r.message]
+    assert len(dropped) == 3
+    assert dropped[0].startswith("dropped a notification to /note from ('127.0.0.1', ")
+    assert dropped[0].endswith("invalid _meta: must be an object, not a number")
+
+
 async def test_an_id_in_flight_cannot_be_reused(server: Server) -> None:
     release = asyncio.Event()
 
@@ -534,6 +587,73 @@ async def test_an_oversized_message_closes_only_that_connection() -> None:
         assert (await other.call(request("subtract", [5, 3])))["result"] == {"difference": 2}
 
 
+def echo_request_of_size(size: int) -> tuple[str, str]:
+    """An ``echo`` call that is exactly ``size`` bytes of UTF-8, and the text it echoes."""
+    head = '{"jsonrpc":"2.0","id":1,"method":"echo","params":{"text":"'
+    tail = '"}}'
+    echoed = "x" * (size - len(head) - len(tail))
+    message = head + echoed + tail
+    assert len(message.encode()) == size
+    return message, echoed
+
+
+async def test_by_default_a_message_may_be_one_mebibyte_and_no_more() -> None:
+    server = Server()
+    assert server.max_message_size == 2**20
+    server.add_service("/echo", Echo, lambda r: {"text": r.text})
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url, max_size=None)
+        message, echoed = echo_request_of_size(2**20)
+        assert (await w.call(message))["result"] == {"text": echoed}
+        message, _ = echo_request_of_size(2**20 + 1)
+        await w.send(message)
+        assert await closed_code(w) == 1009
+
+
+async def test_by_default_permessage_deflate_is_declined() -> None:
+    async with serve(Server(), "127.0.0.1", 0) as running:
+        async with ws_connect(running.url, compression="deflate") as ws:  # offers deflate
+            assert ws.request is not None and ws.response is not None
+            assert "permessage-deflate" in ws.request.headers["Sec-WebSocket-Extensions"]
+            assert "Sec-WebSocket-Extensions" not in ws.response.headers
+            assert ws.protocol.extensions == []
+    async with serve(Server(compression="deflate"), "127.0.0.1", 0) as running:
+        async with ws_connect(running.url, compression="deflate") as ws:  # the check can fail
+            assert [e.name for e in ws.protocol.extensions] == ["permessage-deflate"]
+
+
+async def first_ping(url: str) -> Frame:
+    """Connect with websockets' sans-I/O client and return the first Ping frame received."""
+    uri = parse_uri(url)
+    protocol = ClientProtocol(uri)
+    reader, writer = await asyncio.open_connection(uri.host, uri.port)
+    try:
+        protocol.send_request(protocol.connect())
+        async with asyncio.timeout(scaled(5)):
+            while True:
+                for data in protocol.data_to_send():  # the handshake, then the pongs
+                    writer.write(data)
+                await writer.drain()
+                for event in protocol.events_received():
+                    if isinstance(event, Frame) and event.opcode is Opcode.PING:
+                        return event
+                data = await reader.read(2**16)
+                assert data, "the server closed the connection without a ping"
+                protocol.receive_data(data)
+    finally:
+        writer.close()
+        await writer.wait_closed()
+
+
+async def test_keepalive_pings_are_on_by_default() -> None:
+    default = Server()
+    assert (default.ping_interval, default.ping_timeout) == (20.0, 20.0)
+    # The interval reaches the socket: with a short one, a ping arrives on a quiet connection.
+    async with serve(Server(ping_interval=0.01), "127.0.0.1", 0) as running:
+        ping = await first_ping(running.url)
+    assert ping.opcode is Opcode.PING
+
+
 async def test_invalid_utf8_closes_a_text_frame_but_answers_a_binary_one(wire: Wire) -> None:
     await wire.ws.send(b'{"jsonrpc":"2.0","id":1,"method":"subtract","params":[2,1]}')
     assert (await wire.recv_reply())["result"] == {"difference": 1}  # binary JSON is fine
@@ -552,6 +672,9 @@ async def test_bad_input_is_answered_and_the_connection_carries_on(wire: Wire) -
         (deep, (None, -32700, "PARSE_ERROR")),
         ('{"a":' * 100_000 + "1" + "}" * 100_000, (None, -32700, "PARSE_ERROR")),
         ('{"jsonrpc":"2.0","id":[1],"method":"subtract"}', (None, -32600, "INVALID_REQUEST")),
+        ('{"jsonrpc":"2.0","id":Infinity,"method":"subtract"}', (None, -32600, "INVALID_REQUEST")),
+        ('{"jsonrpc":"2.0","id":1e400,"method":"subtract"}', (None, -32600, "INVALID_REQUEST")),
+        ('{"jsonrpc":"2.0","id":NaN,"method":"subtract"}', (None, -32600, "INVALID_REQUEST")),
         (request("subtract", "ab", id=2), (2, -32600, "INVALID_REQUEST")),
         (request("subtract", {"minuend": "ab"}, id=3), (3, -32602, "INVALID_PARAMS")),
         (request("subtract", {"minuend": 1.5}, id=4), (4, -32602, "INVALID_PARAMS")),
@@ -610,6 +733,50 @@ async def test_services_are_announced_on_connect_and_on_change(
     assert error(await w.call(request("echo")))[1] == -32601
 
 
+async def test_services_change_on_the_loop_thread_whatever_thread_asks(
+    server: Server, running: RunningServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    registry = server.registry
+    changed_on: list[int] = []
+    add, remove = registry.add, registry.remove
+
+    def recording_add(*args: Any) -> Any:
+        changed_on.append(threading.get_ident())
+        return add(*args)
+
+    def recording_remove(*args: Any) -> Any:
+        changed_on.append(threading.get_ident())
+        return remove(*args)
+
+    monkeypatch.setattr(registry, "add", recording_add)
+    monkeypatch.setattr(registry, "remove", recording_remove)
+    w = await open_wire(running.url)
+
+    def from_a_thread() -> int:
+        server.add_service("/threaded", Sum, lambda r: {"sum": 1})
+        with pytest.raises(RegistrationError, match="already registered"):
+            server.add_service("/threaded", Sum, lambda r: {"sum": 2})
+        server.remove_service("/threaded")
+        with pytest.raises(RegistrationError, match="no service named /threaded"):
+            server.remove_service("/threaded")
+        return threading.get_ident()
+
+    worker = await asyncio.to_thread(from_a_thread)
+    assert worker != threading.get_ident()
+    assert changed_on == [threading.get_ident()] * 4
+    assert "/threaded" in [s["name"] for s in (await w.recv())["params"]["services"]]
+    assert "/threaded" not in [s["name"] for s in (await w.recv())["params"]["services"]]
+    await w.ws.close()
+
+
+def test_services_change_at_once_when_not_listening() -> None:
+    server = Server()
+    thread = threading.Thread(target=server.add_service, args=("/sum", Sum, lambda r: {}))
+    thread.start()
+    thread.join(scaled(5))
+    assert "/sum" in server.registry
+
+
 async def test_registration_errors_reach_the_caller_verbatim(server: Server) -> None:
     with pytest.raises(RegistrationError) as caught:
         server.add_service("/subtract", Subtract, subtract)
@@ -638,7 +805,7 @@ async def test_registration_errors_reach_the_caller_verbatim(server: Server) -> 
 async def test_rpc_discover(wire: Wire) -> None:
     doc = (await wire.call(request("rpc.discover", id="d")))["result"]
     assert doc["openrpc"] == "1.3.2"
-    assert doc["info"] == {"title": "srvwire", "version": "0.1.0"}
+    assert doc["info"] == {"title": "srvwire", "version": srvwire.__version__}
     assert [m["name"] for m in doc["methods"]] == ["/echo", "/subtract"]
     method = doc["methods"][1]
     assert method["x-srvwire-type"] == "srvwire_tests/srv/Subtract"
@@ -737,41 +904,81 @@ async def test_a_client_leaving_cancels_its_calls(server: Server) -> None:
             await cancelled.wait()
 
 
-async def test_run_serves_until_sigterm(tmp_path: Any) -> None:
+SERVE_SCRIPT = """\
+import asyncio, logging, sys
+sys.path.insert(0, {tests!r})
+from conftest import Subtract, subtract
+from srvwire.server import Server
+logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+server = Server()
+server.add_service("/subtract", Subtract, subtract)
+url = ""
+def ready(running):
+    global url
+    url = running.url
+    print("ready", url, flush=True)
+def stopping(running):  # handed the same server as ready
+    print("stopping", running.url == url, flush=True)
+{serve}
+print("stopped", flush=True)
+"""
+
+
+@pytest.mark.parametrize(
+    ("serve_call", "signum"),
+    [
+        ("server.run('127.0.0.1', 0, ready=ready, stopping=stopping)", signal.SIGTERM),
+        (
+            "asyncio.run(server.serve_forever('127.0.0.1', 0, ready=ready, stopping=stopping))",
+            signal.SIGINT,
+        ),
+    ],
+    ids=["run-SIGTERM", "serve_forever-SIGINT"],
+)
+async def test_serving_until_a_signal_reports_the_bound_url(
+    tmp_path: Any, serve_call: str, signum: signal.Signals
+) -> None:
     script = tmp_path / "serve.py"
-    script.write_text(
-        "import logging, sys\n"
-        f"sys.path.insert(0, {str(ROOT / 'tests')!r})\n"
-        "from conftest import Subtract, subtract\n"
-        "from srvwire.server import Server\n"
-        "logging.basicConfig(level=logging.INFO, stream=sys.stderr, format='%(message)s')\n"
-        "server = Server()\n"
-        "server.add_service('/subtract', Subtract, subtract)\n"
-        "server.run('127.0.0.1', 0)\n"
-        "print('stopped', flush=True)\n"
-    )
+    script.write_text(SERVE_SCRIPT.format(tests=str(ROOT / "tests"), serve=serve_call))
     process = await asyncio.create_subprocess_exec(
         sys.executable, str(script), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
     )
     try:
         assert process.stderr is not None and process.stdout is not None
         async with asyncio.timeout(scaled(20)):
-            url = ""
-            while not url:
-                line = (await process.stderr.readline()).decode()
-                assert line, "the server exited before it served"
-                if line.startswith("serving "):
-                    url = line.rsplit(" ", 1)[1].strip()
+            line = (await process.stdout.readline()).decode()
+            assert line.startswith("ready ws://127.0.0.1:"), line
+            url = line.split()[1]
             w = await open_wire(url)
             assert (await w.call(request("subtract", [7, 2])))["result"] == {"difference": 5}
-            process.terminate()
+            process.send_signal(signum)
             assert await closed_code(w) == 1001
             assert await process.wait() == 0
-            assert (await process.stdout.read()).decode() == "stopped\n"
+            assert (await process.stdout.read()).decode() == "stopping True\nstopped\n"
+            log = (await process.stderr.read()).decode()
+            assert f"serving 1 services on {url}\n" in log
+            assert "Traceback" not in log
     finally:
         if process.returncode is None:
             process.kill()
             await process.wait()
+
+
+async def test_serve_forever_stops_when_cancelled_and_restores_signal_handlers(
+    server: Server,
+) -> None:
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    bound: asyncio.Future[RunningServer] = asyncio.get_running_loop().create_future()
+    task = asyncio.create_task(server.serve_forever("127.0.0.1", 0, ready=bound.set_result))
+    running = await bound
+    assert running.url == f"ws://127.0.0.1:{running.port}" and running.port > 0
+    w = await open_wire(running.url)
+    assert (await w.call(request("subtract", [4, 1])))["result"] == {"difference": 3}
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert await closed_code(w) == 1001
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
 
 
 # --- nothing a client sends breaks the server ----------------------------------------------------

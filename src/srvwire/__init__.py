@@ -1,5 +1,7 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from importlib import metadata as _metadata
+
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
 from srvwire.dispatch import Context
 from srvwire.errors import (
@@ -33,7 +35,10 @@ from srvwire.loader import (
 from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("srvwire")
+except _metadata.PackageNotFoundError:  # pragma: no cover - a source tree not installed
+    __version__ = "0+unknown"
 
 __all__ = [
     "Action",

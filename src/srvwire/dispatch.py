@@ -20,6 +20,11 @@ Invariants:
   the caller); an :class:`~srvwire.errors.RPCError` it raises, typically
   :class:`~srvwire.errors.ServiceError`, is sent as it is; a return value that is not a valid
   response is ``INTERNAL`` too, with the reason logged.
+* **Only a cancelled call ends in CancelledError.** :func:`dispatch` lets
+  :class:`asyncio.CancelledError` through only while its own task is being cancelled
+  (``Task.cancelling()``): the server cancelled the call, and knows what to answer. A
+  CancelledError the handler raises by itself (it awaited a future that something else
+  cancelled) is a handler failure like any other, ``INTERNAL``, so the caller is still answered.
 * **Sync handlers never run on the event loop.** A plain ``def`` handler runs in the executor the
   server was given, or in asyncio's default one. It cannot be interrupted: when its call is
   cancelled or its deadline passes, the caller is answered at once and
@@ -319,10 +324,11 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
 
 @functools.cache
 def _version() -> str:
+    """srvwire's version as installed; the same value as ``srvwire.__version__``."""
     try:
         return metadata.version("srvwire")
-    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
-        return "0.0.0"
+    except metadata.PackageNotFoundError:  # pragma: no cover - a source tree not installed
+        return "0+unknown"
 
 
 class ServiceRegistry:
@@ -512,7 +518,9 @@ async def dispatch(
         request = entry.validate(params)
     except InvalidParams:
         raise
-    except Exception as exc:  # a validator in the model raised something pydantic does not wrap
+    except (Exception, asyncio.CancelledError) as exc:
+        # A validator in the model raised something pydantic does not wrap. Validation never
+        # awaits, so not even a CancelledError from it can be this task's own cancellation.
         raise _handler_raised(entry, context, exc, logger, "validating the request") from None
     deadline = context.deadline
     scope: asyncio.Timeout | None = None
@@ -535,12 +543,22 @@ async def dispatch(
         if scope is not None and scope.expired():
             raise _deadline_exceeded(entry, context) from None
         raise _handler_raised(entry, context, exc, logger) from None
-    except asyncio.CancelledError:
-        context._mark_cancelled()
-        raise
+    except asyncio.CancelledError as exc:
+        if _being_cancelled():
+            context._mark_cancelled()
+            raise
+        # Nobody cancelled this task: the handler awaited something that was cancelled under
+        # it. Re-raising would end the call without a reply, so it is the handler's failure.
+        raise _handler_raised(entry, context, exc, logger) from None
     except Exception as exc:
         raise _handler_raised(entry, context, exc, logger) from None
     return _encode_response(entry, result, prebuilt, logger)
+
+
+def _being_cancelled() -> bool:
+    """Whether the running task has a cancellation request pending (it is being cancelled)."""
+    task = asyncio.current_task()
+    return task is not None and task.cancelling() > 0
 
 
 def _deadline_exceeded(entry: ServiceEntry, context: Context) -> DeadlineExceeded:

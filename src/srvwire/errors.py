@@ -246,7 +246,11 @@ class ConnectionLost(ServiceUnavailable):
 
 
 class ResourceExhausted(RPCError):
-    """Raised when the server refused the call: too many in flight, or a message too large."""
+    """Raised when the server refused the call: too many calls in flight on its connection.
+
+    An oversized message is not answered with this error: the server closes the connection with
+    1009 (message too big), so the client sees :class:`ConnectionLost` instead.
+    """
 
     code = ErrorCode.RESOURCE_EXHAUSTED
     status = "RESOURCE_EXHAUSTED"

@@ -13,12 +13,17 @@ Invariants:
   ``INVALID_REQUEST`` (not a batch, as the specification says); an invalid item of a batch is an
   ``INVALID_REQUEST`` in its place.
 * **An id is echoed exactly as it came** (string, number or null). An invalid item whose id can be
-  read gets its id back; otherwise ``null``. A message without an ``id`` member is a notification
-  and is never answered, unless it is so malformed that it is not a notification at all.
+  read gets its id back; otherwise ``null``. A number id must be finite: ``NaN``, ``Infinity`` and
+  numbers too large for a double (``1e400``) cannot be echoed, so they make the item an
+  ``INVALID_REQUEST`` with a ``null`` id. A fractional id is accepted (the specification only
+  advises against it). A message without an ``id`` member is a notification and is never
+  answered, unless it is so malformed that it is not a notification at all.
 * **``params._meta`` belongs to the protocol, not to the service.** It is taken out of ``params``
   while parsing: ``{"timeout": seconds}`` becomes :attr:`Request.timeout`; other members of
   ``_meta`` are ignored so that later versions can add some. A bad ``_meta`` is an
-  ``INVALID_PARAMS`` error with the path ``_meta.timeout``.
+  ``INVALID_PARAMS`` error with the path ``_meta`` or ``_meta.timeout``: a request gets it as its
+  reply; a notification carries it in :attr:`Notification.error`, so the server drops it (and logs
+  why) without running it or answering.
 * **Serializing is total.** Every message serializes to compact JSON text; data that is not JSON
   (a set, an object) is written with ``str()`` and a non-finite float as ``null`` rather than
   failing, because an error reply must always be sendable.
@@ -34,6 +39,7 @@ JSON-RPC, since a server that breaks the protocol is a bug to report, not a peer
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, TypeAlias
@@ -83,7 +89,12 @@ DISCOVER_METHOD = "rpc.discover"
 """Method that returns the OpenRPC document describing every service."""
 
 MAX_DEPTH = 200
-"""How deeply arrays and objects may nest in one message; deeper input is a parse error."""
+"""How many arrays and objects may enclose a value in one message; deeper input is a parse error.
+
+This is pydantic_core's own recursion limit, which :func:`decode_json` relies on rather than
+walking the decoded value again; the tests pin both sides of it. An empty array or object is a
+value itself, so it may sit one level deeper than this.
+"""
 
 Id: TypeAlias = str | int | float | None
 """A JSON-RPC id: a string, a number, or null."""
@@ -115,15 +126,20 @@ def decode_json(data: str | bytes) -> Any:
     are accepted, as Python's ``json`` accepts them, because srvwire's models write non-finite
     floats that way.
     """
+    if isinstance(data, memoryview):
+        data = data.tobytes()
     try:
-        if isinstance(data, bytes | bytearray | memoryview):
-            data = bytes(data).decode("utf-8")
+        # pydantic_core reads bytes as they are, without a decoded copy; it refuses any byte
+        # sequence that is not UTF-8, in a string or outside one.
         return from_json(data, allow_inf_nan=True)
-    except UnicodeDecodeError as exc:
-        raise ParseError(
-            f"Parse error: invalid UTF-8 at byte {exc.start}", {"detail": exc.reason}
-        ) from None
     except (ValueError, TypeError) as exc:
+        if not isinstance(data, str):
+            try:
+                bytes(data).decode("utf-8")  # only on the error path: say where UTF-8 breaks
+            except UnicodeDecodeError as bad:
+                raise ParseError(
+                    f"Parse error: invalid UTF-8 at byte {bad.start}", {"detail": bad.reason}
+                ) from None
         # pydantic_core reports nesting past MAX_DEPTH as "recursion limit exceeded", and a
         # str holding a lone surrogate as a TypeError.
         raise ParseError(f"Parse error: {exc}") from None
@@ -135,22 +151,35 @@ def _encode_id(id: Id) -> str:
     return encode_json(id)
 
 
-def _encode_params(params: Params, timeout: float | None) -> str | None:
-    """Return the JSON text of ``params`` with ``_meta`` added when there is a timeout."""
+_OBJECT_OPENS = re.compile(r"\s*\{\s*")
+
+
+def _params_parts(params: Params, timeout: float | None) -> tuple[str, ...]:
+    """Return the pieces of ``,"params":...`` (nothing without params), ``_meta`` spliced in.
+
+    The caller joins them with the rest of the message in one go, so the text of a
+    :class:`RawJSON` body is copied once, not once per concatenation.
+    """
     if timeout is None:
-        return None if params is None else encode_json(params)
-    meta = '{"_meta":{"timeout":' + encode_json(timeout) + "}"
+        return () if params is None else (',"params":', encode_json(params))
+    meta = ',"params":{"_meta":{"timeout":' + encode_json(timeout) + "}"
     if params is None:
-        return meta + "}"
+        return (meta, "}")
     if isinstance(params, RawJSON):
-        body = params.text.strip()
-        if not body.startswith("{"):
+        text = params.text
+        opening = _OBJECT_OPENS.match(text)
+        if opening is None:
             raise ValueError("a timeout needs params that are a JSON object")
-        rest = body[1:].lstrip()
-        return meta + ("}" if rest.startswith("}") else "," + rest)
+        start = opening.end()
+        if text.startswith("}", start):
+            return (meta, "}")
+        end = len(text)
+        while end > start and text[end - 1].isspace():
+            end -= 1
+        return (meta, ",", text[start:end])
     if isinstance(params, list):
         raise ValueError("a timeout needs params by name, not an array")
-    return encode_json({**params, "_meta": {"timeout": timeout}})
+    return (',"params":', encode_json({**params, "_meta": {"timeout": timeout}}))
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,29 +196,41 @@ class Request:
 
     def serialize(self) -> str:
         """Return this request as JSON text."""
-        params = _encode_params(self.params, self.timeout)
-        text = '{"jsonrpc":"2.0","id":' + _encode_id(self.id) + ',"method":'
-        text += encode_json(self.method)
-        if params is not None:
-            text += ',"params":' + params
-        return text + "}"
+        return "".join(
+            (
+                '{"jsonrpc":"2.0","id":',
+                _encode_id(self.id),
+                ',"method":',
+                encode_json(self.method),
+                *_params_parts(self.params, self.timeout),
+                "}",
+            )
+        )
 
 
 @dataclass(frozen=True, slots=True)
 class Notification:
-    """A message that expects no reply: ``method`` with ``params``."""
+    """A message that expects no reply: ``method`` with ``params``.
+
+    ``error`` is set when a notification parsed from a peer cannot run (its ``params._meta`` is
+    bad). A notification is never answered, so the error is for the log, not for the wire.
+    """
 
     method: str
     params: Params = None
     timeout: float | None = None
+    error: RPCError | None = None
 
     def serialize(self) -> str:
         """Return this notification as JSON text."""
-        params = _encode_params(self.params, self.timeout)
-        text = '{"jsonrpc":"2.0","method":' + encode_json(self.method)
-        if params is not None:
-            text += ',"params":' + params
-        return text + "}"
+        return "".join(
+            (
+                '{"jsonrpc":"2.0","method":',
+                encode_json(self.method),
+                *_params_parts(self.params, self.timeout),
+                "}",
+            )
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -287,16 +328,24 @@ def _kind(value: Any) -> str:
 
 
 def _valid_id(value: Any) -> bool:
-    return value is None or (type(value) in (str, int, float))
+    kind = type(value)
+    return value is None or kind is str or kind is int or (kind is float and math.isfinite(value))
+
+
+def _id_kind(value: Any) -> str:
+    """Name what an invalid id is, for the error message."""
+    if type(value) is float:  # not finite, else it would be valid
+        return "NaN" if math.isnan(value) else ("-Infinity" if value < 0 else "Infinity")
+    return _kind(value)
 
 
 def _invalid(id: Id, message: str) -> ErrorResponse:
     return ErrorResponse(id, InvalidRequest(f"Invalid Request: {message}"))
 
 
-def _bad_meta(id: Id, path: str, message: str, type_: str) -> ErrorResponse:
+def _bad_meta(path: str, message: str, type_: str) -> InvalidParams:
     error = {"path": path, "message": message, "type": type_}
-    return ErrorResponse(id, InvalidParams(f"invalid {path}: {message}", {"errors": [error]}))
+    return InvalidParams(f"invalid {path}: {message}", {"errors": [error]})
 
 
 def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
@@ -306,7 +355,7 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
     has_id = "id" in item
     id = item.get("id")
     if not _valid_id(id):
-        return _invalid(None, f"'id' must be a string, a number or null, not {_kind(id)}")
+        return _invalid(None, f"'id' must be a string, a number or null, not {_id_kind(id)}")
     if item.get("jsonrpc") != "2.0":
         return _invalid(id, "'jsonrpc' must be exactly \"2.0\"")
     method = item.get("method")
@@ -315,27 +364,29 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
         return _invalid(id, f"'method' must be a string, not {what}")
     params: Any = item.get("params")
     timeout: float | None = None
+    bad_meta: InvalidParams | None = None
     if type(params) is dict:
         if "_meta" in params:
             params = dict(params)
             meta = params.pop("_meta")
             if type(meta) is not dict:
-                return _bad_meta(id, "_meta", f"must be an object, not {_kind(meta)}", "dict_type")
-            raw = meta.get("timeout")
-            if raw is not None:
+                bad_meta = _bad_meta("_meta", f"must be an object, not {_kind(meta)}", "dict_type")
+            elif (raw := meta.get("timeout")) is not None:
                 if type(raw) not in (int, float) or not math.isfinite(raw) or raw < 0:
-                    return _bad_meta(
-                        id,
+                    bad_meta = _bad_meta(
                         "_meta.timeout",
                         f"must be a number of seconds >= 0, not {encode_json(raw)}",
                         "timeout",
                     )
-                timeout = float(raw)
+                else:
+                    timeout = float(raw)
     elif type(params) is not list and "params" in item:
         return _invalid(id, f"'params' must be an object or an array, not {_kind(params)}")
-    if has_id:
-        return Request(id, method, params, timeout)
-    return Notification(method, params, timeout)
+    if not has_id:  # a notification is never answered, not even with an error
+        return Notification(method, params, timeout, bad_meta)
+    if bad_meta is not None:
+        return ErrorResponse(id, bad_meta)
+    return Request(id, method, params, timeout)
 
 
 def parse_incoming(data: str | bytes) -> Incoming:

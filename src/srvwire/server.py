@@ -25,7 +25,9 @@ Invariants:
   so ``$/cancel`` finds it only while the handler runs. The cancel reason (``CANCELLED``,
   ``UNAVAILABLE``) is recorded in the call's :class:`~srvwire.dispatch.Context` *before* the task is
   cancelled, so the task knows which error to send; a task cancelled without a reason (the
-  connection went away) sends nothing.
+  connection went away) sends nothing. A CancelledError that a handler raises by itself, while
+  nothing cancels its task, is turned into ``INTERNAL`` by :func:`~srvwire.dispatch.dispatch`,
+  so it cannot end a call silently.
 * **Nothing a client sends stops the server.** Only this module knows websockets' exceptions; a
   closed connection ends that connection's reader and cancels that connection's calls, nothing
   more. Handler exceptions are turned into replies by :func:`~srvwire.dispatch.dispatch`.
@@ -34,11 +36,16 @@ Invariants:
   answer ``UNAVAILABLE``), then closes every connection with 1001 (going away).
 * **Clients learn of services without polling.** Each connection gets ``$/services`` as its first
   message, and again whenever a service is added or removed.
+* **The registry changes on the event loop's thread.** While the server listens,
+  :meth:`Server.add_service` and :meth:`Server.remove_service` called from another thread hand
+  the change to the loop and wait for it, so the loop never sees the registry half-changed.
+* **A notification is never answered.** One with a bad ``params._meta`` is dropped and logged.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import logging
 import signal
@@ -85,6 +92,14 @@ __all__ = ["RunningServer", "Server", "serve"]
 H = TypeVar("H", bound=Handler)
 
 _PROTOCOL_PREFIX = "$/"
+_LOOP_CHECK_INTERVAL = 1.0  # seconds between checks that a loop we wait on still runs
+
+
+def _running_loop() -> asyncio.AbstractEventLoop | None:
+    try:
+        return asyncio.get_running_loop()
+    except RuntimeError:
+        return None
 
 
 class Server:
@@ -133,15 +148,28 @@ class Server:
         """Serve ``handler`` for ``srv_type`` under ``name``; tell connected clients.
 
         Raise :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
-        a type that is not a service type, or a handler that cannot be called as one.
+        a type that is not a service type, or a handler that cannot be called as one. Safe to
+        call from any thread: while the server listens, the change is made on its event loop.
         """
-        self.registry.add(name, srv_type, handler)
-        self._services_changed()
+
+        def add() -> None:
+            self.registry.add(name, srv_type, handler)
+            self._services_changed()
+
+        self._change_services(add)
 
     def remove_service(self, name: str) -> None:
-        """Stop serving ``name``; calls already running finish. Tell connected clients."""
-        self.registry.remove(name)
-        self._services_changed()
+        """Stop serving ``name``; calls already running finish. Tell connected clients.
+
+        Raise :class:`~srvwire.errors.RegistrationError` if no service has that name. Safe to
+        call from any thread, as :meth:`add_service` is.
+        """
+
+        def remove() -> None:
+            self.registry.remove(name)
+            self._services_changed()
+
+        self._change_services(remove)
 
     def service(self, name: str, srv_type: type[Service]) -> Callable[[H], H]:
         """Decorate a handler to serve it under ``name``; the handler is returned unchanged."""
@@ -152,6 +180,43 @@ class Server:
 
         return register
 
+    def _change_services(self, change: Callable[[], None]) -> None:
+        """Run ``change`` on the thread of the loop the server listens on; wait, and re-raise.
+
+        Not listening, or already on that loop, ``change`` runs at once. If the loop stops
+        before it gets to the change, the change is made here instead.
+        """
+        loop = next((r._loop for r in tuple(self._running) if r._loop is not None), None)
+        if loop is None or not loop.is_running() or _running_loop() is loop:
+            change()
+            return
+        done: concurrent.futures.Future[None] = concurrent.futures.Future()
+
+        def on_loop() -> None:
+            if not done.set_running_or_notify_cancel():
+                return  # the caller gave up on this loop and made the change itself
+            try:
+                change()
+            except BaseException as exc:
+                done.set_exception(exc)
+                if not isinstance(exc, Exception):
+                    raise
+            else:
+                done.set_result(None)
+
+        try:
+            loop.call_soon_threadsafe(on_loop)
+        except RuntimeError:  # the loop was closed in the meantime
+            change()
+            return
+        while True:
+            try:
+                return done.result(timeout=_LOOP_CHECK_INTERVAL)
+            except concurrent.futures.TimeoutError:
+                if not loop.is_running() and done.cancel():
+                    change()
+                    return
+
     def _services_changed(self) -> None:
         if self._running:
             text = services_notification(self.registry.services()).serialize()
@@ -160,30 +225,63 @@ class Server:
 
     # --- running ----------------------------------------------------------------------------
 
-    def run(self, host: str = "127.0.0.1", port: int = 8765) -> None:
-        """Serve until Ctrl-C or SIGTERM, then shut down gracefully; for scripts."""
-        with contextlib.suppress(KeyboardInterrupt):
-            asyncio.run(self._run_until_signalled(host, port))
+    def run(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 8765,
+        *,
+        ready: Callable[[RunningServer], object] | None = None,
+        stopping: Callable[[RunningServer], object] | None = None,
+    ) -> None:
+        """Serve until Ctrl-C or SIGTERM, then shut down gracefully; for scripts.
 
-    async def _run_until_signalled(self, host: str, port: int) -> None:
+        The blocking form of :meth:`serve_forever`, which describes ``ready`` and ``stopping``.
+        """
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(self.serve_forever(host, port, ready=ready, stopping=stopping))
+
+    async def serve_forever(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 8765,
+        *,
+        ready: Callable[[RunningServer], object] | None = None,
+        stopping: Callable[[RunningServer], object] | None = None,
+    ) -> None:
+        """Serve on ``host``:``port`` until SIGINT or SIGTERM, then shut down gracefully.
+
+        ``ready`` is called with the :class:`RunningServer` once it listens (its ``url`` has the
+        port really bound, useful with port 0); ``stopping`` once a signal arrived, before the
+        graceful shutdown. Signal handlers are installed only in the main thread, and the ones
+        they replaced are restored on return; elsewhere (or where the loop cannot handle
+        signals) cancel the task, or let Ctrl-C raise KeyboardInterrupt, to stop. An OSError
+        means the address could not be bound.
+        """
         loop = asyncio.get_running_loop()
         stop = asyncio.Event()
-        installed: list[signal.Signals] = []
+        replaced: list[tuple[signal.Signals, Any]] = []
         if threading.current_thread() is threading.main_thread():
             for signum in (signal.SIGINT, signal.SIGTERM):
+                previous = signal.getsignal(signum)
                 try:
                     loop.add_signal_handler(signum, stop.set)
                 except (NotImplementedError, RuntimeError):  # Windows: KeyboardInterrupt instead
                     continue
-                installed.append(signum)
+                replaced.append((signum, previous))
         try:
             async with serve(self, host, port) as running:
                 self.logger.info("serving %d services on %s", len(self.registry), running.url)
+                if ready is not None:
+                    ready(running)
                 await stop.wait()
                 self.logger.info("shutting down")
+                if stopping is not None:
+                    stopping(running)
         finally:
-            for signum in installed:
+            for signum, previous in replaced:
                 loop.remove_signal_handler(signum)
+                if previous is not None:  # None: installed outside Python, cannot be restored
+                    signal.signal(signum, previous)
 
 
 class serve:
@@ -317,11 +415,7 @@ class RunningServer:
         loop = self._loop
         if loop is None or loop.is_closed():
             return
-        try:
-            running_loop = asyncio.get_running_loop()
-        except RuntimeError:
-            running_loop = None
-        if running_loop is not loop:
+        if _running_loop() is not loop:
             loop.call_soon_threadsafe(self._broadcast, text)
             return
         for conn in list(self._connections):
@@ -347,12 +441,20 @@ class RunningServer:
 class _Call:
     """A call in flight: its task, its context, and whether the task has started running."""
 
-    __slots__ = ("context", "started", "task")
+    __slots__ = ("conn", "context", "started", "task")
 
-    def __init__(self, context: Context) -> None:
+    def __init__(self, conn: _Connection, context: Context) -> None:
+        self.conn = conn
         self.context = context
         self.started = False
         self.task: asyncio.Task[Any] | None = None
+
+    def done(self, task: asyncio.Task[Any]) -> None:
+        """The task's only done-callback: it no longer runs, counts, or can be cancelled."""
+        conn = self.conn
+        conn.tasks.discard(task)
+        conn.in_flight -= 1
+        conn.forget(self)
 
     def cancel(self, error: RPCError | None) -> None:
         """Cancel the call; with ``error`` it answers that error, without it stays silent.
@@ -384,17 +486,26 @@ class _Connection:
         task.add_done_callback(self.tasks.discard)
         return task
 
-    def spawn_counted(self, coro: Any) -> asyncio.Task[Any]:
-        """Spawn a call or notification task; it counts as in flight until it is done."""
+    def spawn_counted(
+        self, coro: Any, done: Callable[[asyncio.Task[Any]], object]
+    ) -> asyncio.Task[Any]:
+        """Spawn a call or notification task; it counts as in flight until it is done.
+
+        ``done`` is the task's one done-callback: it discards the task and uncounts it.
+        """
         self.in_flight += 1
-        task = self.spawn(coro)
-        task.add_done_callback(self._uncount)
+        task: asyncio.Task[Any] = asyncio.create_task(coro)
+        self.tasks.add(task)
+        task.add_done_callback(done)
         return task
 
-    def _uncount(self, task: asyncio.Task[Any]) -> None:
+    def notification_done(self, task: asyncio.Task[Any]) -> None:
+        self.tasks.discard(task)
         self.in_flight -= 1
 
-    def _forget(self, id: Id, call: _Call) -> None:
+    def forget(self, call: _Call) -> None:
+        """Take ``call`` out of :attr:`calls`, so that ``$/cancel`` no longer finds it."""
+        id = call.context.request_id
         if id is not None and self.calls.get(id) is call:
             del self.calls[id]
 
@@ -459,20 +570,20 @@ class _Connection:
             return ErrorResponse(id, duplicate).serialize()
         timeout = request.timeout
         call = _Call(
+            self,
             Context(
                 service=entry.name,
                 request_id=id,
                 peer=self.peer,
                 deadline=None if timeout is None else time.monotonic() + timeout,
-            )
+            ),
         )
         if send:
-            call.task = self.spawn_counted(self.call_and_send(entry, request, call))
+            call.task = self.spawn_counted(self.call_and_send(entry, request, call), call.done)
         else:
-            call.task = self.spawn_counted(self.call(entry, request, call))
+            call.task = self.spawn_counted(self.call(entry, request, call), call.done)
         if id is not None:
             self.calls[id] = call
-            call.task.add_done_callback(lambda _: self._forget(id, call))
         return None if send else call.task
 
     def special(self, request: Request) -> str:
@@ -514,14 +625,14 @@ class _Connection:
             return ErrorResponse(request.id, exc).serialize()
         except asyncio.CancelledError:
             error = context._cancel_error
-            if error is None:
+            if error is None:  # the connection went away: nobody to answer
                 raise
             task = asyncio.current_task()
             if task is not None:
                 task.uncancel()
             return ErrorResponse(request.id, error).serialize()
         finally:
-            self._forget(request.id, call)  # from here on, $/cancel no longer finds it
+            self.forget(call)  # from here on, $/cancel no longer finds it
 
     async def call_and_send(self, entry: ServiceEntry, request: Request, call: _Call) -> None:
         reply = await self.call(entry, request, call)
@@ -551,6 +662,9 @@ class _Connection:
         if entry is None or running.closing:
             return
         log = running.server.logger
+        if note.error is not None:
+            log.info("dropped a notification to %s from %s: %s", entry.name, self.peer, note.error)
+            return
         if self.in_flight >= running.server.max_in_flight:
             log.warning(
                 "dropped a notification to %s from %s: too many calls in flight",
@@ -564,7 +678,7 @@ class _Connection:
             peer=self.peer,
             deadline=None if timeout is None else time.monotonic() + timeout,
         )
-        self.spawn_counted(self.run_notification(entry, note, context))
+        self.spawn_counted(self.run_notification(entry, note, context), self.notification_done)
 
     async def run_notification(
         self, entry: ServiceEntry, note: Notification, context: Context
