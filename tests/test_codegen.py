@@ -29,6 +29,7 @@ from srvwire.idl import (
     ServiceSpec,
     TypeSpec,
 )
+from srvwire.loader import InterfaceLoader, bundled_interfaces
 from srvwire.models import (
     FLOAT32_MAX,
     Action,
@@ -131,7 +132,30 @@ WALK = ActionSpec(
     MessageSpec("demo", "Walk_Feedback", (FieldSpec(t("uint16"), "done"),)),
     text="uint16 steps\n---\ngeo/Point[] path\n---\nuint16 done\n",
 )
-SPECS: dict[str, MessageSpec] = {s.type_name: s for s in (POINT, POSE, STRING, INT32, ODD)}
+SENTENCE = "The quick brown fox jumps over the lazy dog, again and again, until it tires. "
+AWKWARD = MessageSpec(  # text too long for a line, and quotes, everywhere a string can go
+    "demo",
+    "Awkward",
+    (
+        FieldSpec(t("string"), "long_default", SENTENCE * 2, doc=SENTENCE * 2),
+        FieldSpec(t("string"), "unbroken", "x" * 120, doc="y" * 130),
+        FieldSpec(t("string"), "quoted", "He said \"hi\" and 'bye'. " * 5),
+        FieldSpec(t("string"), "escaped", "tab\there, bell\x07, line\u2028separator " * 3),
+        FieldSpec(arr("string", BOUNDED, 5, string_bound=200), "words", ("x" * 95, "", SENTENCE)),
+        FieldSpec(arr("float64", UNBOUNDED), "sevenths", tuple(i / 7 for i in range(20))),
+        FieldSpec(
+            arr("uint8", FIXED, 3), "a_field_name_long_enough_to_push_the_annotation", (1, 2, 3)
+        ),
+        FieldSpec(t("float64"), "large", 1e16, doc="Written 1e16, as ruff spells it."),
+    ),
+    (
+        ConstantSpec(t("string"), "LONG_TEXT", SENTENCE * 3),
+        ConstantSpec(t("string"), "QUOTE", '"'),
+        ConstantSpec(t("string"), "APOSTROPHE", "it's"),
+    ),
+    doc=f'{SENTENCE * 2}\n\n  An indented line.\nA quote at the end: "',
+)
+SPECS: dict[str, MessageSpec] = {s.type_name: s for s in (POINT, POSE, STRING, INT32, ODD, AWKWARD)}
 
 
 def resolve_spec(type_: TypeSpec) -> MessageSpec:
@@ -319,15 +343,15 @@ def test_generated_classes_match_built_ones(
 def test_generated_source_reads_like_hand_written_code(tmp_path: Path) -> None:
     source = generate_module([ODD, MOVE], resolve_spec=resolve_spec)
     assert "from srvwire.models import (" in source
-    assert "    String as _String,\n" in source  # std/String is a class here
+    assert "import srvwire.models as _models\n" in source  # std/String is a class here
     assert 'class String(Message):\n    type_name: ClassVar[str] = "std/msg/String"\n' in source
-    assert '    data: _String = ""\n' in source
-    assert '    from_: Int32 = Field(default=0, alias="from", description=\'' not in source
+    assert '    data: _models.String = ""\n' in source
+    # Quotes as ruff format chooses them: double, unless that would need more escapes.
     assert (
-        '    from_: Int32 = Field(default=0, alias="from", description="Where it \\"starts\\".")\n'
+        '    from_: Int32 = Field(default=0, alias="from", description=\'Where it "starts".\')\n'
         in source
     )
-    assert "    list: _builtins.list[Int32] = Field(default_factory=lambda: [])\n" in source
+    assert "    list: _builtins.list[Int32] = Field(default_factory=_builtins.list)\n" in source
     assert "    samples: _builtins.list[Float64] = Field(default_factory=lambda: [0.5])\n" in source
     assert "import builtins as _builtins\n" in source
     assert (
@@ -337,7 +361,10 @@ def test_generated_source_reads_like_hand_written_code(tmp_path: Path) -> None:
     assert "    INF: ClassVar[float] = 1e999\n" in source
     assert "    WHOLE: ClassVar[float] = 2.0\n" in source
     assert "    Request: TypeAlias = Move_Request\n" in source
-    assert '        "geo/Pose target\\n"\n' in source
+    assert (  # one literal, as ruff format joins the lines of a text that fits on one
+        '    text: ClassVar[str] = (\n        "# Where to go.\\ngeo/Pose target\\nfloat32 speed 0.5'
+        in source
+    )
     assert "Move_Request.spec = Move.spec.request\n" in source
     assert "/somewhere" not in source
     assert source == generate_module([ODD, MOVE], resolve_spec=resolve_spec)
@@ -473,6 +500,61 @@ def test_the_ros_corpus_generates_the_same_classes(
             assert_same(getattr(made, group.name), build_service(group, resolve))
         else:
             assert_same(getattr(made, group.name), build_action(group, resolve))
+
+
+def test_long_and_quoted_text_is_wrapped_without_changing_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    module = generated([AWKWARD], tmp_path, monkeypatch, "awkward")
+    built = build_message(AWKWARD)
+    assert_same(module.Awkward, built)
+    assert module.Awkward.__doc__ == AWKWARD.doc  # too long for a docstring: assigned
+    source = (tmp_path / "awkward.py").read_text(encoding="utf-8")
+    assert max(len(line) for line in source.splitlines()) <= 100
+    assert "    QUOTE: ClassVar[str] = '\"'\n" in source
+    assert "    large: Float64 = Field(default=1e16, " in source
+
+
+def ruff(tmp_path: Path, *arguments: str) -> subprocess.CompletedProcess[str]:
+    # Run inside tmp_path: with --isolated, ruff takes the working directory as the project,
+    # so srvwire is a third-party package there, as in a project that uses srvwire.
+    return subprocess.run(
+        [sys.executable, "-m", "ruff", *arguments, "--isolated", "."],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_generated_modules_are_ruff_clean_and_formatted(tmp_path: Path) -> None:
+    loader = InterfaceLoader([bundled_interfaces()])
+    kinds = {"msg": loader.message_spec, "srv": loader.service_spec, "action": loader.action_spec}
+
+    def bundled_spec(type_: TypeSpec) -> MessageSpec:
+        return loader.message_spec(type_.qualified_name)
+
+    for package in loader.packages():
+        specs = [kinds[name.split("/")[1]](name) for name in loader.types(package)]
+        write_module(tmp_path / f"{package}.py", specs, resolve_spec=bundled_spec)
+    corpus = corpus_specs()
+    messages = {s.type_name: s for s in corpus if isinstance(s, MessageSpec)}
+    write_module(tmp_path / "corpus_msg.py", list(messages.values()))
+    for group in corpus:
+        if not isinstance(group, MessageSpec):
+            path = tmp_path / f"corpus_{group.type_name.replace('/', '_').lower()}.py"
+            write_module(path, [group], resolve_spec=lambda type_: messages[type_.qualified_name])
+    write_module(tmp_path / "demo_types.py", [ODD, MOVE, WALK, INT32], resolve_spec=resolve_spec)
+    write_module(tmp_path / "awkward.py", [AWKWARD])
+    assert len(list(tmp_path.glob("*.py"))) >= len(loader.packages()) + 6
+
+    strict = ruff(tmp_path, "check", "--select", "E,F,W,I,B,UP,ASYNC,RUF", "--line-length", "100")
+    assert (strict.returncode, strict.stderr) == (0, ""), strict.stdout
+    default_rules = ruff(tmp_path, "check")
+    assert (default_rules.returncode, default_rules.stderr) == (0, ""), default_rules.stdout
+    formatted = ruff(tmp_path, "format", "--check", "--line-length", "100")
+    assert (formatted.returncode, formatted.stderr) == (0, ""), formatted.stdout
 
 
 def test_mypy_strict_sees_the_real_field_types(tmp_path: Path) -> None:
