@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 
+import srvwire
 from srvwire import cli
 from srvwire.cli import ExitCode, main
 from srvwire.client import Client
@@ -109,6 +110,13 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = run(capsys, "--version")
     version = importlib.metadata.version("srvwire")
     assert (code, out, err) == (ExitCode.OK, f"srvwire {version}\n", "")
+
+
+def test_version_is_the_package_version(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(srvwire, "__version__", "1.2.3+test")  # one source: srvwire.__version__
+    assert run(capsys, "--version") == (ExitCode.OK, "srvwire 1.2.3+test\n", "")
 
 
 def test_help_lists_every_command_and_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
@@ -781,9 +789,10 @@ def test_call_invalid_values_checked_locally_exit_6(
     assert one_error_line(err) == (
         "InvalidParams: INVALID_PARAMS (-32602) [/add_two_ints]: VALUES do not fit "
         "example_interfaces/srv/AddTwoInts (checked locally, not sent): "
-        "a: Input should be a valid integer; c: Extra inputs are not permitted "
-        '(data: {"errors": [{"path": "a", "message": "Input should be a valid integer"}, '
-        '{"path": "c", "message": "Extra inputs are not permitted"}]})'
+        "a: Input should be a valid integer (and 1 more) "
+        '(data: {"errors": [{"path": "a", "message": "Input should be a valid integer", '
+        '"type": "int_type"}, {"path": "c", "message": "Extra inputs are not permitted", '
+        '"type": "extra_forbidden"}]})'
     )
 
 

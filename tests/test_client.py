@@ -313,6 +313,52 @@ async def test_a_type_that_cannot_be_loaded_means_plain_dicts() -> None:
         await unknown.stop()
 
 
+async def test_a_lone_surrogate_is_refused_before_sending() -> None:
+    # A str with a lone surrogate ("\ud800"; os.fsdecode(b"\x80") gives "\udc80") validates as
+    # a ROS string but cannot be written as UTF-8 JSON: the client says which field, sends nothing.
+    state_type = "advanced_communication_tutorials/srv/RobotStateQuery"
+    peer = FakePeer([{"name": "/state", "type": state_type}, {"name": "/echo", "type": "no/srv/X"}])
+
+    async def echo(ws: ServerConnection, message: dict[str, Any]) -> None:
+        params = {k: v for k, v in message["params"].items() if k != "_meta"}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": params}))
+
+    peer.reply = echo
+    await peer.start()
+    bad = "pose\ud800"
+    expected = [
+        {
+            "path": "query_type",
+            "message": (
+                "String should not contain the lone surrogate '\\ud800' (at index 4): "
+                "it cannot be written as UTF-8"
+            ),
+            "type": "string_unicode",
+        }
+    ]
+    try:
+        async with connect(peer.url, timeout=scaled(5)) as client:
+            typed = load_service(state_type)
+            for request in ({"query_type": bad}, typed.Request(query_type=bad)):
+                with pytest.raises(InvalidParams) as caught:
+                    await client.call("/state", request)
+                assert caught.value.errors == expected
+                assert caught.value.message == (
+                    f"invalid params for /state: query_type: {expected[0]['message']} "
+                    "(checked by the client; nothing was sent)"
+                )
+            with pytest.raises(InvalidParams) as untyped:  # no type: a plain dict, same check
+                await client.call("/echo", {"names": ["ok", bad]})
+            assert [(e["path"], e["type"]) for e in untyped.value.errors] == [
+                ("names[1]", "string_unicode")
+            ]
+            # Nothing was sent: the first message the peer sees is the next, valid call.
+            assert await client.call("/echo", {"names": ["ok"]}) == {"names": ["ok"]}
+            assert (await peer.next())["params"]["names"] == ["ok"]
+    finally:
+        await peer.stop()
+
+
 async def test_srv_type_overrides_the_advertised_type(peer: FakePeer, client: Client) -> None:
     async def answer_trigger(ws: ServerConnection, message: dict[str, Any]) -> None:
         result = {"success": True, "message": "done"}
@@ -814,6 +860,56 @@ async def test_wait_for_ready_waits_for_the_real_server_to_come_up() -> None:
         assert not client.connected
         async with serve(srv, "127.0.0.1", port):
             assert (await call).sum == 7
+
+
+class DialFailures(logging.Handler):
+    """Counts the client's failed attempts to connect, and wakes whoever waits for one more."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.count = 0
+        self.changed = asyncio.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.getMessage().startswith("cannot connect to"):
+            self.count += 1
+            self.changed.set()
+
+    async def more_than(self, count: int) -> None:
+        while self.count <= count:
+            self.changed.clear()
+            await self.changed.wait()
+
+
+async def test_wait_for_service_waits_for_a_server_that_starts_later() -> None:
+    url = f"ws://127.0.0.1:{free_port()}"
+    with pytest.raises(ServiceUnavailable, match="cannot connect"):
+        await connect(url, open_timeout=scaled(5))  # without reconnect: fails fast
+    srv = Server()
+    srv.add_service(ADD, load_service(ADD_TYPE), add)
+    failures = DialFailures()
+    logger = logging.getLogger(f"{__name__}.late_server")
+    logger.setLevel(logging.DEBUG)
+    logger.addHandler(failures)
+    try:
+        async with connect(url, reconnect=True, logger=logger) as client:
+            waiting = asyncio.Event()
+
+            async def wait() -> ServiceInfo:
+                waiting.set()  # wait_for_service does not yield before it sleeps on its event
+                return await client.wait_for_service(ADD, timeout=scaled(10))
+
+            waiter = asyncio.create_task(wait())
+            await waiting.wait()
+            # Once the waiter sleeps, the client fails to dial again: still no server.
+            await failures.more_than(failures.count)
+            assert not waiter.done() and not client.connected
+            async with serve(srv, "127.0.0.1", int(url.rsplit(":", 1)[1])):
+                # Woken by the connection and its $/services; not by asking the server.
+                assert await waiter == ServiceInfo(ADD, ADD_TYPE)
+                assert client.connected and client.in_flight == 0
+    finally:
+        logger.removeHandler(failures)
 
 
 async def test_an_error_without_an_id_is_logged(

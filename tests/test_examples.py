@@ -27,7 +27,7 @@ from srvwire.errors import ServiceUnavailable
 from support import ROOT, scaled
 
 EXAMPLES = ROOT / "examples"
-URL_LINE = re.compile(r"serving \d+ services on (ws://\S+)")
+URL_LINE = re.compile(r"serving \d+ services? on (ws://\S+)")
 
 
 def load_example(name: str) -> ModuleType:
@@ -243,6 +243,20 @@ def test_make_demo_runs_the_whole_tutorial() -> None:
     assert PORT.sub(r"\g<1>PORT", result.stdout) == PORT.sub(
         r"\g<1>PORT", tutorial_demo_transcript()
     )
+
+
+def test_the_url_is_read_from_the_server_log_whatever_the_count(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.syspath_prepend(str(EXAMPLES))  # demo.py imports robot_command_client
+    demo = load_example("demo")
+    for line in (
+        "INFO srvwire.server: serving 1 service on ws://127.0.0.1:1234",
+        "INFO srvwire.server: serving 2 services on ws://127.0.0.1:1234",
+    ):
+        for pattern in (demo.URL_LINE, URL_LINE):
+            match = pattern.search(line)
+            assert match and match.group(1) == "ws://127.0.0.1:1234", (pattern, line)
 
 
 # --- the client when things go wrong ---------------------------------------------------------

@@ -9,6 +9,7 @@ import warnings
 from typing import Any
 
 import pydantic
+import pydantic_core
 import pytest
 from hypothesis import given, settings, strategies as st
 
@@ -33,6 +34,8 @@ from srvwire.models import (
     build_message,
     build_service,
     python_name,
+    summarize_errors,
+    unencodable_strings,
     validation_errors,
 )
 from srvwire.parser import parse_file
@@ -611,6 +614,45 @@ def test_validation_errors_point_into_the_payload() -> None:
             "type": "model_type",
         }
     ]
+
+
+def test_summarize_errors_says_the_first_and_counts_the_rest() -> None:
+    values = one(unbounded("uint8"))
+    errors = errors_of(values, {"v": [256, -1, 300]})
+    assert (
+        summarize_errors(errors) == "v[0]: Input should be less than or equal to 255 (and 2 more)"
+    )
+    assert summarize_errors(errors[:1]) == "v[0]: Input should be less than or equal to 255"
+    whole = errors_of(values, [1, 2])  # no path: the payload as a whole is wrong
+    assert summarize_errors(whole) == "Input should be a valid dictionary or instance of One"
+
+
+def test_a_lone_surrogate_validates_but_unencodable_strings_finds_it() -> None:
+    # Refusing lone surrogates during validation would cost 10-15 % of a string-heavy
+    # validation, so they pass; writing JSON fails, and this names the field for the error.
+    pose_cls = geo_resolver()(t("Pose", package="geo"))
+    names = one(unbounded("string"))
+    message = names(v=["ok", "caf\u00e9", "a\udc80", "\ud800"])
+    assert message.v[3] == "\ud800"
+    with pytest.raises(pydantic_core.PydanticSerializationError):
+        message.model_dump_json()
+    assert unencodable_strings(message) == [
+        {
+            "path": "v[2]",
+            "message": "String should not contain the lone surrogate '\\udc80' (at index 1): "
+            "it cannot be written as UTF-8",
+            "type": "string_unicode",
+        },
+        {
+            "path": "v[3]",
+            "message": "String should not contain the lone surrogate '\\ud800' (at index 0): "
+            "it cannot be written as UTF-8",
+            "type": "string_unicode",
+        },
+    ]
+    assert unencodable_strings({"a": {"b": ["\ud800"]}})[0]["path"] == "a.b[0]"
+    assert unencodable_strings(pose_cls()) == []
+    assert unencodable_strings(names(v=["caf\u00e9", "\U0001f600"])) == []
 
 
 # --- services and actions ----------------------------------------------------------------------

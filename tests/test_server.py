@@ -699,6 +699,69 @@ async def test_bad_input_is_answered_and_the_connection_carries_on(wire: Wire) -
     assert (await wire.call(request("subtract", [9, 3])))["result"] == {"difference": 6}
 
 
+async def test_a_lone_surrogate_in_a_request_is_a_parse_error_and_the_connection_lives(
+    wire: Wire,
+) -> None:
+    # "\ud800" is a valid JSON escape, but no UTF-8 text can hold what it means, so the JSON
+    # decoder refuses the whole message: PARSE_ERROR, with id null since no id could be read.
+    await wire.send('{"jsonrpc":"2.0","id":1,"method":"echo","params":{"text":"a\\ud800"}}')
+    reply = await wire.recv_reply()
+    assert error(reply) == (None, -32700, "PARSE_ERROR")
+    assert reply["error"]["message"].startswith("Parse error: ")
+    await wire.send('{"jsonrpc":"2.0","id":2,"method":"echo","params":{"text":"\\ud83d\\ude00"}}')
+    assert (await wire.recv_reply())["result"] == {"text": "\U0001f600"}  # a pair is fine
+
+
+@pytest.mark.parametrize("shape", ["dict", "model"])
+async def test_a_response_with_a_lone_surrogate_is_internal_and_the_reason_is_logged(
+    server: Server, caplog: pytest.LogCaptureFixture, shape: str
+) -> None:
+    # A str can hold a lone surrogate (os.fsdecode(b"\x80") gives "\udc80") and still
+    # validate as a ROS string; it fails only when the response is written as JSON.
+    async def unencodable(request: Any) -> Any:
+        text = request.text + "\udc80"
+        return {"text": text} if shape == "dict" else Echo.Response(text=text)
+
+    server.add_service("/unencodable", Echo, unencodable)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        with caplog.at_level(logging.ERROR, "srvwire.server"):
+            reply = await w.call(request("unencodable", {"text": "file"}, id=1))
+        assert reply == {
+            "jsonrpc": "2.0",
+            "id": 1,
+            "error": {
+                "code": -32603,
+                "message": "handler for /unencodable returned an invalid response",
+                "data": {"status": "INTERNAL"},
+            },
+        }
+        assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
+    returned = "dict" if shape == "dict" else "Echo_Response"
+    assert caplog.messages == [
+        f"handler for /unencodable returned {returned}, which is not a valid "
+        "srvwire_tests/srv/Echo response: text: String should not contain the lone surrogate "
+        "'\\udc80' (at index 4): it cannot be written as UTF-8"
+    ]
+
+
+async def test_a_failure_inside_srvwire_is_still_answered(
+    server: Server, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async def broken_dispatch(*args: Any, **kwargs: Any) -> str:
+        raise RuntimeError("a bug in srvwire")
+
+    monkeypatch.setattr("srvwire.server.dispatch", broken_dispatch)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        reply = await w.call(request("echo", {"text": "hi"}, id=7))
+        assert error(reply) == (7, -32603, "INTERNAL")
+        assert reply["error"]["message"] == "the server failed to answer /echo"
+        batch = await w.call([request("echo", id=8), request("echo", id=9)])
+        assert [error(r) for r in batch] == [(8, -32603, "INTERNAL"), (9, -32603, "INTERNAL")]
+    assert any(r.exc_info and str(r.exc_info[1]) == "a bug in srvwire" for r in caplog.records)
+
+
 # --- services and discovery ----------------------------------------------------------------------
 
 
@@ -956,7 +1019,7 @@ async def test_serving_until_a_signal_reports_the_bound_url(
             assert await process.wait() == 0
             assert (await process.stdout.read()).decode() == "stopping True\nstopped\n"
             log = (await process.stderr.read()).decode()
-            assert f"serving 1 services on {url}\n" in log
+            assert f"serving 1 service on {url}\n" in log
             assert "Traceback" not in log
     finally:
         if process.returncode is None:
@@ -965,12 +1028,14 @@ async def test_serving_until_a_signal_reports_the_bound_url(
 
 
 async def test_serve_forever_stops_when_cancelled_and_restores_signal_handlers(
-    server: Server,
+    server: Server, caplog: pytest.LogCaptureFixture
 ) -> None:
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     bound: asyncio.Future[RunningServer] = asyncio.get_running_loop().create_future()
+    caplog.set_level(logging.INFO, "srvwire.server")
     task = asyncio.create_task(server.serve_forever("127.0.0.1", 0, ready=bound.set_result))
     running = await bound
+    assert f"serving 2 services on {running.url}" in caplog.messages
     assert running.url == f"ws://127.0.0.1:{running.port}" and running.port > 0
     w = await open_wire(running.url)
     assert (await w.call(request("subtract", [4, 1])))["result"] == {"difference": 3}

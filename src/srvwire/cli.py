@@ -36,15 +36,12 @@ import asyncio
 import difflib
 import enum
 import importlib
-import importlib.metadata
 import importlib.util
 import json
 import logging
 import os
 import re
-import signal
 import sys
-import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import ModuleType
@@ -53,6 +50,7 @@ from typing import Any, NoReturn
 import pydantic
 import yaml
 
+import srvwire
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Connecting, ServiceInfo, connect
 from srvwire.codegen import generate_module
 from srvwire.errors import (
@@ -68,9 +66,9 @@ from srvwire.errors import (
 )
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec, TypeSpec
 from srvwire.loader import InterfaceLoader, default_search_path
-from srvwire.models import Service
+from srvwire.models import Service, summarize_errors, validation_errors
 from srvwire.parser import parse_file
-from srvwire.server import Server, serve
+from srvwire.server import RunningServer, Server
 
 __all__ = ["ExitCode", "main"]
 
@@ -250,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         formatter_class=_HelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"srvwire {_version()}")
+    parser.add_argument("--version", action="version", version=f"srvwire {srvwire.__version__}")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND", required=True)
 
     remote = _Parser(add_help=False)
@@ -587,13 +585,6 @@ def _port(text: str) -> int:
     return value
 
 
-def _version() -> str:
-    try:
-        return importlib.metadata.version("srvwire")
-    except importlib.metadata.PackageNotFoundError:  # running from a bare source tree
-        return "unknown"
-
-
 # --- interface commands -----------------------------------------------------------------------
 
 _LINE_BREAK = re.compile(r"\r\n|\r|\n")
@@ -903,23 +894,13 @@ def _validate_request(name: str, srv_type: type[Service], values: dict[str, Any]
     try:
         return srv_type.Request.model_validate(values)
     except pydantic.ValidationError as exc:
-        problems = [
-            (_error_path(error["loc"]), error["msg"])
-            for error in exc.errors(include_url=False, include_context=False, include_input=False)
-        ]
-        detail = "; ".join(f"{path or '(request)'}: {message}" for path, message in problems)
+        errors = validation_errors(exc)
         raise InvalidParams(
-            f"VALUES do not fit {srv_type.type_name} (checked locally, not sent): {detail}",
-            {"errors": [{"path": path, "message": message} for path, message in problems]},
+            f"VALUES do not fit {srv_type.type_name} (checked locally, not sent): "
+            f"{summarize_errors(errors)}",
+            {"errors": errors},
             service=name,
         ) from None
-
-
-def _error_path(loc: tuple[int | str, ...]) -> str:
-    path = ""
-    for part in loc:
-        path += f"[{part}]" if isinstance(part, int) else f".{part}" if path else part
-    return path
 
 
 def _part_label(srv_type: type[Service] | None, type_name: str | None, part: str) -> str | None:
@@ -1061,10 +1042,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     previous_level = package_logger.level
     package_logger.addHandler(handler)
     package_logger.setLevel(args.log_level.upper())
+
+    def ready(running: RunningServer) -> None:
+        services = server.registry.services()
+        print(f"serving {_plural(len(services), 'service')} on {running.url}", flush=True)
+        for name, type_name in services:
+            print(f"  {name} [{type_name}]", flush=True)
+
+    def stopping(running: RunningServer) -> None:
+        print("shutting down", flush=True)
+
     try:
-        asyncio.run(_serve_until_stopped(server, args.host, args.port))
-    except KeyboardInterrupt:  # where signal handlers cannot be installed, Ctrl-C lands here
-        pass
+        # run() stops on SIGINT or SIGTERM, and takes a KeyboardInterrupt where it cannot.
+        server.run(args.host, args.port, ready=ready, stopping=stopping)
     except BrokenPipeError:
         raise  # stdout was closed, which is not a listening problem
     except OSError as exc:
@@ -1074,31 +1064,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         package_logger.setLevel(previous_level)
     print("stopped", flush=True)
     return ExitCode.OK
-
-
-async def _serve_until_stopped(server: Server, host: str, port: int) -> None:
-    """Serve until SIGINT or SIGTERM, then shut down gracefully."""
-    loop = asyncio.get_running_loop()
-    stop = asyncio.Event()
-    installed: list[signal.Signals] = []
-    if threading.current_thread() is threading.main_thread():
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            try:
-                loop.add_signal_handler(signum, stop.set)
-            except (NotImplementedError, RuntimeError):  # Windows: KeyboardInterrupt instead
-                continue
-            installed.append(signum)
-    try:
-        async with serve(server, host, port) as running:
-            services = server.registry.services()
-            print(f"serving {_plural(len(services), 'service')} on {running.url}", flush=True)
-            for name, type_name in services:
-                print(f"  {name} [{type_name}]", flush=True)
-            await stop.wait()
-            print("shutting down", flush=True)
-    finally:
-        for signum in installed:
-            loop.remove_signal_handler(signum)
 
 
 def _load_target(target: str, *, factory: bool = False) -> Server:

@@ -79,12 +79,13 @@ import itertools
 import logging
 import math
 import random
-from collections.abc import Generator, Iterator, Mapping, Sequence
+from collections.abc import Generator, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType, TracebackType
 from typing import Any, TypeAlias
 
 from pydantic import BaseModel, ValidationError
+from pydantic_core import PydanticSerializationError
 from websockets.asyncio.client import ClientConnection, connect as ws_connect
 from websockets.exceptions import ConnectionClosed, InvalidURI, WebSocketException
 from websockets.uri import parse_uri
@@ -100,7 +101,7 @@ from srvwire.errors import (
     ServiceUnavailable,
 )
 from srvwire.loader import SearchPath, load_service
-from srvwire.models import Service, validation_errors
+from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
 from srvwire.protocol import (
     DISCOVER_METHOD,
     SERVICES_METHOD,
@@ -173,12 +174,14 @@ def _backoff() -> Iterator[float]:
         delay = min(delay * _BACKOFF_FACTOR, _BACKOFF_MAX)
 
 
-def _summarize(errors: Sequence[Mapping[str, str]]) -> str:
-    """Say the first validation problem, and how many more there are."""
-    first = errors[0]
-    where = f"{first['path']}: " if first["path"] else ""
-    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-    return f"{where}{first['message']}{more}"
+def _refused(method: str, errors: list[dict[str, str]]) -> InvalidParams:
+    """The error for a request the client will not send: it does not validate or encode."""
+    return InvalidParams(
+        f"invalid params for {method}: {summarize_errors(errors)} "
+        "(checked by the client; nothing was sent)",
+        {"errors": errors},
+        service=method,
+    )
 
 
 def _describe_close(
@@ -537,7 +540,7 @@ class Client:
         except ValidationError as exc:
             errors = validation_errors(exc)
             raise InternalError(
-                f"the response does not match {srv.type_name}: {_summarize(errors)}",
+                f"the response does not match {srv.type_name}: {summarize_errors(errors)}",
                 {"errors": errors},
                 service=method,
             ) from None
@@ -656,29 +659,26 @@ class Client:
         """Validate the request when its type is known and return its JSON text."""
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
-        if srv is None:
-            if isinstance(request, BaseModel):
-                return RawJSON(request.model_dump_json(by_alias=True))
-            return RawJSON(encode_json(fields if request is None else dict(request)))
-        request_type = srv.Request
-        if isinstance(request, request_type):
-            return RawJSON(request.model_dump_json(by_alias=True))
-        if isinstance(request, BaseModel):
-            raise TypeError(
-                f"{method} takes {srv.type_name} requests, not {type(request).__qualname__}"
-            )
-        payload = fields if request is None else request
+        value: BaseModel | Mapping[str, Any] = fields if request is None else request
+        if srv is not None and not isinstance(value, srv.Request):
+            if isinstance(value, BaseModel):
+                raise TypeError(
+                    f"{method} takes {srv.type_name} requests, not {type(value).__qualname__}"
+                )
+            try:
+                value = srv.Request.model_validate(value)
+            except ValidationError as exc:
+                raise _refused(method, validation_errors(exc)) from None
         try:
-            model = request_type.model_validate(payload)
-        except ValidationError as exc:
-            errors = validation_errors(exc)
-            raise InvalidParams(
-                f"invalid params for {method}: {_summarize(errors)} "
-                "(checked by the client; nothing was sent)",
-                {"errors": errors},
-                service=method,
-            ) from None
-        return RawJSON(model.model_dump_json(by_alias=True))
+            if isinstance(value, BaseModel):
+                return RawJSON(value.model_dump_json(by_alias=True))
+            return RawJSON(encode_json(dict(value)))
+        except PydanticSerializationError as exc:
+            # A string with a lone surrogate validates, but cannot be written as UTF-8.
+            errors = unencodable_strings(value) or [
+                {"path": "", "message": str(exc), "type": "serialization_error"}
+            ]
+            raise _refused(method, errors) from None
 
     async def _roundtrip(
         self,

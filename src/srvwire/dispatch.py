@@ -61,7 +61,7 @@ from srvwire.errors import (
     RPCError,
     ServiceNotFound,
 )
-from srvwire.models import Service, validation_errors
+from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
 from srvwire.protocol import Id, encode_json
 
 __all__ = [
@@ -255,11 +255,8 @@ class ServiceEntry:
             return self.request_model.model_validate(params)
         except ValidationError as exc:
             errors = validation_errors(exc)
-            first = errors[0]
-            more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-            where = f"{first['path']}: " if first["path"] else ""
             raise InvalidParams(
-                f"invalid params for {self.name}: {where}{first['message']}{more}",
+                f"invalid params for {self.name}: {summarize_errors(errors)}",
                 {"errors": errors},
                 service=self.name,
             ) from None
@@ -458,20 +455,24 @@ def _encode_response(
             result = prebuilt
         elif not model.model_fields:
             result = model()
-    if isinstance(result, model):
-        try:
-            return result.model_dump_json(by_alias=True, warnings="error")
-        except PydanticSerializationError as exc:
-            raise _invalid_return(entry, result, str(exc), logger) from None
+    response = result
     if isinstance(result, dict):
         try:
-            return model.model_validate(result).model_dump_json(by_alias=True)
+            response = model.model_validate(result)
         except ValidationError as exc:
-            reasons = "; ".join(
-                f"{e['path'] or '(response)'}: {e['message']}" for e in validation_errors(exc)
-            )
-            raise _invalid_return(entry, result, reasons, logger) from None
+            raise _invalid_return(entry, result, _reasons(validation_errors(exc)), logger) from None
+    if isinstance(response, model):
+        try:
+            return response.model_dump_json(by_alias=True, warnings="error")
+        except PydanticSerializationError as exc:
+            # A lone surrogate in a string passes validation and fails here; say where it is.
+            reason = _reasons(unencodable_strings(response)) or str(exc)
+            raise _invalid_return(entry, result, reason, logger) from None
     raise _invalid_return(entry, result, f"expected {model.__name__} or a dict", logger)
+
+
+def _reasons(errors: list[dict[str, str]]) -> str:
+    return "; ".join(f"{e['path'] or '(response)'}: {e['message']}" for e in errors)
 
 
 async def _invoke(

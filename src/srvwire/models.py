@@ -44,7 +44,7 @@ import base64
 import binascii
 import keyword
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import Annotated, Any, ClassVar, TypeAlias, cast
 
 import pydantic
@@ -93,6 +93,8 @@ __all__ = [
     "build_message",
     "build_service",
     "python_name",
+    "summarize_errors",
+    "unencodable_strings",
     "validation_errors",
     "zero_value",
 ]
@@ -539,3 +541,60 @@ def validation_errors(exc: pydantic.ValidationError) -> list[dict[str, str]]:
         {"path": _path(error["loc"]), "message": error["msg"], "type": error["type"]}
         for error in exc.errors(include_url=False, include_context=False, include_input=False)
     ]
+
+
+def summarize_errors(errors: Sequence[Mapping[str, str]]) -> str:
+    """Say the first problem of a :func:`validation_errors` list, and how many more there are.
+
+    ``values[3]: Input should be less than or equal to 255 (and 2 more)``; without the path when
+    the payload as a whole is wrong. The one wording for an ``INVALID_PARAMS`` message, whether
+    the server, the client or the command line found the problems.
+    """
+    first = errors[0]
+    where = f"{first['path']}: " if first["path"] else ""
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{where}{first['message']}{more}"
+
+
+def unencodable_strings(value: Any) -> list[dict[str, str]]:
+    """Find the strings in ``value`` that cannot be written as UTF-8, as :func:`validation_errors`.
+
+    Such a string holds a lone surrogate (``"\\ud800"``, or what ``os.fsdecode`` makes of a
+    byte that is not UTF-8). Validation lets it through, to keep string checks in Rust, so it
+    fails only when the value is written as JSON; this finds where it is, for the error message.
+    ``value`` is a message, or the dicts and lists of one; paths use the .srv field names.
+    Meant for the error path only: it walks the whole value.
+    """
+    found: list[dict[str, str]] = []
+    _find_unencodable(value, (), found)
+    return found
+
+
+def _find_unencodable(
+    value: Any, location: tuple[int | str, ...], found: list[dict[str, str]]
+) -> None:
+    if isinstance(value, str):
+        if not value.isascii():
+            try:
+                value.encode("utf-8")
+            except UnicodeEncodeError as exc:
+                found.append(
+                    {
+                        "path": _path(location),
+                        "message": (
+                            f"String should not contain the lone surrogate "
+                            f"{value[exc.start]!r} (at index {exc.start}): it cannot be written "
+                            "as UTF-8"
+                        ),
+                        "type": "string_unicode",
+                    }
+                )
+    elif isinstance(value, pydantic.BaseModel):
+        for name, info in type(value).model_fields.items():
+            _find_unencodable(getattr(value, name), (*location, info.alias or name), found)
+    elif isinstance(value, Mapping):
+        for key, item in value.items():
+            _find_unencodable(item, (*location, str(key)), found)
+    elif isinstance(value, list | tuple):
+        for index, item in enumerate(value):
+            _find_unencodable(item, (*location, index), found)

@@ -27,7 +27,8 @@ Invariants:
   cancelled, so the task knows which error to send; a task cancelled without a reason (the
   connection went away) sends nothing. A CancelledError that a handler raises by itself, while
   nothing cancels its task, is turned into ``INTERNAL`` by :func:`~srvwire.dispatch.dispatch`,
-  so it cannot end a call silently.
+  so it cannot end a call silently; any other exception that escapes it (a bug in srvwire) is
+  logged and answered ``INTERNAL`` too.
 * **Nothing a client sends stops the server.** Only this module knows websockets' exceptions; a
   closed connection ends that connection's reader and cancels that connection's calls, nothing
   more. Handler exceptions are turned into replies by :func:`~srvwire.dispatch.dispatch`.
@@ -66,6 +67,7 @@ from websockets.exceptions import ConnectionClosed
 from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import (
     Cancelled,
+    InternalError,
     InvalidRequest,
     ResourceExhausted,
     RPCError,
@@ -270,7 +272,9 @@ class Server:
                 replaced.append((signum, previous))
         try:
             async with serve(self, host, port) as running:
-                self.logger.info("serving %d services on %s", len(self.registry), running.url)
+                count = len(self.registry)
+                services = "service" if count == 1 else "services"
+                self.logger.info("serving %d %s on %s", count, services, running.url)
                 if ready is not None:
                     ready(running)
                 await stop.wait()
@@ -631,6 +635,14 @@ class _Connection:
             if task is not None:
                 task.uncancel()
             return ErrorResponse(request.id, error).serialize()
+        except Exception:  # a bug in srvwire: still answer, so that the caller is not left waiting
+            log.exception(
+                "%s id %r from %s failed inside srvwire", entry.name, request.id, self.peer
+            )
+            internal = InternalError(
+                f"the server failed to answer {entry.name}", service=entry.name
+            )
+            return ErrorResponse(request.id, internal).serialize()
         finally:
             self.forget(call)  # from here on, $/cancel no longer finds it
 
