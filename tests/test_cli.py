@@ -19,8 +19,7 @@ from typing import Any
 
 import pytest
 
-import srvwire
-from srvwire import cli
+from srvwire import cli, version
 from srvwire.cli import ExitCode, main
 from srvwire.client import Client
 from srvwire.errors import (
@@ -115,7 +114,7 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
 def test_version_is_the_package_version(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(srvwire, "__version__", "1.2.3+test")  # one source: srvwire.__version__
+    monkeypatch.setattr(version, "__version__", "1.2.3+test")  # one source: srvwire.version
     assert run(capsys, "--version") == (ExitCode.OK, "srvwire 1.2.3+test\n", "")
 
 

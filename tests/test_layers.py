@@ -11,6 +11,7 @@ PACKAGE = Path(srvwire.__file__).parent
 
 # module -> the srvwire modules it may import
 ALLOWED: dict[str, set[str]] = {
+    "version": set(),
     "errors": set(),
     "idl": {"errors"},
     "protocol": {"errors"},
@@ -18,7 +19,7 @@ ALLOWED: dict[str, set[str]] = {
     "models": {"idl", "errors"},
     "loader": {"parser", "models", "idl", "errors"},
     "codegen": {"loader", "parser", "models", "idl", "errors"},
-    "dispatch": {"protocol", "models", "idl", "errors"},
+    "dispatch": {"protocol", "models", "idl", "errors", "version"},
     "server": {"dispatch", "protocol", "models", "idl", "errors"},
     "client": {"protocol", "models", "loader", "idl", "errors"},
 }

@@ -1,7 +1,5 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
-from importlib import metadata as _metadata
-
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
 from srvwire.dispatch import Context
 from srvwire.errors import (
@@ -34,11 +32,7 @@ from srvwire.loader import (
 )
 from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
-
-try:
-    __version__ = _metadata.version("srvwire")
-except _metadata.PackageNotFoundError:  # pragma: no cover - a source tree not installed
-    __version__ = "0+unknown"
+from srvwire.version import __version__
 
 __all__ = [
     "Action",

@@ -50,7 +50,7 @@ from typing import Any, NoReturn
 import pydantic
 import yaml
 
-import srvwire
+from srvwire import version
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Connecting, ServiceInfo, connect
 from srvwire.codegen import generate_module
 from srvwire.errors import (
@@ -248,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
         formatter_class=_HelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"srvwire {srvwire.__version__}")
+    parser.add_argument("--version", action="version", version=f"srvwire {version.__version__}")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND", required=True)
 
     remote = _Parser(add_help=False)

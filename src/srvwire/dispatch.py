@@ -47,7 +47,6 @@ import typing
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from importlib import metadata
 from typing import Any
 
 from pydantic import BaseModel, ValidationError
@@ -63,6 +62,7 @@ from srvwire.errors import (
 )
 from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
 from srvwire.protocol import Id, encode_json
+from srvwire.version import __version__
 
 __all__ = [
     "Context",
@@ -319,15 +319,6 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
     return method
 
 
-@functools.cache
-def _version() -> str:
-    """srvwire's version as installed; the same value as ``srvwire.__version__``."""
-    try:
-        return metadata.version("srvwire")
-    except metadata.PackageNotFoundError:  # pragma: no cover - a source tree not installed
-        return "0+unknown"
-
-
 class ServiceRegistry:
     """The services one server offers, by canonical name."""
 
@@ -420,7 +411,7 @@ class ServiceRegistry:
         """Return the OpenRPC 1.3.2 document describing every service."""
         return {
             "openrpc": "1.3.2",
-            "info": {"title": "srvwire", "version": _version()},
+            "info": {"title": "srvwire", "version": __version__},
             "methods": [entry.describe() for entry in self],
         }
 
