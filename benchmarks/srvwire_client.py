@@ -1,0 +1,42 @@
+"""The srvwire side's client: ``srvwire.client.connect`` and ``client.call``, as a user writes them.
+
+Each call passes a typed ``RobotStateQuery.Request`` (built once) and gets the typed
+``Response`` back, with the call's deadline enforced by the client. The only option changed
+from the defaults is ``max_message_size``, so W4's 1.9 MB replies are accepted.
+"""
+
+from __future__ import annotations
+
+import functools
+from contextlib import AsyncExitStack
+from typing import Any
+
+from srvwire.client import connect
+from srvwire.loader import load_service
+
+from common import CALL_TIMEOUT, MAX_MESSAGE, SERVICE, SRV_TYPE
+from workloads import Adapter, Call, main
+
+RobotStateQuery = load_service(SRV_TYPE)
+
+
+async def open_connection(url: str, stack: AsyncExitStack) -> Call:
+    client = await stack.enter_async_context(
+        connect(url, timeout=CALL_TIMEOUT, max_message_size=MAX_MESSAGE)
+    )
+    return functools.partial(client.call, SERVICE, timeout=CALL_TIMEOUT)
+
+
+def make_request(fields: dict[str, Any]) -> Any:
+    return RobotStateQuery.Request(**fields)
+
+
+def values_of(reply: Any) -> int:
+    if not isinstance(reply, RobotStateQuery.Response):
+        raise SystemExit(f"expected a typed {SRV_TYPE} response, got {type(reply).__name__}")
+    values: list[float] = reply.model_dump()["values"]
+    return len(values)
+
+
+if __name__ == "__main__":
+    main(Adapter(open_connection, make_request, values_of), __doc__ or "")

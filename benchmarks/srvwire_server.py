@@ -1,0 +1,48 @@
+"""The srvwire side's server: one ``RobotStateQuery`` service on ``srvwire.server``, as a user
+writes it.
+
+The handler is ``async`` and returns a typed ``Response`` built from the shared reply data, so
+every call pays for what a real srvwire service pays for: request validation, the handler's
+task, response validation and encoding. The only option changed from the defaults is
+``max_message_size``, so W4's large replies fit on the way back from the server too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+from typing import Any
+
+from srvwire.loader import load_service
+from srvwire.server import Server, serve
+
+from common import (
+    MAX_MESSAGE,
+    SERVICE,
+    SRV_TYPE,
+    ServerControl,
+    emit,
+    reply_fields,
+    run,
+    server_parser,
+)
+
+RobotStateQuery = load_service(SRV_TYPE)
+
+
+async def get_robot_state(request: Any) -> Any:
+    return RobotStateQuery.Response(**reply_fields(request.query_type))
+
+
+async def main(args: argparse.Namespace) -> None:
+    control = ServerControl()
+    server = Server(max_message_size=MAX_MESSAGE)
+    server.add_service(SERVICE, RobotStateQuery, get_robot_state)
+    async with serve(server, args.host, 0) as running:
+        emit("listening", port=running.port)
+        await control.stopped.wait()
+
+
+if __name__ == "__main__":
+    args = server_parser(__doc__ or "").parse_args()
+    run(functools.partial(main, args), args)
