@@ -938,3 +938,50 @@ async def test_a_failing_reader_fails_the_calls_instead_of_leaving_them_waiting(
         await task
     assert caught.value.message == "the client failed to process a message from the server"
     assert client.in_flight == 0
+
+
+def hold_sends_of(client: Client, method: str) -> tuple[asyncio.Event, list[BaseException]]:
+    """Make the client's sends of calls to ``method`` wait forever, as backpressure would."""
+    ws = client._ws
+    assert ws is not None
+    send = ws.send
+    held = asyncio.Event()
+    ended: list[BaseException] = []
+
+    async def held_send(message: Any, text: bool | None = None) -> None:
+        if f'"method":"{method}"' not in message:
+            return await send(message, text=text)
+        held.set()
+        try:
+            await asyncio.Event().wait()  # the peer does not read: the send cannot finish
+        except BaseException as exc:
+            ended.append(exc)
+            raise
+
+    ws.send = held_send  # type: ignore[method-assign]
+    return held, ended
+
+
+async def test_a_send_held_by_backpressure_meets_the_deadline(
+    peer: FakePeer, client: Client
+) -> None:
+    held, ended = hold_sends_of(client, ADD)
+    with pytest.raises(DeadlineExceeded, match="no response within"):
+        await client.call(ADD, a=1, b=2, timeout=scaled(0.2))
+    assert held.is_set() and len(ended) == 1 and isinstance(ended[0], asyncio.CancelledError)
+    task = asyncio.current_task()
+    assert task is not None and task.cancelling() == 0  # the deadline's request was taken back
+    assert client.in_flight == 0
+    await asyncio.sleep(scaled(0.3))  # the timer was disarmed: nothing cancels this later
+
+
+async def test_cancelling_a_caller_held_in_its_send_stays_a_cancellation(
+    peer: FakePeer, client: Client
+) -> None:
+    held, ended = hold_sends_of(client, ADD)
+    call = asyncio.create_task(client.call(ADD, a=1, b=2, timeout=scaled(10)))
+    await held.wait()
+    call.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await call
+    assert len(ended) == 1 and client.in_flight == 0

@@ -406,6 +406,51 @@ async def test_a_sync_handler_past_its_deadline_sees_cancelled() -> None:
     assert await asyncio.to_thread(observed.wait, scaled(5))
 
 
+async def test_a_handler_that_swallows_its_deadline_still_answers_deadline_exceeded() -> None:
+    async def swallows(request: Any) -> Any:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            pass
+        return {"difference": 0}
+
+    ctx = context(time.monotonic() + scaled(0.05))
+    with pytest.raises(DeadlineExceeded):
+        await run(swallows, {}, ctx=ctx)
+    assert ctx.cancelled
+    task = asyncio.current_task()
+    assert task is not None and task.cancelling() == 0  # the deadline's request was taken back
+
+
+async def test_a_deadline_that_did_not_pass_leaves_the_task_alone() -> None:
+    ctx = context(time.monotonic() + scaled(0.05))
+    assert await run(subtract, {"minuend": 3, "subtrahend": 1}, ctx=ctx) == '{"difference":2}'
+    # The timer was disarmed: waiting past the deadline is not cancelled.
+    await asyncio.sleep(scaled(0.1))
+    task = asyncio.current_task()
+    assert task is not None and task.cancelling() == 0 and not ctx.cancelled
+
+
+async def test_a_cancellation_at_the_deadline_stays_a_cancellation() -> None:
+    started = asyncio.Event()
+
+    async def hangs(request: Any) -> Any:
+        started.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            await asyncio.sleep(scaled(10))  # the deadline passes meanwhile, and cancels this
+            raise
+
+    ctx = context(time.monotonic() + scaled(0.05))
+    task = asyncio.create_task(run(hangs, {}, ctx=ctx))
+    await started.wait()
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert ctx.cancelled
+
+
 async def test_cancelling_the_task_marks_the_context() -> None:
     started = asyncio.Event()
 

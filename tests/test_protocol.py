@@ -26,8 +26,10 @@ from srvwire.protocol import (
     Response,
     cancel_notification,
     decode_json,
+    encode_call,
     encode_json,
     encode_result,
+    encode_result_bytes,
     parse_incoming,
     parse_replies,
     serialize,
@@ -338,6 +340,39 @@ def test_serializing_never_fails_on_odd_data() -> None:
 
 def error_response_text(error: Any) -> str:
     return ErrorResponse(1, error).serialize()
+
+
+def test_encode_result_bytes_is_encode_result_as_utf8() -> None:
+    for id in (1, "é", None, 2.5):
+        result = '{"text":"ünï","values":[1.0,2.5]}'
+        assert encode_result_bytes(id, result.encode()) == encode_result(id, result).encode()
+
+
+def test_encode_call_is_the_request_text_of_the_client_hot_path() -> None:
+    assert encode_call(7, '"/m"', '{"a":1,"b":"x"}', 2.5) == (
+        '{"jsonrpc":"2.0","id":7,"method":"/m","params":{"_meta":{"timeout":2.5},"a":1,"b":"x"}}'
+    )
+    assert encode_call(8, '"/m"', "{}", 0.5) == (
+        '{"jsonrpc":"2.0","id":8,"method":"/m","params":{"_meta":{"timeout":0.5}}}'
+    )
+    assert encode_call(9, encode_json('/a"b'), "{}", 1e-05) == (
+        '{"jsonrpc":"2.0","id":9,"method":"/a\\"b","params":{"_meta":{"timeout":1e-05}}}'
+    )
+
+
+@given(
+    timeout=st.floats(min_value=0, allow_nan=False, allow_infinity=False),
+    params=st.dictionaries(st.from_regex(r"[a-z][a-z0-9_]{0,8}", fullmatch=True), st.integers()),
+)
+def test_encode_call_writes_every_finite_timeout_as_json(
+    timeout: float, params: dict[str, int]
+) -> None:
+    text = encode_call(3, '"/m"', encode_json(params), timeout)
+    assert json.loads(text) == json.loads(
+        Request(3, "/m", RawJSON(encode_json(params)), timeout).serialize()
+    )
+    (item,) = parse_incoming(text).items
+    assert item == Request(3, "/m", params, timeout)
 
 
 def test_requests_carry_the_timeout_in_meta() -> None:

@@ -26,7 +26,8 @@ from conftest import Echo, Subtract, Wire, build, open_wire, subtract
 from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
-from srvwire.server import RunningServer, Server, serve
+from srvwire.protocol import Notification, Request
+from srvwire.server import RunningServer, Server, _Connection, serve
 from support import ROOT, scaled
 
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
@@ -405,6 +406,51 @@ async def test_cancel_reaches_a_call_that_has_not_started_yet() -> None:
         assert (await w.call(request("once", id=2)))["result"] == {"text": "ran"}
 
 
+async def test_results_are_sent_in_text_frames(wire: Wire) -> None:
+    # The server sends a result as the UTF-8 bytes pydantic wrote, flagged as text.
+    await wire.ws.send(json.dumps(request("echo", {"text": "hé"}, id=1)))
+    frame = await asyncio.wait_for(wire.ws.recv(), scaled(5))
+    assert frame == '{"jsonrpc":"2.0","id":1,"result":{"text":"hé"}}'
+
+
+async def test_calls_cancelled_before_their_first_step_are_settled(server: Server) -> None:
+    # The connection goes away between the creation of call tasks and their first step: their
+    # coroutines never run, so the teardown itself must uncount them and forget the calls.
+    class Socket:
+        remote_address = ("127.0.0.1", 1)
+
+    conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
+    assert conn.start(Request(1, "/echo", {"text": "a"}), send=True) is None
+    batched = conn.start(Request(2, "/echo", {"text": "b"}), send=False)
+    conn.notify(Notification("/echo", {"text": "c"}))
+    tasks = set(conn.counted)
+    assert conn.in_flight == 3 and len(tasks) == 3 and set(conn.calls) == {1, 2}
+    assert not any(call.started for call in conn.calls.values())
+    conn.cancel_all(None)
+    await asyncio.wait(tasks)
+    assert all(task.cancelled() for task in tasks) and isinstance(batched, asyncio.Task)
+    assert conn.in_flight == 0 and not conn.counted and not conn.calls
+
+
+async def test_finished_calls_and_notifications_settle_themselves(server: Server) -> None:
+    class Socket:
+        remote_address = ("127.0.0.1", 1)
+
+        async def send(self, message: str | bytes, text: bool | None = None) -> None:
+            sent.append(message)
+
+    sent: list[str | bytes] = []
+    conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
+    assert conn.start(Request(1, "/echo", {"text": "a"}), send=True) is None
+    batched = conn.start(Request(2, "/echo", {"text": "b"}), send=False)
+    conn.notify(Notification("/echo", {"text": "c"}))
+    tasks = set(conn.counted)
+    await asyncio.wait(tasks)
+    assert isinstance(batched, asyncio.Task) and batched.result() is not None
+    assert len(sent) == 1 and json.loads(sent[0])["id"] == 1
+    assert conn.in_flight == 0 and not conn.counted and not conn.calls
+
+
 async def test_sync_handlers_do_not_block_the_loop(server: Server) -> None:
     release = threading.Event()
     entered = threading.Event()
@@ -748,10 +794,10 @@ async def test_a_response_with_a_lone_surrogate_is_internal_and_the_reason_is_lo
 async def test_a_failure_inside_srvwire_is_still_answered(
     server: Server, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    async def broken_dispatch(*args: Any, **kwargs: Any) -> str:
+    async def broken_dispatch(*args: Any, **kwargs: Any) -> bytes:
         raise RuntimeError("a bug in srvwire")
 
-    monkeypatch.setattr("srvwire.server.dispatch", broken_dispatch)
+    monkeypatch.setattr("srvwire.server.dispatch_json", broken_dispatch)
     async with serve(server, "127.0.0.1", 0) as running:
         w = await open_wire(running.url)
         reply = await w.call(request("echo", {"text": "hi"}, id=7))

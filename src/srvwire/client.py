@@ -10,8 +10,9 @@ one *reader task* is the only code that receives from the socket. It parses each
 :func:`srvwire.protocol.parse_replies` and either resolves the future of the call the reply
 answers, or updates the advertised services.
 
-A call encodes its request once (``model_dump_json``), registers a future under a fresh integer
-id in ``_pending``, sends the text, and awaits the future under its deadline. The reply is
+A call encodes its request once (``model_dump_json``, with ``_meta`` spliced in by
+:func:`srvwire.protocol.encode_call`), registers a future under a fresh integer id in
+``_pending``, sends the text, and awaits the future under its deadline. The reply is
 decoded in the caller's task, not in the reader, so a slow or failing validation never holds up
 the other calls on the connection.
 
@@ -20,9 +21,10 @@ Invariants:
 * **Every call ends.** Every call has a finite deadline (the client's ``timeout`` unless the call
   gives its own), fixed as a point in loop time when the call starts. ``asyncio.wait_for`` on
   the pending reply future enforces it (on a future it adds a timer and a done callback, no
-  task); the send before it is bounded by the same deadline with ``asyncio.timeout_at``, since
-  a send waits only on backpressure and ``wait_for`` would wrap the coroutine in a task on
-  Python 3.11. Waiting for the connection or the service (``wait_for_ready``) spends from the
+  task); the send before it is bounded by the same deadline with a bare loop timer that cancels
+  the caller's task (:class:`_SendDeadline`: ``asyncio.timeout_at`` for one purpose, cheaper),
+  since a send waits only on backpressure and ``wait_for`` would wrap the coroutine in a task
+  on Python 3.11. Waiting for the connection or the service (``wait_for_ready``) spends from the
   same deadline. The remaining time travels to the server in ``params._meta.timeout``. That is
   why calls take a ``timeout`` argument instead of leaving it to an outer ``asyncio.timeout``,
   which the server could not see.
@@ -107,10 +109,10 @@ from srvwire.protocol import (
     SERVICES_METHOD,
     ErrorResponse,
     Notification,
-    RawJSON,
     Request,
     Response,
     cancel_notification,
+    encode_call,
     encode_json,
     parse_replies,
 )
@@ -142,6 +144,8 @@ _CLOSE_PROTOCOL_VIOLATION = 1008
 _BACKOFF_INITIAL = 0.05
 _BACKOFF_FACTOR = 2.0
 _BACKOFF_MAX = 5.0
+# How many method names a client keeps already written as JSON.
+_METHOD_CACHE_SIZE = 256
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,6 +162,8 @@ def _canonical_name(name: str) -> str:
 
 
 def _check_timeout(timeout: float, what: str = "timeout") -> float:
+    if type(timeout) is float and 0.0 < timeout < math.inf:  # the common case, quickly
+        return timeout
     if isinstance(timeout, bool) or not isinstance(timeout, int | float):
         raise TypeError(f"{what} must be a number of seconds, not {type(timeout).__name__}")
     if not (math.isfinite(timeout) and timeout > 0):
@@ -247,6 +253,7 @@ class Client:
         self._pending: dict[int, asyncio.Future[Response | ErrorResponse]] = {}
         self._services: dict[str, str] = {}
         self._types: dict[str, type[Service] | None] = {}
+        self._method_json: dict[str, str] = {}  # method names written as JSON, a small cache
         self._changed = asyncio.Event()
         self._background: set[asyncio.Task[None]] = set()
         self._opened = False
@@ -655,8 +662,8 @@ class Client:
         srv: type[Service] | None,
         request: BaseModel | Mapping[str, Any] | None,
         fields: dict[str, Any],
-    ) -> RawJSON:
-        """Validate the request when its type is known and return its JSON text."""
+    ) -> str:
+        """Validate the request when its type is known and return its JSON text (an object)."""
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
         value: BaseModel | Mapping[str, Any] = fields if request is None else request
@@ -671,8 +678,8 @@ class Client:
                 raise _refused(method, validation_errors(exc)) from None
         try:
             if isinstance(value, BaseModel):
-                return RawJSON(value.model_dump_json(by_alias=True))
-            return RawJSON(encode_json(dict(value)))
+                return value.model_dump_json(by_alias=True)
+            return encode_json(dict(value))
         except PydanticSerializationError as exc:
             # A string with a lone surrogate validates, but cannot be written as UTF-8.
             errors = unencodable_strings(value) or [
@@ -684,11 +691,15 @@ class Client:
         self,
         ws: ClientConnection,
         method: str,
-        params: RawJSON | None,
+        params: str | None,
         deadline: float,
         budget: float,
     ) -> Response | ErrorResponse:
-        """Send one request and wait for its reply until ``deadline``."""
+        """Send one request and wait for its reply until ``deadline``.
+
+        ``params`` is the request's JSON object text, sent with the remaining time spliced in as
+        ``_meta.timeout``; None sends no params (and no deadline).
+        """
         loop = asyncio.get_running_loop()
         remaining = deadline - loop.time()
         request_id = next(self._ids)
@@ -698,18 +709,28 @@ class Client:
                 {"timeout": budget},
                 service=method,
             )
-        timeout = None if params is None else round(remaining, 6)
-        text = Request(request_id, method, params, timeout).serialize()
+        if params is None:
+            text = Request(request_id, method).serialize()
+        else:
+            text = encode_call(request_id, self._encode_method(method), params, round(remaining, 6))
         future: asyncio.Future[Response | ErrorResponse] = loop.create_future()
         pending = self._pending
         pending[request_id] = future
         task = asyncio.current_task()
         cancelling = task.cancelling() if task is not None else 0
         try:
-            # The send rarely waits (only on backpressure); a timeout context bounds it with no
-            # task, where wait_for would wrap the coroutine in one on Python 3.11.
-            async with asyncio.timeout_at(deadline):
+            # The send rarely waits (only on backpressure): a bare timer bounds it, cheaper
+            # than a timeout context, and with no task, where wait_for would wrap the
+            # coroutine in one on Python 3.11.
+            bound = _SendDeadline(loop, task, deadline)
+            try:
                 await ws.send(text)
+            except asyncio.CancelledError:
+                if bound.disarm():  # the deadline cancelled the send, and nothing else did
+                    raise TimeoutError from None
+                raise
+            finally:
+                bound.disarm()
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
             if task is not None and task.cancelling() > cancelling:
@@ -733,6 +754,16 @@ class Client:
             raise
         finally:
             pending.pop(request_id, None)
+
+    def _encode_method(self, method: str) -> str:
+        """Return ``method`` written as JSON, from a small cache."""
+        cache = self._method_json
+        encoded = cache.get(method)
+        if encoded is None:
+            if len(cache) >= _METHOD_CACHE_SIZE:
+                cache.clear()
+            encoded = cache[method] = encode_json(method)
+        return encoded
 
     def _cancel_remote(
         self,
@@ -764,6 +795,42 @@ class Client:
             await ws.send(text)
         except ConnectionClosed:
             pass  # best effort: a closed connection has cancelled everything anyway
+
+
+class _SendDeadline:
+    """Cancel a task that is still sending when the deadline passes: a bare timer and a flag.
+
+    ``asyncio.timeout_at`` for one purpose, a few times cheaper per call. :meth:`disarm`
+    must follow, whatever happened.
+    """
+
+    __slots__ = ("_cancelling", "_fired", "_handle", "_task")
+
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, task: asyncio.Task[Any] | None, when: float
+    ) -> None:
+        if task is None:
+            raise RuntimeError("a call must run inside a task")
+        self._task = task
+        self._cancelling = task.cancelling()
+        self._fired = False
+        self._handle = loop.call_at(when, self._fire)
+
+    def _fire(self) -> None:
+        self._fired = True
+        self._task.cancel()
+
+    def disarm(self) -> bool:
+        """Stop the timer; return True when it fired and nothing else cancelled the task.
+
+        A timer that fired has its cancellation taken back (once: a second call returns
+        False); the caller then raises TimeoutError instead of CancelledError.
+        """
+        self._handle.cancel()
+        if not self._fired:
+            return False
+        self._fired = False
+        return self._task.uncancel() <= self._cancelling
 
 
 class ServiceProxy:

@@ -29,7 +29,10 @@ Invariants:
   failing, because an error reply must always be sendable.
 * **Pre-encoded JSON is embedded, never decoded again.** :class:`RawJSON` wraps text that already
   is JSON (a pydantic ``model_dump_json``); as a result or as params it is spliced into the
-  envelope as it is.
+  envelope as it is. The hot paths do the same without the objects: :func:`encode_result` and
+  :func:`encode_result_bytes` (the server's replies, as text or as UTF-8 bytes) and
+  :func:`encode_call` (the client's requests, whose callers guarantee compact params and a
+  finite timeout).
 
 :func:`parse_replies` is the client's side: it parses what a server sends and raises
 :class:`~srvwire.errors.ParseError` or :class:`~srvwire.errors.InvalidRequest` when that is not
@@ -70,8 +73,10 @@ __all__ = [
     "Response",
     "cancel_notification",
     "decode_json",
+    "encode_call",
     "encode_json",
     "encode_result",
+    "encode_result_bytes",
     "parse_incoming",
     "parse_replies",
     "serialize",
@@ -288,6 +293,33 @@ def encode_result(id: Id, result_json: str) -> str:
     return '{"jsonrpc":"2.0","id":' + _encode_id(id) + ',"result":' + result_json + "}"
 
 
+def encode_result_bytes(id: Id, result_json: bytes) -> bytes:
+    """Return :func:`encode_result` as UTF-8 bytes, for a result that is UTF-8 JSON bytes.
+
+    A large result is copied once, into the reply, and never decoded.
+    """
+    return b"".join(
+        (b'{"jsonrpc":"2.0","id":', _encode_id(id).encode(), b',"result":', result_json, b"}")
+    )
+
+
+def encode_call(id: int, method_json: str, params_json: str, timeout: float) -> str:
+    """Return a request with ``_meta.timeout`` spliced into its params: the client's hot path.
+
+    The same text as ``Request(id, method, RawJSON(params_json), timeout).serialize()``, built
+    in one join: ``method_json`` is the method already written as JSON (:func:`encode_json`),
+    ``params_json`` a compact JSON object as pydantic writes it (``{`` first, no blanks), and
+    ``timeout`` a finite float >= 0, written by ``repr``, which is a JSON number for every
+    finite float (``2.5``, ``1e-05``, ``1e+16``).
+    """
+    head = '{"jsonrpc":"2.0","id":', str(id), ',"method":', method_json
+    if params_json == "{}":
+        return "".join((*head, ',"params":{"_meta":{"timeout":', repr(timeout), "}}}"))
+    return "".join(
+        (*head, ',"params":{"_meta":{"timeout":', repr(timeout), "},", params_json[1:], "}")
+    )
+
+
 def serialize(message: Message) -> str:
     """Return one message as JSON text."""
     return message.serialize()
@@ -349,7 +381,10 @@ def _bad_meta(path: str, message: str, type_: str) -> InvalidParams:
 
 
 def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
-    """Turn one decoded JSON value into a request, a notification, or the error answering it."""
+    """Turn one decoded JSON value into a request, a notification, or the error answering it.
+
+    ``item`` must be freshly decoded and nobody else's: ``_meta`` is popped out of its params.
+    """
     if type(item) is not dict:
         return _invalid(None, f"expected an object, got {_kind(item)}")
     has_id = "id" in item
@@ -367,8 +402,7 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
     bad_meta: InvalidParams | None = None
     if type(params) is dict:
         if "_meta" in params:
-            params = dict(params)
-            meta = params.pop("_meta")
+            meta = params.pop("_meta")  # a fresh dict from decode_json: no copy needed
             if type(meta) is not dict:
                 bad_meta = _bad_meta("_meta", f"must be an object, not {_kind(meta)}", "dict_type")
             elif (raw := meta.get("timeout")) is not None:

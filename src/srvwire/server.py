@@ -19,7 +19,13 @@ Invariants:
 * **In flight is bounded per connection.** At most ``max_in_flight`` calls and notifications run at
   once on a connection; past that a call is answered ``RESOURCE_EXHAUSTED`` at once (a notification
   is dropped and logged), and the connection carries on. Messages are bounded by
-  ``max_message_size``: websockets closes the connection with 1009 past it.
+  ``max_message_size``: websockets closes the connection with 1009 past it. A call or
+  notification counts from the creation of its task until the task's coroutine settles it in
+  its own ``finally`` (after the reply is sent); a task the connection's teardown cancels
+  before its first step is settled by a done-callback instead, since its coroutine never runs.
+* **Replies are sent as they are encoded.** A call's result is the UTF-8 JSON bytes pydantic
+  wrote, wrapped in its envelope and sent as a text frame, never copied into a ``str`` and back
+  (only a batch, which joins its replies as text, decodes them).
 * **Every request gets exactly one reply**, while the connection is open: its result, or an error.
   A call whose ``id`` can be cancelled is listed in ``_Connection.calls`` until its reply is built,
   so ``$/cancel`` finds it only while the handler runs. The cancel reason (``CANCELLED``,
@@ -64,7 +70,7 @@ from websockets.asyncio.server import (
 )
 from websockets.exceptions import ConnectionClosed
 
-from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch
+from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch_json
 from srvwire.errors import (
     Cancelled,
     InternalError,
@@ -84,6 +90,7 @@ from srvwire.protocol import (
     Request,
     Response,
     encode_result,
+    encode_result_bytes,
     parse_incoming,
     serialize_batch,
     services_notification,
@@ -394,7 +401,7 @@ class RunningServer:
         self.closing = True
         options._running.discard(self)
         self._ws_server.close(close_connections=False)  # stop listening; keep connections
-        tasks = {task for conn in self._connections for task in conn.tasks}
+        tasks = {task for conn in self._connections for task in (*conn.tasks, *conn.counted)}
         if tasks:
             _, pending = await asyncio.wait(tasks, timeout=options.grace_period)
             if pending:
@@ -445,20 +452,12 @@ class RunningServer:
 class _Call:
     """A call in flight: its task, its context, and whether the task has started running."""
 
-    __slots__ = ("conn", "context", "started", "task")
+    __slots__ = ("context", "started", "task")
 
-    def __init__(self, conn: _Connection, context: Context) -> None:
-        self.conn = conn
+    def __init__(self, context: Context) -> None:
         self.context = context
         self.started = False
         self.task: asyncio.Task[Any] | None = None
-
-    def done(self, task: asyncio.Task[Any]) -> None:
-        """The task's only done-callback: it no longer runs, counts, or can be cancelled."""
-        conn = self.conn
-        conn.tasks.discard(task)
-        conn.in_flight -= 1
-        conn.forget(self)
 
     def cancel(self, error: RPCError | None) -> None:
         """Cancel the call; with ``error`` it answers that error, without it stays silent.
@@ -472,17 +471,29 @@ class _Call:
 
 
 class _Connection:
-    """One client connection: its reader, and the calls it has in flight."""
+    """One client connection: its reader, and the calls it has in flight.
 
-    __slots__ = ("calls", "in_flight", "peer", "running", "tasks", "ws")
+    A call or notification task is in :attr:`counted` from its creation until its coroutine's
+    own ``finally`` takes it out (no done-callback: that would cost the loop one more turn per
+    call). A task cancelled before its first step never runs that ``finally``; the only code
+    that cancels tasks which may not have started is :meth:`cancel_all` without an error, and
+    it gives each such task a done-callback that settles it instead.
+    """
+
+    __slots__ = ("calls", "counted", "peer", "running", "tasks", "ws")
 
     def __init__(self, running: RunningServer, ws: ServerConnection) -> None:
         self.running = running
         self.ws = ws
         self.peer: Any = ws.remote_address
         self.calls: dict[Id, _Call] = {}  # calls that $/cancel can reach, by id
-        self.tasks: set[asyncio.Task[Any]] = set()
-        self.in_flight = 0  # calls and notifications whose task has not finished
+        self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: batches, broadcasts
+        self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
+
+    @property
+    def in_flight(self) -> int:
+        """How many calls and notifications run on this connection."""
+        return len(self.counted)
 
     def spawn(self, coro: Any) -> asyncio.Task[Any]:
         task: asyncio.Task[Any] = asyncio.create_task(coro)
@@ -490,22 +501,23 @@ class _Connection:
         task.add_done_callback(self.tasks.discard)
         return task
 
-    def spawn_counted(
-        self, coro: Any, done: Callable[[asyncio.Task[Any]], object]
-    ) -> asyncio.Task[Any]:
-        """Spawn a call or notification task; it counts as in flight until it is done.
+    def spawn_counted(self, coro: Any) -> asyncio.Task[Any]:
+        """Spawn a call or notification task; it counts as in flight until it settles.
 
-        ``done`` is the task's one done-callback: it discards the task and uncounts it.
+        ``coro`` must settle its task itself, last thing, with :meth:`settle`.
         """
-        self.in_flight += 1
         task: asyncio.Task[Any] = asyncio.create_task(coro)
-        self.tasks.add(task)
-        task.add_done_callback(done)
+        self.counted.add(task)
         return task
 
-    def notification_done(self, task: asyncio.Task[Any]) -> None:
-        self.tasks.discard(task)
-        self.in_flight -= 1
+    def settle(self) -> None:
+        """Uncount the running task, a call's or a notification's; its coroutine's last step."""
+        try:
+            task = asyncio.current_task()
+        except RuntimeError:  # closed by the garbage collector after its loop: nothing counts
+            return
+        if task is not None:
+            self.counted.discard(task)
 
     def forget(self, call: _Call) -> None:
         """Take ``call`` out of :attr:`calls`, so that ``$/cancel`` no longer finds it."""
@@ -513,19 +525,29 @@ class _Connection:
         if id is not None and self.calls.get(id) is call:
             del self.calls[id]
 
-    async def send(self, text: str) -> None:
+    async def send(self, text: str | bytes) -> None:
+        """Send a message in a text frame: a ``str``, or UTF-8 bytes as they are."""
         try:
-            await self.ws.send(text)
+            await self.ws.send(text, text=True)
         except ConnectionClosed:
             pass  # the caller left; its calls are being cancelled
 
     def cancel_all(self, error: RPCError | None) -> None:
-        """Cancel every call in flight; with ``error`` they answer it, without they stay silent."""
+        """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
+
+        Without ``error`` (the connection is gone) every task is cancelled, even one that has
+        not started; since such a task never runs its coroutine's ``finally``, each counted
+        task gets a done-callback that settles it (a no-op for one that settled itself).
+        """
         for call in list(self.calls.values()):
             call.cancel(error)
         if error is None:
+            self.calls.clear()  # nothing can reach them any more
             for task in list(self.tasks):
                 task.cancel()
+            for task in list(self.counted):
+                task.cancel()
+                task.add_done_callback(self.counted.discard)
 
     async def read(self) -> None:
         async for message in self.ws:
@@ -574,7 +596,6 @@ class _Connection:
             return ErrorResponse(id, duplicate).serialize()
         timeout = request.timeout
         call = _Call(
-            self,
             Context(
                 service=entry.name,
                 request_id=id,
@@ -583,9 +604,9 @@ class _Connection:
             ),
         )
         if send:
-            call.task = self.spawn_counted(self.call_and_send(entry, request, call), call.done)
+            call.task = self.spawn_counted(self.call_and_send(entry, request, call))
         else:
-            call.task = self.spawn_counted(self.call(entry, request, call), call.done)
+            call.task = self.spawn_counted(self.call_in_batch(entry, request, call))
         if id is not None:
             self.calls[id] = call
         return None if send else call.task
@@ -604,8 +625,11 @@ class _Connection:
             return ErrorResponse(request.id, exc).serialize()
         raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
 
-    async def call(self, entry: ServiceEntry, request: Request, call: _Call) -> str | None:
-        """Run one call and return its reply text; None if it was cancelled silently."""
+    async def call(self, entry: ServiceEntry, request: Request, call: _Call) -> str | bytes | None:
+        """Run one call and return its reply text; None if it was cancelled silently.
+
+        A result is returned as UTF-8 bytes, as pydantic wrote it (no copy into a ``str``).
+        """
         call.started = True
         context = call.context
         server = self.running.server
@@ -613,7 +637,7 @@ class _Connection:
         try:
             if context._cancel_error is not None:  # cancelled before it started
                 return ErrorResponse(request.id, context._cancel_error).serialize()
-            result = await dispatch(
+            result = await dispatch_json(
                 entry,
                 request.params if not isinstance(request.params, RawJSON) else None,
                 context,
@@ -622,7 +646,7 @@ class _Connection:
             )
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s id %r from %s: ok", entry.name, request.id, self.peer)
-            return encode_result(request.id, result)
+            return encode_result_bytes(request.id, result)
         except RPCError as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s id %r from %s: %s", entry.name, request.id, self.peer, exc)
@@ -647,9 +671,19 @@ class _Connection:
             self.forget(call)  # from here on, $/cancel no longer finds it
 
     async def call_and_send(self, entry: ServiceEntry, request: Request, call: _Call) -> None:
-        reply = await self.call(entry, request, call)
-        if reply is not None:
-            await self.send(reply)
+        try:
+            reply = await self.call(entry, request, call)
+            if reply is not None:
+                await self.send(reply)
+        finally:
+            self.settle()
+
+    async def call_in_batch(self, entry: ServiceEntry, request: Request, call: _Call) -> str | None:
+        try:
+            reply = await self.call(entry, request, call)
+            return reply.decode() if isinstance(reply, bytes) else reply
+        finally:
+            self.settle()
 
     def cancel(self, params: Any) -> None:
         """Handle ``$/cancel``: cancel the call with ``params["id"]``, if it is still running."""
@@ -690,14 +724,14 @@ class _Connection:
             peer=self.peer,
             deadline=None if timeout is None else time.monotonic() + timeout,
         )
-        self.spawn_counted(self.run_notification(entry, note, context), self.notification_done)
+        self.spawn_counted(self.run_notification(entry, note, context))
 
     async def run_notification(
         self, entry: ServiceEntry, note: Notification, context: Context
     ) -> None:
         server = self.running.server
         try:
-            await dispatch(
+            await dispatch_json(
                 entry,
                 note.params if not isinstance(note.params, RawJSON) else None,
                 context,
@@ -707,6 +741,8 @@ class _Connection:
         except RPCError as exc:
             if server.logger.isEnabledFor(logging.INFO):
                 server.logger.info("notification to %s failed: %s", entry.name, exc)
+        finally:
+            self.settle()
 
     async def batch(self, items: tuple[Request | Notification | ErrorResponse, ...]) -> None:
         """Answer a batch: run its calls concurrently, send their replies as one array."""
