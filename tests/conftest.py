@@ -60,6 +60,24 @@ def subtract(request: Any) -> Any:
     return Subtract.Response(difference=request.minuend - request.subtrahend)
 
 
+class Hang:
+    """A handler that never returns: ``entered`` is set once it runs, ``cancelled`` once it ends.
+
+    Nothing ever sets the event it waits on, so only cancelling its task ends it.
+    """
+
+    def __init__(self) -> None:
+        self.entered = asyncio.Event()
+        self.cancelled = asyncio.Event()
+
+    async def __call__(self, request: Any) -> Any:
+        self.entered.set()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            self.cancelled.set()
+
+
 class Wire:
     """A raw WebSocket connection to a server, with JSON helpers and scaled timeouts."""
 

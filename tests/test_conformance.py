@@ -2,9 +2,10 @@
 
 The corpus (``shared/ros_test_interfaces``, see ``support.ros_test_interfaces``) is copied into
 a temporary search-path folder as ``test_msgs``, the package ROS 2 ships these files in. The
-counts and values below were read off the files by hand, so a parser or model that drops, adds
-or alters a field, constant or default fails here. Random valid instances of every message, and
-of every part of every service and action, must also survive JSON unchanged.
+counts and values checked here were read off the files by hand and are kept in ``ros_corpus``,
+so a parser or model that drops, adds or alters a field, constant or default fails here. Random
+valid instances of every message, and of every part of every service and action, must also
+survive JSON unchanged.
 """
 
 from __future__ import annotations
@@ -12,120 +13,28 @@ from __future__ import annotations
 import json
 import math
 import shutil
-from typing import Any, TypeAlias
+from typing import Any
 
 import pytest
 from hypothesis import given, settings, strategies as st
 from pydantic import BaseModel
 
-from srvwire.idl import INTEGER_RANGES, STRING_TYPES, ArrayKind, MessageSpec, Scalar, TypeSpec
+import ros_corpus
+from srvwire.idl import INTEGER_RANGES, STRING_TYPES, ArrayKind, MessageSpec, TypeSpec
 from srvwire.loader import InterfaceLoader
 from srvwire.models import FLOAT32_MAX, Message
 from support import ros_test_interfaces
 
-# (fields, constants, fields with a default) for each part of each file, in file order.
-Counts: TypeAlias = tuple[int, int, int]
-COUNTS: dict[str, list[Counts]] = {
-    "test_msgs/msg/Arrays": [(32, 0, 14)],
-    "test_msgs/msg/BasicTypes": [(13, 0, 0)],
-    "test_msgs/msg/BoundedPlainSequences": [(30, 0, 13)],
-    "test_msgs/msg/BoundedSequences": [(32, 0, 14)],
-    "test_msgs/msg/Constants": [(0, 13, 0)],
-    "test_msgs/msg/Defaults": [(13, 0, 13)],
-    "test_msgs/msg/Empty": [(0, 0, 0)],
-    "test_msgs/msg/MultiNested": [(9, 0, 0)],
-    "test_msgs/msg/Nested": [(1, 0, 0)],
-    "test_msgs/msg/Strings": [(12, 1, 10)],
-    "test_msgs/msg/UnboundedSequences": [(32, 0, 14)],
-    "test_msgs/msg/WStrings": [(7, 0, 3)],
-    "test_msgs/srv/Arrays": [(31, 0, 14), (31, 0, 14)],
-    "test_msgs/srv/BasicTypes": [(14, 0, 0), (14, 0, 0)],
-    "test_msgs/srv/Empty": [(0, 0, 0), (0, 0, 0)],
-    "test_msgs/action/Fibonacci": [(1, 0, 0), (1, 0, 0), (1, 0, 0)],
-}
 
-# The defaults written in the files, field by field.
-PLAIN_SEQUENCE_DEFAULTS: dict[str, Any] = {
-    "bool_values_default": [False, True, False],
-    "byte_values_default": [0, 1, 255],
-    "char_values_default": [0, 1, 127],
-    "float32_values_default": [1.125, 0.0, -1.125],
-    "float64_values_default": [3.1415, 0.0, -3.1415],
-    "int8_values_default": [0, 127, -128],
-    "uint8_values_default": [0, 1, 255],
-    "int16_values_default": [0, 32767, -32768],
-    "uint16_values_default": [0, 1, 65535],
-    "int32_values_default": [0, 2147483647, -2147483648],
-    "uint32_values_default": [0, 1, 4294967295],
-    "int64_values_default": [0, 9223372036854775807, -9223372036854775808],
-    "uint64_values_default": [0, 1, 18446744073709551615],
-}
-SEQUENCE_DEFAULTS: dict[str, Any] = {
-    **PLAIN_SEQUENCE_DEFAULTS,
-    "string_values_default": ["", "max value", "min value"],
-}
-SCALAR_DEFAULTS: dict[str, Any] = {
-    "bool_value": True,
-    "byte_value": 50,
-    "char_value": 100,
-    "float32_value": 1.125,
-    "float64_value": 1.125,
-    "int8_value": -50,
-    "uint8_value": 200,
-    "int16_value": -1000,
-    "uint16_value": 2000,
-    "int32_value": -30000,
-    "uint32_value": 60000,
-    "int64_value": -40000000,
-    "uint64_value": 50000000,
-}
-STRING_DEFAULTS: dict[str, Any] = {
-    "string_value_default1": "Hello world!",
-    "string_value_default2": "Hello'world!",
-    "string_value_default3": 'Hello"world!',
-    "string_value_default4": "Hello'world!",
-    "string_value_default5": 'Hello"world!',
-    "bounded_string_value_default1": "Hello world!",
-    "bounded_string_value_default2": "Hello'world!",
-    "bounded_string_value_default3": 'Hello"world!',
-    "bounded_string_value_default4": "Hello'world!",
-    "bounded_string_value_default5": 'Hello"world!',
-}
-WSTRING_DEFAULTS: dict[str, Any] = {
-    "wstring_value_default1": "Hello world!",
-    "wstring_value_default2": "Hellö wörld!",
-    "wstring_value_default3": "ハローワールド",
-}
-DEFAULTS: dict[str, list[dict[str, Any]]] = {
-    "test_msgs/msg/Arrays": [SEQUENCE_DEFAULTS],
-    "test_msgs/msg/BoundedPlainSequences": [PLAIN_SEQUENCE_DEFAULTS],
-    "test_msgs/msg/BoundedSequences": [SEQUENCE_DEFAULTS],
-    "test_msgs/msg/Defaults": [SCALAR_DEFAULTS],
-    "test_msgs/msg/Strings": [STRING_DEFAULTS],
-    "test_msgs/msg/UnboundedSequences": [SEQUENCE_DEFAULTS],
-    "test_msgs/msg/WStrings": [WSTRING_DEFAULTS],
-    "test_msgs/srv/Arrays": [SEQUENCE_DEFAULTS, SEQUENCE_DEFAULTS],
-}
+def type_name(path: str) -> str:
+    """The type in the file at ``path``: ``msg/Arrays.msg`` holds ``test_msgs/msg/Arrays``."""
+    return "test_msgs/" + path.rsplit(".", 1)[0]
 
-CONSTANTS: dict[str, dict[str, Scalar]] = {
-    "test_msgs/msg/Constants": {
-        "BOOL_CONST": True,
-        "BYTE_CONST": 50,
-        "CHAR_CONST": 100,
-        "FLOAT32_CONST": 1.125,
-        "FLOAT64_CONST": 1.125,
-        "INT8_CONST": -50,
-        "UINT8_CONST": 200,
-        "INT16_CONST": -1000,
-        "UINT16_CONST": 2000,
-        "INT32_CONST": -30000,
-        "UINT32_CONST": 60000,
-        "INT64_CONST": -40000000,
-        "UINT64_CONST": 50000000,
-    },
-    "test_msgs/msg/Strings": {"STRING_CONST": "Hello world!"},
-}
 
+# ros_corpus's facts, keyed by the type each file holds rather than by the file's path.
+COUNTS = {type_name(path): counts for path, counts in ros_corpus.COUNTS.items()}
+DEFAULTS = {type_name(path): ros_corpus.defaults_by_part(path) for path in ros_corpus.COUNTS}
+CONSTANTS = {type_name(path): values for path, values in ros_corpus.CONSTANTS.items()}
 TYPES = sorted(COUNTS)
 
 
@@ -189,7 +98,7 @@ def test_fields_constants_and_defaults_are_counted_as_in_ros(
 
 @pytest.mark.parametrize("name", TYPES)
 def test_defaults_are_the_values_written(loader: InterfaceLoader, name: str) -> None:
-    expected = DEFAULTS.get(name, [{} for _ in COUNTS[name]])
+    expected = DEFAULTS[name]
     specs = spec_parts(loader, name)
     instances = [cls() for cls in class_parts(loader, name)]
     for spec, instance, defaults in zip(specs, instances, expected, strict=True):

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from conftest import Bounded, Echo, Subtract, subtract
+from conftest import Bounded, Echo, Hang, Subtract, subtract
 from srvwire.dispatch import Context, ServiceRegistry, dispatch, normalize_name
 from srvwire.errors import (
     DeadlineExceeded,
@@ -360,20 +360,11 @@ async def test_an_invalid_return_is_internal_with_the_reason_logged(
 
 
 async def test_a_deadline_cancels_the_handler() -> None:
-    started = asyncio.Event()
-    cancelled = asyncio.Event()
-
-    async def hangs(request: Any) -> Any:
-        started.set()
-        try:
-            await asyncio.Event().wait()
-        finally:
-            cancelled.set()
-
+    hangs = Hang()
     ctx = context(time.monotonic() + scaled(0.05))
     with pytest.raises(DeadlineExceeded) as caught:
         await run(hangs, {}, ctx=ctx)
-    assert started.is_set() and cancelled.is_set() and ctx.cancelled
+    assert hangs.entered.is_set() and hangs.cancelled.is_set() and ctx.cancelled
     assert ctx.time_remaining() == 0.0
     assert caught.value.message == "the deadline for /t passed before the handler finished"
 

@@ -21,6 +21,7 @@ import pytest
 import yaml
 from hypothesis import given, settings, strategies as st
 
+import ros_corpus
 from srvwire.errors import InterfaceSyntaxError
 from srvwire.idl import (
     INTEGER_RANGES,
@@ -262,101 +263,8 @@ def test_an_empty_message_and_a_comment_only_message() -> None:
 
 # --- ROS 2's own test interfaces ----------------------------------------------------------------
 
-# (fields, constants, fields with a default) per part, counted by hand from the files.
-ROS_COUNTS: dict[str, list[tuple[int, int, int]]] = {
-    "msg/Arrays.msg": [(32, 0, 14)],
-    "msg/BasicTypes.msg": [(13, 0, 0)],
-    "msg/BoundedPlainSequences.msg": [(30, 0, 13)],
-    "msg/BoundedSequences.msg": [(32, 0, 14)],
-    "msg/Constants.msg": [(0, 13, 0)],
-    "msg/Defaults.msg": [(13, 0, 13)],
-    "msg/Empty.msg": [(0, 0, 0)],
-    "msg/MultiNested.msg": [(9, 0, 0)],
-    "msg/Nested.msg": [(1, 0, 0)],
-    "msg/Strings.msg": [(12, 1, 10)],
-    "msg/UnboundedSequences.msg": [(32, 0, 14)],
-    "msg/WStrings.msg": [(7, 0, 3)],
-    "srv/Arrays.srv": [(31, 0, 14), (31, 0, 14)],
-    "srv/BasicTypes.srv": [(14, 0, 0), (14, 0, 0)],
-    "srv/Empty.srv": [(0, 0, 0), (0, 0, 0)],
-    "action/Fibonacci.action": [(1, 0, 0), (1, 0, 0), (1, 0, 0)],
-}
-
-ARRAY_DEFAULTS: dict[str, tuple[Scalar, ...]] = {
-    "bool_values_default": (False, True, False),
-    "byte_values_default": (0, 1, 255),
-    "char_values_default": (0, 1, 127),
-    "float32_values_default": (1.125, 0.0, -1.125),
-    "float64_values_default": (3.1415, 0.0, -3.1415),
-    "int8_values_default": (0, 127, -128),
-    "uint8_values_default": (0, 1, 255),
-    "int16_values_default": (0, 32767, -32768),
-    "uint16_values_default": (0, 1, 65535),
-    "int32_values_default": (0, 2147483647, -2147483648),
-    "uint32_values_default": (0, 1, 4294967295),
-    "int64_values_default": (0, 9223372036854775807, -9223372036854775808),
-    "uint64_values_default": (0, 1, 18446744073709551615),
-    "string_values_default": ("", "max value", "min value"),
-}
-PLAIN_ARRAY_DEFAULTS = {k: v for k, v in ARRAY_DEFAULTS.items() if not k.startswith("string")}
-STRING_DEFAULTS = {
-    "default1": "Hello world!",
-    "default2": "Hello'world!",
-    "default3": 'Hello"world!',
-    "default4": "Hello'world!",
-    "default5": 'Hello"world!',
-}
-
-# The default of every field that has one, as written in the files.
-ROS_DEFAULTS: dict[str, dict[str, Value]] = {
-    "msg/Arrays.msg": dict(ARRAY_DEFAULTS),
-    "msg/BoundedPlainSequences.msg": dict(PLAIN_ARRAY_DEFAULTS),
-    "msg/BoundedSequences.msg": dict(ARRAY_DEFAULTS),
-    "msg/UnboundedSequences.msg": dict(ARRAY_DEFAULTS),
-    "srv/Arrays.srv": dict(ARRAY_DEFAULTS),
-    "msg/Defaults.msg": {
-        "bool_value": True,
-        "byte_value": 50,
-        "char_value": 100,
-        "float32_value": 1.125,
-        "float64_value": 1.125,
-        "int8_value": -50,
-        "uint8_value": 200,
-        "int16_value": -1000,
-        "uint16_value": 2000,
-        "int32_value": -30000,
-        "uint32_value": 60000,
-        "int64_value": -40000000,
-        "uint64_value": 50000000,
-    },
-    "msg/Strings.msg": {
-        **{f"string_value_{k}": v for k, v in STRING_DEFAULTS.items()},
-        **{f"bounded_string_value_{k}": v for k, v in STRING_DEFAULTS.items()},
-    },
-    "msg/WStrings.msg": {
-        "wstring_value_default1": "Hello world!",
-        "wstring_value_default2": "Hellö wörld!",
-        "wstring_value_default3": "ハローワールド",
-    },
-}
-ROS_CONSTANTS: dict[str, dict[str, Scalar]] = {
-    "msg/Constants.msg": {
-        "BOOL_CONST": True,
-        "BYTE_CONST": 50,
-        "CHAR_CONST": 100,
-        "FLOAT32_CONST": 1.125,
-        "FLOAT64_CONST": 1.125,
-        "INT8_CONST": -50,
-        "UINT8_CONST": 200,
-        "INT16_CONST": -1000,
-        "UINT16_CONST": 2000,
-        "INT32_CONST": -30000,
-        "UINT32_CONST": 60000,
-        "INT64_CONST": -40000000,
-        "UINT64_CONST": 50000000,
-    },
-    "msg/Strings.msg": {"STRING_CONST": "Hello world!"},
-}
+# The counts, defaults and constants come from ros_corpus (test_conformance checks them too); the
+# field types below are checked here only.
 ROS_TYPES: dict[str, dict[str, str]] = {
     "msg/MultiNested.msg": {
         "array_of_arrays": "test_msgs/Arrays[3]",
@@ -371,22 +279,22 @@ ROS_TYPES: dict[str, dict[str, str]] = {
 def test_the_ros_corpus_is_listed_completely() -> None:
     folder = ros_test_interfaces()
     found = {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.suffix in SUFFIXES}
-    assert found == set(ROS_COUNTS)
+    assert found == set(ros_corpus.COUNTS)
 
 
-@pytest.mark.parametrize("relative", sorted(ROS_COUNTS))
+@pytest.mark.parametrize("relative", sorted(ros_corpus.COUNTS))
 def test_ros_corpus_file(relative: str) -> None:
     spec = parse_file(ros_test_interfaces() / relative, package="test_msgs")
     counts = [
         (len(p.fields), len(p.constants), sum(f.default is not None for f in p.fields))
         for p in parts(spec)
     ]
-    assert counts == ROS_COUNTS[relative]
-    for part in parts(spec):
+    assert counts == ros_corpus.COUNTS[relative]
+    for part, written in zip(parts(spec), ros_corpus.defaults_by_part(relative), strict=True):
         defaults = {f.name: f.default for f in part.fields if f.default is not None}
-        assert defaults == ROS_DEFAULTS.get(relative, {})
+        assert defaults == written
         constants = {c.name: c.value for c in part.constants}
-        assert constants == ROS_CONSTANTS.get(relative, {})
+        assert constants == ros_corpus.CONSTANTS.get(relative, {})
         types = {f.name: str(f.type) for f in part.fields}
         assert types | ROS_TYPES.get(relative, {}) == types
 

@@ -22,7 +22,7 @@ from websockets.sync.client import connect as sync_connect
 from websockets.uri import parse_uri
 
 import srvwire
-from conftest import Echo, Subtract, Wire, build, open_wire, subtract
+from conftest import Echo, Hang, Subtract, Wire, build, open_wire, subtract
 from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
@@ -273,16 +273,7 @@ async def test_bad_values_name_their_fields(
 
 
 async def test_a_hanging_handler_meets_the_deadline(server: Server) -> None:
-    entered = asyncio.Event()
-    cancelled = asyncio.Event()
-
-    async def hangs(request: Any) -> Any:
-        entered.set()
-        try:
-            await asyncio.Event().wait()
-        finally:
-            cancelled.set()
-
+    hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
     async with serve(server, "127.0.0.1", 0) as running:
         w = await open_wire(running.url)
@@ -291,7 +282,7 @@ async def test_a_hanging_handler_meets_the_deadline(server: Server) -> None:
         assert reply["error"]["message"] == (
             "the deadline for /hangs passed before the handler finished"
         )
-        assert entered.is_set() and cancelled.is_set()
+        assert hangs.entered.is_set() and hangs.cancelled.is_set()
         assert (await w.call(request("subtract", [3, 1], id=9)))["result"] == {"difference": 2}
 
 
@@ -969,48 +960,30 @@ async def test_shutdown_lets_calls_finish_and_refuses_new_ones(server: Server) -
 
 async def test_shutdown_cancels_calls_past_the_grace_period() -> None:
     server = Server(grace_period=scaled(0.05))
-    entered = asyncio.Event()
-    cancelled = asyncio.Event()
-
-    async def hangs(request: Any) -> Any:
-        entered.set()
-        try:
-            await asyncio.Event().wait()
-        finally:
-            cancelled.set()
-
+    hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
     running = await serve(server, "127.0.0.1", 0)
     w = await open_wire(running.url)
     await w.send(request("hangs", id="h"))
-    await entered.wait()
+    await hangs.entered.wait()
     await running.close()
     reply = await w.recv_reply()
     assert error(reply) == ("h", -32003, "UNAVAILABLE")
     assert reply["error"]["message"] == "the server shut down before the call finished"
-    assert cancelled.is_set()
+    assert hangs.cancelled.is_set()
     assert await closed_code(w) == 1001
 
 
 async def test_a_client_leaving_cancels_its_calls(server: Server) -> None:
-    entered = asyncio.Event()
-    cancelled = asyncio.Event()
-
-    async def hangs(request: Any) -> Any:
-        entered.set()
-        try:
-            await asyncio.Event().wait()
-        finally:
-            cancelled.set()
-
+    hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
     async with serve(server, "127.0.0.1", 0) as running:
         w = await open_wire(running.url)
         await w.send(request("hangs"))
-        await entered.wait()
+        await hangs.entered.wait()
         await w.ws.close()
         async with asyncio.timeout(scaled(5)):
-            await cancelled.wait()
+            await hangs.cancelled.wait()
 
 
 SERVE_SCRIPT = """\
