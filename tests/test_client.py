@@ -985,3 +985,24 @@ async def test_cancelling_a_caller_held_in_its_send_stays_a_cancellation(
     with pytest.raises(asyncio.CancelledError):
         await call
     assert len(ended) == 1 and client.in_flight == 0
+
+
+async def test_a_request_model_that_is_not_an_object_is_refused_before_sending(
+    peer: FakePeer, client: Client
+) -> None:
+    from pydantic import RootModel
+
+    class Numbers(RootModel[list[int]]):
+        pass
+
+    peer.reply = answer_add
+    # "/untyped" is not advertised, so the client has no type to check the request against.
+    loop = asyncio.get_running_loop()
+    started = loop.time()
+    with pytest.raises(TypeError, match="must serialize to a JSON object") as caught:
+        await client.call("/untyped", Numbers([1, 2]))
+    assert "[1,2]" in str(caught.value)
+    assert loop.time() - started < scaled(1)  # at once, not at the deadline
+    # Nothing was sent: the first message the peer sees is the next, valid call.
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
+    assert (await peer.next())["method"] == ADD

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import threading
 import time
@@ -484,3 +485,13 @@ async def test_a_sync_handler_raising_a_cancellation_is_internal() -> None:
 
     with pytest.raises(InternalError):
         await run(raises, {})
+
+
+async def test_a_subclass_of_the_response_model_is_written_with_its_own_fields() -> None:
+    class Annotated(Subtract.Response):  # type: ignore[name-defined,misc]
+        note: str = "extra"
+
+    async def handler(request: Any) -> Any:
+        return Annotated(difference=4)
+
+    assert json.loads(await run(handler, [6, 2])) == {"difference": 4, "note": "extra"}

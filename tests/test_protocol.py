@@ -520,3 +520,16 @@ def test_parse_incoming_never_raises_and_every_error_serializes(data: str | byte
             assert isinstance(reply["error"]["code"], int)
         else:
             assert isinstance(item, Request | Notification)
+
+
+@pytest.mark.parametrize("params", ["[1,2]", "", '"x"', "1", "null", "{"])
+def test_encode_call_refuses_params_that_are_not_an_object(params: str) -> None:
+    # Spliced in, they would make invalid JSON (the server answers PARSE_ERROR with id null).
+    with pytest.raises(ValueError, match="params must be a JSON object"):
+        encode_call(1, '"/m"', params, 1.0)
+
+
+@pytest.mark.parametrize("timeout", [float("inf"), float("-inf"), float("nan")])
+def test_encode_call_refuses_a_timeout_that_is_not_finite(timeout: float) -> None:
+    with pytest.raises(ValueError, match="finite"):
+        encode_call(1, '"/m"', "{}", timeout)

@@ -1189,3 +1189,137 @@ def test_random_input_gets_valid_replies_and_the_server_keeps_serving() -> None:
         check()
         ws.send(json.dumps(request("subtract", [5, 2], id="end")))
         assert json.loads(ws.recv(timeout=scaled(5)))["result"] == {"difference": 3}
+
+
+# --- bookkeeping that must not depend on when a task first runs, or on how often it is cancelled
+
+
+def _imitate_eager_task_factory() -> Any:
+    """Python 3.12's ``asyncio.eager_task_factory``, or an imitation of it on 3.11.
+
+    The imitation builds a pure-Python task, drops the first step ``Task.__init__`` scheduled,
+    and runs that step at once, inside ``create_task``, as an eager task does.
+    """
+    eager = getattr(asyncio, "eager_task_factory", None)
+    if eager is not None:
+        return eager
+    py_task = getattr(asyncio.tasks, "_PyTask", None)
+    # Every Python below 3.12 has the pure-Python task this imitation drives; should one ever
+    # lack it, the test says so instead of passing without running.
+    assert py_task is not None and hasattr(py_task, "_Task__step"), (
+        "this Python has neither asyncio.eager_task_factory nor the pure-Python task needed "
+        "to imitate it"
+    )
+
+    def factory(loop: asyncio.AbstractEventLoop, coro: Any, **kwargs: Any) -> Any:
+        scheduled: list[asyncio.Handle] = []
+        call_soon = loop.call_soon
+
+        def record(callback: Any, *args: Any, context: Any = None) -> asyncio.Handle:
+            handle = call_soon(callback, *args, context=context)
+            scheduled.append(handle)
+            return handle
+
+        loop.call_soon = record  # type: ignore[method-assign,assignment]
+        try:
+            task = py_task(coro, loop=loop, **kwargs)
+        finally:
+            del loop.call_soon
+        scheduled[0].cancel()  # the first step runs here instead
+        current = asyncio.tasks._current_tasks  # type: ignore[attr-defined]
+        outer = current.pop(loop, None)
+        try:
+            task._Task__step()
+        finally:
+            if outer is not None:
+                current[loop] = outer
+        return task
+
+    return factory
+
+
+async def test_calls_that_finish_inside_create_task_leak_neither_count_nor_id(
+    server: Server,
+) -> None:
+    class Socket:
+        remote_address = ("127.0.0.1", 1)
+
+        async def send(self, message: str | bytes, text: bool | None = None) -> None:
+            sent.append(message)  # never suspends: the whole call runs in its first step
+
+    sent: list[str | bytes] = []
+    conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
+    loop = asyncio.get_running_loop()
+    loop.set_task_factory(_imitate_eager_task_factory())
+    try:
+        for _ in range(3):  # the same id each time: it is free again once the call answered
+            assert conn.start(Request(1, "/echo", {"text": "a"}), send=True) is None
+            batched = conn.start(Request(2, "/echo", {"text": "b"}), send=False)
+            assert batched is not None and not isinstance(batched, str) and batched.done()
+            assert batched.result() == '{"jsonrpc":"2.0","id":2,"result":{"text":"b"}}'
+            conn.notify(Notification("/echo", {"text": "c"}))
+            assert conn.in_flight == 0 and not conn.counted and not conn.calls
+    finally:
+        loop.set_task_factory(None)
+    assert [json.loads(m) for m in sent] == [
+        {"jsonrpc": "2.0", "id": 1, "result": {"text": "a"}}
+    ] * 3
+
+
+async def test_a_call_cancelled_twice_has_its_task_cancelled_once(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    hangs = Hang()
+    server.add_service("/hangs", Echo, hangs)
+    cancelling: list[int] = []
+    send = _Connection.send
+
+    async def recording_send(self: _Connection, text: str | bytes) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        cancelling.append(task.cancelling())
+        await send(self, text)
+
+    monkeypatch.setattr(_Connection, "send", recording_send)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("hangs", id=1))
+        await hangs.entered.wait()
+        cancel = {"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}}
+        await w.send([cancel, cancel])  # a batch of notifications: no reply of its own
+        assert error(await w.recv_reply()) == (1, -32002, "CANCELLED")
+        assert cancelling == [0]  # the reply went out with no cancellation left pending
+        await w.ws.close()
+
+
+async def test_a_second_cancel_reason_neither_wins_nor_cancels_again(server: Server) -> None:
+    from srvwire.dispatch import Context as Ctx
+    from srvwire.errors import Cancelled, ServiceUnavailable
+    from srvwire.server import _Call
+
+    call = _Call(Ctx(service="/hangs", request_id=1))
+    call.task = asyncio.create_task(asyncio.Event().wait())
+    call.started = True
+    call.cancel(Cancelled("first"))
+    call.cancel(ServiceUnavailable("second"))
+    call.cancel(None)  # the connection went away too
+    assert call.task.cancelling() == 1
+    assert str(call.context._cancel_error) == str(Cancelled("first"))
+    with pytest.raises(asyncio.CancelledError):
+        await call.task
+
+
+async def test_shutdown_answers_calls_with_a_null_id_too() -> None:
+    server = Server(grace_period=scaled(0.05))
+    hangs = Hang()
+    server.add_service("/hangs", Echo, hangs)
+    running = await serve(server, "127.0.0.1", 0)
+    w = await open_wire(running.url)
+    await w.send(request("hangs", id=None))
+    await hangs.entered.wait()
+    await running.close()
+    reply = await w.recv_reply()
+    assert error(reply) == (None, -32003, "UNAVAILABLE")
+    assert reply["error"]["message"] == "the server shut down before the call finished"
+    assert hangs.cancelled.is_set()
+    assert await closed_code(w) == 1001

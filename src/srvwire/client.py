@@ -72,6 +72,8 @@ string), otherwise the type the server advertised for that service, loaded throu
 validated locally (:class:`~srvwire.errors.InvalidParams` before anything is sent) and the
 result is the typed ``Response``. Without one (the type cannot be loaded here), a dict or
 keyword fields are sent as they are and the result is the plain ``dict`` the server returned.
+Params go by name: a request model that does not serialize to a JSON object (a ``RootModel``
+of a list, say) is refused with ``TypeError`` at once, before anything is sent.
 """
 
 from __future__ import annotations
@@ -677,15 +679,21 @@ class Client:
             except ValidationError as exc:
                 raise _refused(method, validation_errors(exc)) from None
         try:
-            if isinstance(value, BaseModel):
-                return value.model_dump_json(by_alias=True)
-            return encode_json(dict(value))
+            if not isinstance(value, BaseModel):
+                return encode_json(dict(value))
+            text = value.model_dump_json(by_alias=True)
         except PydanticSerializationError as exc:
             # A string with a lone surrogate validates, but cannot be written as UTF-8.
             errors = unencodable_strings(value) or [
                 {"path": "", "message": str(exc), "type": "serialization_error"}
             ]
             raise _refused(method, errors) from None
+        if not text.startswith("{"):  # a RootModel or a custom serializer: not params by name
+            raise TypeError(
+                f"the request for {method} must serialize to a JSON object (params by name); "
+                f"{type(value).__qualname__} serializes to {text[:40]!r}"
+            )
+        return text
 
     async def _roundtrip(
         self,

@@ -22,6 +22,9 @@ Invariants:
   the caller); an :class:`~srvwire.errors.RPCError` it raises, typically
   :class:`~srvwire.errors.ServiceError`, is sent as it is; a return value that is not a valid
   response is ``INTERNAL`` too, with the reason logged.
+* **A response is written as the handler built it.** An instance of the response model, or of a
+  subclass of it, is serialized by its own class (``by_alias``), so the fields a subclass adds
+  reach the caller; a dict is validated into the response model first.
 * **Only a cancelled call ends in CancelledError.** :func:`dispatch` lets
   :class:`asyncio.CancelledError` through only while its own task is being cancelled
   (``Task.cancelling()``): the server cancelled the call, and knows what to answer. A
@@ -460,8 +463,10 @@ def _encode_response(
             raise _invalid_return(entry, result, _reasons(validation_errors(exc)), logger) from None
     if isinstance(response, model):  # a model the handler built is not validated again
         try:
-            # model_dump_json(by_alias=True, warnings="error"), without decoding the bytes
-            return model.__pydantic_serializer__.to_json(response, by_alias=True, warnings="error")
+            # model_dump_json(by_alias=True, warnings="error"), without decoding the bytes; by
+            # the instance's own class, so that a subclass keeps the fields it adds
+            serializer = type(response).__pydantic_serializer__
+            return serializer.to_json(response, by_alias=True, warnings="error")
         except PydanticSerializationError as exc:
             # A lone surrogate in a string passes validation and fails here; say where it is.
             reason = _reasons(unencodable_strings(response)) or str(exc)

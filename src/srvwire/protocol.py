@@ -31,8 +31,8 @@ Invariants:
   is JSON (a pydantic ``model_dump_json``); as a result or as params it is spliced into the
   envelope as it is. The hot paths do the same without the objects: :func:`encode_result` and
   :func:`encode_result_bytes` (the server's replies, as text or as UTF-8 bytes) and
-  :func:`encode_call` (the client's requests, whose callers guarantee compact params and a
-  finite timeout).
+  :func:`encode_call` (the client's requests: compact params that are a JSON object and a
+  finite timeout, which it checks, raising ``ValueError`` otherwise).
 
 :func:`parse_replies` is the client's side: it parses what a server sends and raises
 :class:`~srvwire.errors.ParseError` or :class:`~srvwire.errors.InvalidRequest` when that is not
@@ -310,8 +310,13 @@ def encode_call(id: int, method_json: str, params_json: str, timeout: float) -> 
     in one join: ``method_json`` is the method already written as JSON (:func:`encode_json`),
     ``params_json`` a compact JSON object as pydantic writes it (``{`` first, no blanks), and
     ``timeout`` a finite float >= 0, written by ``repr``, which is a JSON number for every
-    finite float (``2.5``, ``1e-05``, ``1e+16``).
+    finite float (``2.5``, ``1e-05``, ``1e+16``). Raise ValueError for params that are not
+    a JSON object or a timeout that is not finite, rather than write invalid JSON.
     """
+    if not (params_json[:1] == "{" and params_json[-1:] == "}"):
+        raise ValueError(f"params must be a JSON object, not {params_json[:20]!r}")
+    if not math.isfinite(timeout):
+        raise ValueError(f"the timeout must be a finite number of seconds, not {timeout!r}")
     head = '{"jsonrpc":"2.0","id":', str(id), ',"method":', method_json
     if params_json == "{}":
         return "".join((*head, ',"params":{"_meta":{"timeout":', repr(timeout), "}}}"))

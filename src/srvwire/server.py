@@ -23,18 +23,25 @@ Invariants:
   notification counts from the creation of its task until the task's coroutine settles it in
   its own ``finally`` (after the reply is sent); a task the connection's teardown cancels
   before its first step is settled by a done-callback instead, since its coroutine never runs.
+  The bookkeeping does not depend on when a task's first step runs: a call is registered
+  before its task is created, and a task is counted only if it is not already done, so an
+  eager task factory (Python 3.12's ``asyncio.eager_task_factory``), which may run a call to
+  its end inside ``create_task``, leaks neither a count nor an id.
 * **Replies are sent as they are encoded.** A call's result is the UTF-8 JSON bytes pydantic
   wrote, wrapped in its envelope and sent as a text frame, never copied into a ``str`` and back
   (only a batch, which joins its replies as text, decodes them).
 * **Every request gets exactly one reply**, while the connection is open: its result, or an error.
   A call whose ``id`` can be cancelled is listed in ``_Connection.calls`` until its reply is built,
-  so ``$/cancel`` finds it only while the handler runs. The cancel reason (``CANCELLED``,
-  ``UNAVAILABLE``) is recorded in the call's :class:`~srvwire.dispatch.Context` *before* the task is
-  cancelled, so the task knows which error to send; a task cancelled without a reason (the
-  connection went away) sends nothing. A CancelledError that a handler raises by itself, while
-  nothing cancels its task, is turned into ``INTERNAL`` by :func:`~srvwire.dispatch.dispatch`,
-  so it cannot end a call silently; any other exception that escapes it (a bug in srvwire) is
-  logged and answered ``INTERNAL`` too.
+  so ``$/cancel`` finds it only while the handler runs; a call with ``"id": null``, which
+  ``$/cancel`` cannot name, is listed in ``_Connection.anonymous`` instead, so that shutdown
+  still answers it. The cancel reason (``CANCELLED``, ``UNAVAILABLE``) is recorded in the call's
+  :class:`~srvwire.dispatch.Context` *before* the task is cancelled, so the task knows which
+  error to send; the first reason wins, and a call's task is cancelled at most once (so the one
+  ``uncancel`` it does before replying leaves ``Task.cancelling()`` at 0). A task cancelled
+  without a reason (the connection went away) sends nothing. A CancelledError that a handler
+  raises by itself, while nothing cancels its task, is turned into ``INTERNAL`` by
+  :func:`~srvwire.dispatch.dispatch`, so it cannot end a call silently; any other exception
+  that escapes it (a bug in srvwire) is logged and answered ``INTERNAL`` too.
 * **Nothing a client sends stops the server.** Only this module knows websockets' exceptions; a
   closed connection ends that connection's reader and cancels that connection's calls, nothing
   more. Handler exceptions are turned into replies by :func:`~srvwire.dispatch.dispatch`.
@@ -452,11 +459,12 @@ class RunningServer:
 class _Call:
     """A call in flight: its task, its context, and whether the task has started running."""
 
-    __slots__ = ("context", "started", "task")
+    __slots__ = ("cancelled", "context", "started", "task")
 
     def __init__(self, context: Context) -> None:
         self.context = context
         self.started = False
+        self.cancelled = False  # whether its task was cancelled (at most once)
         self.task: asyncio.Task[Any] | None = None
 
     def cancel(self, error: RPCError | None) -> None:
@@ -464,9 +472,12 @@ class _Call:
 
         A task cancelled before its first step never runs a line of its coroutine, so it could
         not answer; a call that has not started is only marked, and answers when it starts.
+        The first reason recorded wins, and the task is cancelled once at most: the call takes
+        back one cancellation (``uncancel``) before it replies, so a second would stay pending.
         """
         self.context._mark_cancelled(error)
-        if self.task is not None and (self.started or error is None):
+        if self.task is not None and not self.cancelled and (self.started or error is None):
+            self.cancelled = True
             self.task.cancel()
 
 
@@ -477,16 +488,19 @@ class _Connection:
     own ``finally`` takes it out (no done-callback: that would cost the loop one more turn per
     call). A task cancelled before its first step never runs that ``finally``; the only code
     that cancels tasks which may not have started is :meth:`cancel_all` without an error, and
-    it gives each such task a done-callback that settles it instead.
+    it gives each such task a done-callback that settles it instead. A task already done when
+    :meth:`spawn_counted` gets it back (an eager task factory ran it to its end) settled
+    before it could be counted, and is not counted.
     """
 
-    __slots__ = ("calls", "counted", "peer", "running", "tasks", "ws")
+    __slots__ = ("anonymous", "calls", "counted", "peer", "running", "tasks", "ws")
 
     def __init__(self, running: RunningServer, ws: ServerConnection) -> None:
         self.running = running
         self.ws = ws
         self.peer: Any = ws.remote_address
         self.calls: dict[Id, _Call] = {}  # calls that $/cancel can reach, by id
+        self.anonymous: set[_Call] = set()  # calls with "id": null, for shutdown to answer
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: batches, broadcasts
         self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
 
@@ -504,10 +518,13 @@ class _Connection:
     def spawn_counted(self, coro: Any) -> asyncio.Task[Any]:
         """Spawn a call or notification task; it counts as in flight until it settles.
 
-        ``coro`` must settle its task itself, last thing, with :meth:`settle`.
+        ``coro`` must settle its task itself, last thing, with :meth:`settle`. Under an eager
+        task factory it may have done so already, inside ``create_task``: a task that is done
+        is not counted.
         """
         task: asyncio.Task[Any] = asyncio.create_task(coro)
-        self.counted.add(task)
+        if not task.done():
+            self.counted.add(task)
         return task
 
     def settle(self) -> None:
@@ -522,7 +539,9 @@ class _Connection:
     def forget(self, call: _Call) -> None:
         """Take ``call`` out of :attr:`calls`, so that ``$/cancel`` no longer finds it."""
         id = call.context.request_id
-        if id is not None and self.calls.get(id) is call:
+        if id is None:
+            self.anonymous.discard(call)
+        elif self.calls.get(id) is call:
             del self.calls[id]
 
     async def send(self, text: str | bytes) -> None:
@@ -539,10 +558,11 @@ class _Connection:
         not started; since such a task never runs its coroutine's ``finally``, each counted
         task gets a done-callback that settles it (a no-op for one that settled itself).
         """
-        for call in list(self.calls.values()):
+        for call in (*self.calls.values(), *self.anonymous):
             call.cancel(error)
         if error is None:
             self.calls.clear()  # nothing can reach them any more
+            self.anonymous.clear()
             for task in list(self.tasks):
                 task.cancel()
             for task in list(self.counted):
@@ -603,12 +623,16 @@ class _Connection:
                 deadline=None if timeout is None else time.monotonic() + timeout,
             ),
         )
+        # Registered before its task exists: an eager task factory may run the call to its end,
+        # and forget it, inside create_task.
+        if id is not None:
+            self.calls[id] = call
+        else:
+            self.anonymous.add(call)
         if send:
             call.task = self.spawn_counted(self.call_and_send(entry, request, call))
         else:
             call.task = self.spawn_counted(self.call_in_batch(entry, request, call))
-        if id is not None:
-            self.calls[id] = call
         return None if send else call.task
 
     def special(self, request: Request) -> str:
