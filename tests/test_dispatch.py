@@ -217,7 +217,7 @@ def context(deadline: float | None = None) -> Context:
 async def run(handler: Any, params: Any, srv: Any = Subtract, ctx: Context | None = None) -> str:
     registry = ServiceRegistry()
     entry = registry.add("/t", srv, handler)
-    return await dispatch(entry, params, ctx or context())
+    return (await dispatch(entry, params, ctx or context())).decode()
 
 
 async def test_by_name_by_position_and_defaults() -> None:

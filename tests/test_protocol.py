@@ -29,7 +29,6 @@ from srvwire.protocol import (
     encode_call,
     encode_json,
     encode_result,
-    encode_result_bytes,
     parse_incoming,
     parse_replies,
     serialize,
@@ -291,16 +290,16 @@ def test_a_non_finite_id_is_invalid_with_a_null_id(id: str, what: str) -> None:
 def test_a_fractional_id_is_accepted_and_echoed() -> None:
     # The specification says numbers SHOULD NOT have fractions; a server still answers them.
     assert parse_incoming('{"jsonrpc":"2.0","method":"m","id":2.5}').items == (Request(2.5, "m"),)
-    assert encode_result(2.5, "0") == '{"jsonrpc":"2.0","id":2.5,"result":0}'
+    assert encode_result(2.5, b"0") == b'{"jsonrpc":"2.0","id":2.5,"result":0}'
 
 
 def test_ids_come_back_exactly() -> None:
     big = 2**64 - 1
     request = parse_incoming(f'{{"jsonrpc":"2.0","id":{big},"method":"m"}}').items[0]
     assert isinstance(request, Request) and request.id == big
-    assert encode_result(big, "0") == f'{{"jsonrpc":"2.0","id":{big},"result":0}}'
-    assert encode_result(1.5, "0") == '{"jsonrpc":"2.0","id":1.5,"result":0}'
-    assert encode_result('a"b', "0") == '{"jsonrpc":"2.0","id":"a\\"b","result":0}'
+    assert encode_result(big, b"0") == f'{{"jsonrpc":"2.0","id":{big},"result":0}}'.encode()
+    assert encode_result(1.5, b"0") == b'{"jsonrpc":"2.0","id":1.5,"result":0}'
+    assert encode_result('a"b', b"0") == b'{"jsonrpc":"2.0","id":"a\\"b","result":0}'
 
 
 # --- building what servers and clients send ----------------------------------------------------
@@ -314,7 +313,7 @@ def test_responses_embed_raw_json_as_it_is() -> None:
     assert Response("x", {"a": [1, None]}).serialize() == (
         '{"jsonrpc":"2.0","id":"x","result":{"a":[1,null]}}'
     )
-    assert encode_result(5, raw) == Response(5, RawJSON(raw)).serialize()
+    assert encode_result(5, raw.encode()) == Response(5, RawJSON(raw)).serialize().encode()
 
 
 def test_error_responses_carry_status_and_data() -> None:
@@ -342,10 +341,11 @@ def error_response_text(error: Any) -> str:
     return ErrorResponse(1, error).serialize()
 
 
-def test_encode_result_bytes_is_encode_result_as_utf8() -> None:
+def test_encode_result_is_the_response_as_utf8() -> None:
     for id in (1, "é", None, 2.5):
         result = '{"text":"ünï","values":[1.0,2.5]}'
-        assert encode_result_bytes(id, result.encode()) == encode_result(id, result).encode()
+        expected = Response(id, RawJSON(result)).serialize().encode()
+        assert encode_result(id, result.encode()) == expected
 
 
 def test_encode_call_is_the_request_text_of_the_client_hot_path() -> None:

@@ -788,7 +788,7 @@ async def test_a_failure_inside_srvwire_is_still_answered(
     async def broken_dispatch(*args: Any, **kwargs: Any) -> bytes:
         raise RuntimeError("a bug in srvwire")
 
-    monkeypatch.setattr("srvwire.server.dispatch_json", broken_dispatch)
+    monkeypatch.setattr("srvwire.server.dispatch", broken_dispatch)
     async with serve(server, "127.0.0.1", 0) as running:
         w = await open_wire(running.url)
         reply = await w.call(request("echo", {"text": "hi"}, id=7))

@@ -2,10 +2,9 @@
 
 Nothing here knows about sockets: :class:`ServiceRegistry` maps names to
 :class:`ServiceEntry` values, and :func:`dispatch` takes the ``params`` of one request, runs the
-handler under the caller's deadline, and returns the response as JSON text or raises an
-:class:`~srvwire.errors.RPCError`. The server moves text in and out around it, through
-:func:`dispatch_json`, which returns the same JSON as the UTF-8 bytes pydantic writes, so that
-a large response is never copied into a ``str`` and back.
+handler under the caller's deadline, and returns the response as the UTF-8 JSON bytes pydantic
+writes (so a large response is never copied into a ``str`` and back), or raises an
+:class:`~srvwire.errors.RPCError`. The server moves those bytes out as they are.
 
 Invariants:
 
@@ -78,7 +77,6 @@ __all__ = [
     "ServiceEntry",
     "ServiceRegistry",
     "dispatch",
-    "dispatch_json",
     "normalize_name",
 ]
 
@@ -504,22 +502,6 @@ async def _invoke(
 
 
 async def dispatch(
-    entry: ServiceEntry,
-    params: dict[str, Any] | list[Any] | None,
-    context: Context,
-    *,
-    executor: Executor | None = None,
-    logger: logging.Logger | None = None,
-) -> str:
-    """Validate ``params``, run the handler within the context's deadline, return the response.
-
-    Return the response as JSON text (by .srv field names); see :func:`dispatch_json`.
-    """
-    response = await dispatch_json(entry, params, context, executor=executor, logger=logger)
-    return response.decode()
-
-
-async def dispatch_json(
     entry: ServiceEntry,
     params: dict[str, Any] | list[Any] | None,
     context: Context,

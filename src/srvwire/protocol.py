@@ -29,8 +29,8 @@ Invariants:
   failing, because an error reply must always be sendable.
 * **Pre-encoded JSON is embedded, never decoded again.** :class:`RawJSON` wraps text that already
   is JSON (a pydantic ``model_dump_json``); as a result or as params it is spliced into the
-  envelope as it is. The hot paths do the same without the objects: :func:`encode_result` and
-  :func:`encode_result_bytes` (the server's replies, as text or as UTF-8 bytes) and
+  envelope as it is. The hot paths do the same without the objects: :func:`encode_result`
+  (the server's replies, as UTF-8 bytes, so a large result is never decoded) and
   :func:`encode_call` (the client's requests: compact params that are a JSON object and a
   finite timeout, which it checks, raising ``ValueError`` otherwise).
 
@@ -76,7 +76,6 @@ __all__ = [
     "encode_call",
     "encode_json",
     "encode_result",
-    "encode_result_bytes",
     "parse_incoming",
     "parse_replies",
     "serialize",
@@ -284,19 +283,12 @@ class Incoming:
     is_batch: bool = False
 
 
-def encode_result(id: Id, result_json: str) -> str:
-    """Return a response whose result is ``result_json``, already JSON text, as it is.
+def encode_result(id: Id, result_json: bytes) -> bytes:
+    """Return a response whose result is ``result_json``, UTF-8 JSON bytes, spliced in as it is.
 
-    The same as ``Response(id, RawJSON(result_json)).serialize()``, without the objects; the
-    server's hot path.
-    """
-    return '{"jsonrpc":"2.0","id":' + _encode_id(id) + ',"result":' + result_json + "}"
-
-
-def encode_result_bytes(id: Id, result_json: bytes) -> bytes:
-    """Return :func:`encode_result` as UTF-8 bytes, for a result that is UTF-8 JSON bytes.
-
-    A large result is copied once, into the reply, and never decoded.
+    The same as ``Response(id, RawJSON(result)).serialize()`` encoded as UTF-8, without the
+    objects: the server's hot path. A large result is copied once, into the reply, and never
+    decoded.
     """
     return b"".join(
         (b'{"jsonrpc":"2.0","id":', _encode_id(id).encode(), b',"result":', result_json, b"}")

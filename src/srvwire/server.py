@@ -77,7 +77,7 @@ from websockets.asyncio.server import (
 )
 from websockets.exceptions import ConnectionClosed
 
-from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch_json
+from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import (
     Cancelled,
     InternalError,
@@ -97,7 +97,6 @@ from srvwire.protocol import (
     Request,
     Response,
     encode_result,
-    encode_result_bytes,
     parse_incoming,
     serialize_batch,
     services_notification,
@@ -639,7 +638,7 @@ class _Connection:
         """Answer a request for a method that is not a service: discovery, protocol, unknown."""
         server = self.running.server
         if request.method == DISCOVER_METHOD:
-            return encode_result(request.id, server.registry.discover_json())
+            return Response(request.id, RawJSON(server.registry.discover_json())).serialize()
         if request.method == CANCEL_METHOD:
             self.cancel(request.params)
             return Response(request.id, None).serialize()
@@ -661,7 +660,7 @@ class _Connection:
         try:
             if context._cancel_error is not None:  # cancelled before it started
                 return ErrorResponse(request.id, context._cancel_error).serialize()
-            result = await dispatch_json(
+            result = await dispatch(
                 entry,
                 request.params if not isinstance(request.params, RawJSON) else None,
                 context,
@@ -670,7 +669,7 @@ class _Connection:
             )
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s id %r from %s: ok", entry.name, request.id, self.peer)
-            return encode_result_bytes(request.id, result)
+            return encode_result(request.id, result)
         except RPCError as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s id %r from %s: %s", entry.name, request.id, self.peer, exc)
@@ -755,7 +754,7 @@ class _Connection:
     ) -> None:
         server = self.running.server
         try:
-            await dispatch_json(
+            await dispatch(
                 entry,
                 note.params if not isinstance(note.params, RawJSON) else None,
                 context,
