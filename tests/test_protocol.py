@@ -25,6 +25,7 @@ from srvwire.protocol import (
     Request,
     Response,
     cancel_notification,
+    canonical_name,
     decode_json,
     encode_call,
     encode_json,
@@ -533,3 +534,9 @@ def test_encode_call_refuses_params_that_are_not_an_object(params: str) -> None:
 def test_encode_call_refuses_a_timeout_that_is_not_finite(timeout: float) -> None:
     with pytest.raises(ValueError, match="finite"):
         encode_call(1, '"/m"', "{}", timeout)
+
+
+def test_a_service_name_is_kept_with_one_leading_slash() -> None:
+    assert canonical_name("get_robot_state") == "/get_robot_state"
+    assert canonical_name("/robot1/get_robot_state") == "/robot1/get_robot_state"
+    assert canonical_name("") == "/"

@@ -68,6 +68,7 @@ from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec, Typ
 from srvwire.loader import InterfaceLoader, default_search_path
 from srvwire.models import Service, summarize_errors, validation_errors
 from srvwire.parser import parse_file
+from srvwire.protocol import canonical_name
 from srvwire.server import RunningServer, Server
 
 __all__ = ["ExitCode", "main"]
@@ -843,7 +844,7 @@ async def _call(
     values: dict[str, Any],
     count: int | None,
 ) -> int:
-    name = _canonical(args.name)
+    name = canonical_name(args.name)
     async with _connect(args) as client:
         type_name = srv_type.type_name if srv_type is not None else None
         # The server advertised its services' types on connecting; an unknown service is left
@@ -958,10 +959,6 @@ def _connect(args: argparse.Namespace) -> Connecting:
         raise CommandError(f"bad --url: {exc}", ExitCode.USAGE) from None
 
 
-def _canonical(name: str) -> str:
-    return name if name.startswith("/") else "/" + name
-
-
 async def _services(args: argparse.Namespace) -> list[ServiceInfo]:
     async with _connect(args) as client:
         return await client.list_services(timeout=args.timeout)
@@ -978,7 +975,7 @@ def _cmd_service_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_service_type(args: argparse.Namespace) -> int:
-    name = _canonical(args.name)
+    name = canonical_name(args.name)
     services = asyncio.run(_services(args))
     for info in services:
         if info.name == name:

@@ -114,6 +114,7 @@ from srvwire.protocol import (
     Request,
     Response,
     cancel_notification,
+    canonical_name,
     encode_call,
     encode_json,
     parse_replies,
@@ -156,11 +157,6 @@ class ServiceInfo:
 
     name: str
     type: str
-
-
-def _canonical_name(name: str) -> str:
-    """Return the canonical form of a service name: with exactly one leading ``/``."""
-    return name if name.startswith("/") else "/" + name
 
 
 def _check_timeout(timeout: float, what: str = "timeout") -> float:
@@ -458,7 +454,7 @@ class Client:
                 raise InvalidRequest(
                     f"{SERVICES_METHOD} entries need a string 'name' and 'type', got {entry!r}"
                 )
-            services[_canonical_name(name)] = type_name
+            services[canonical_name(name)] = type_name
         return services
 
     def _lost(
@@ -527,7 +523,7 @@ class Client:
         ``DeadlineExceeded``, ``ConnectionLost``, ``InvalidParams`` (also locally, before
         sending), ``ServiceNotFound``, ``InternalError``, ``ServiceError``, and so on.
         """
-        method = _canonical_name(name)
+        method = canonical_name(name)
         budget = self.timeout if timeout is None else _check_timeout(timeout)
         deadline = asyncio.get_running_loop().time() + budget
         if wait_for_ready:
@@ -571,7 +567,7 @@ class Client:
         ``timeout`` (default: the client's) passes first, and ``ConnectionLost`` at once when
         the connection is down for good.
         """
-        method = _canonical_name(name)
+        method = canonical_name(name)
         budget = self.timeout if timeout is None else _check_timeout(timeout)
         deadline = asyncio.get_running_loop().time() + budget
         await self._wait_until_ready(method, deadline, budget)
@@ -600,7 +596,7 @@ class Client:
                 service=DISCOVER_METHOD,
             )
         found = [
-            ServiceInfo(_canonical_name(entry["name"]), entry["x-srvwire-type"])
+            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
             for entry in methods
             if isinstance(entry, dict)
             and isinstance(entry.get("name"), str)
@@ -846,7 +842,7 @@ class ServiceProxy:
 
     def __init__(self, client: Client, name: str, srv_type: SrvType | None = None) -> None:
         self.client = client
-        self.name = _canonical_name(name)
+        self.name = canonical_name(name)
         self.srv_type = srv_type
 
     async def __call__(

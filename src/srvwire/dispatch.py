@@ -68,7 +68,7 @@ from srvwire.errors import (
     ServiceNotFound,
 )
 from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
-from srvwire.protocol import Id, encode_json
+from srvwire.protocol import Id, canonical_name, encode_json
 from srvwire.version import __version__
 
 __all__ = [
@@ -96,7 +96,7 @@ def normalize_name(name: str) -> str:
     """
     if not isinstance(name, str):
         raise RegistrationError(f"a service name must be a string, not {type(name).__name__}")
-    canonical = name if name.startswith("/") else "/" + name
+    canonical = canonical_name(name)
     if canonical == "/":
         raise RegistrationError(f"service name {name!r} is empty; {_NAME_RULE}")
     if canonical.endswith("/"):
@@ -394,7 +394,7 @@ class ServiceRegistry:
         entry = self.get(name)
         if entry is not None:
             return entry
-        wanted = name if name.startswith("/") else "/" + name
+        wanted = canonical_name(name)
         candidates = difflib.get_close_matches(wanted, list(self._entries), n=3, cutoff=0.6)
         hint = f"; did you mean {', '.join(candidates)}?" if candidates else ""
         raise ServiceNotFound(

@@ -72,6 +72,7 @@ __all__ = [
     "Request",
     "Response",
     "cancel_notification",
+    "canonical_name",
     "decode_json",
     "encode_call",
     "encode_json",
@@ -315,6 +316,11 @@ def encode_call(id: int, method_json: str, params_json: str, timeout: float) -> 
     return "".join(
         (*head, ',"params":{"_meta":{"timeout":', repr(timeout), "},", params_json[1:], "}")
     )
+
+
+def canonical_name(method: str) -> str:
+    """Return a service name as srvwire keeps it: with its leading ``/`` (optional on the wire)."""
+    return method if method.startswith("/") else "/" + method
 
 
 def serialize(message: Message) -> str:
