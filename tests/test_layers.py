@@ -12,6 +12,7 @@ PACKAGE = Path(srvwire.__file__).parent
 # module -> the srvwire modules it may import
 ALLOWED: dict[str, set[str]] = {
     "version": set(),
+    "inline": set(),
     "errors": set(),
     "idl": {"errors"},
     "protocol": {"errors"},
@@ -19,9 +20,9 @@ ALLOWED: dict[str, set[str]] = {
     "models": {"idl", "errors"},
     "loader": {"parser", "models", "idl", "errors"},
     "codegen": {"loader", "parser", "models", "idl", "errors"},
-    "dispatch": {"protocol", "models", "idl", "errors", "version"},
-    "server": {"dispatch", "protocol", "models", "idl", "errors"},
-    "client": {"protocol", "models", "loader", "idl", "errors"},
+    "dispatch": {"protocol", "models", "idl", "errors", "version", "inline"},
+    "server": {"dispatch", "protocol", "models", "idl", "errors", "inline"},
+    "client": {"protocol", "models", "loader", "idl", "errors", "inline"},
 }
 TOP = {"cli", "__init__", "__main__"}
 

@@ -411,15 +411,17 @@ async def test_calls_cancelled_before_their_first_step_are_settled(server: Serve
         remote_address = ("127.0.0.1", 1)
 
     conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
-    assert conn.start(Request(1, "/echo", {"text": "a"}), send=True) is None
-    batched = conn.start(Request(2, "/echo", {"text": "b"}), send=False)
-    conn.notify(Notification("/echo", {"text": "c"}))
+    first = conn.start(Request(1, "/echo", {"text": "a"}))
+    second = conn.start(Request(2, "/echo", {"text": "b"}))
+    notification = conn.notify(Notification("/echo", {"text": "c"}))
+    assert notification is not None
+    conn.spawn_counted(notification)
     tasks = set(conn.counted)
     assert conn.in_flight == 3 and len(tasks) == 3 and set(conn.calls) == {1, 2}
     assert not any(call.started for call in conn.calls.values())
     conn.cancel_all(None)
     await asyncio.wait(tasks)
-    assert all(task.cancelled() for task in tasks) and isinstance(batched, asyncio.Task)
+    assert all(task.cancelled() for task in tasks) and {first, second} <= tasks
     assert conn.in_flight == 0 and not conn.counted and not conn.calls
 
 
@@ -432,13 +434,15 @@ async def test_finished_calls_and_notifications_settle_themselves(server: Server
 
     sent: list[str | bytes] = []
     conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
-    assert conn.start(Request(1, "/echo", {"text": "a"}), send=True) is None
-    batched = conn.start(Request(2, "/echo", {"text": "b"}), send=False)
-    conn.notify(Notification("/echo", {"text": "c"}))
+    batched = conn.start(Request(2, "/echo", {"text": "b"}))
+    notification = conn.notify(Notification("/echo", {"text": "c"}))
+    assert notification is not None
+    conn.spawn_counted(notification)
     tasks = set(conn.counted)
+    assert len(tasks) == 2
     await asyncio.wait(tasks)
     assert isinstance(batched, asyncio.Task) and batched.result() is not None
-    assert len(sent) == 1 and json.loads(sent[0])["id"] == 1
+    assert not sent  # a batch's call returns its reply to the batch, which sends them all
     assert conn.in_flight == 0 and not conn.counted and not conn.calls
 
 
@@ -1253,17 +1257,16 @@ async def test_calls_that_finish_inside_create_task_leak_neither_count_nor_id(
     loop.set_task_factory(_imitate_eager_task_factory())
     try:
         for _ in range(3):  # the same id each time: it is free again once the call answered
-            assert conn.start(Request(1, "/echo", {"text": "a"}), send=True) is None
-            batched = conn.start(Request(2, "/echo", {"text": "b"}), send=False)
-            assert batched is not None and not isinstance(batched, str) and batched.done()
+            batched = conn.start(Request(2, "/echo", {"text": "b"}))
+            assert not isinstance(batched, str) and batched.done()
             assert batched.result() == '{"jsonrpc":"2.0","id":2,"result":{"text":"b"}}'
-            conn.notify(Notification("/echo", {"text": "c"}))
+            notification = conn.notify(Notification("/echo", {"text": "c"}))
+            assert notification is not None
+            conn.spawn_counted(notification)
             assert conn.in_flight == 0 and not conn.counted and not conn.calls
     finally:
         loop.set_task_factory(None)
-    assert [json.loads(m) for m in sent] == [
-        {"jsonrpc": "2.0", "id": 1, "result": {"text": "a"}}
-    ] * 3
+    assert not sent
 
 
 async def test_a_call_cancelled_twice_has_its_task_cancelled_once(
@@ -1323,3 +1326,169 @@ async def test_shutdown_answers_calls_with_a_null_id_too() -> None:
     assert reply["error"]["message"] == "the server shut down before the call finished"
     assert hangs.cancelled.is_set()
     assert await closed_code(w) == 1001
+
+
+# --- calls run inline on the connection's reader until they have to wait ---------------------
+
+
+async def test_calls_that_do_not_wait_run_on_the_reader_without_a_task_of_their_own(
+    server: Server,
+) -> None:
+    # Each answer is built before the next message is read, on the task that reads: two calls
+    # in a row see the same task, and no call leaves a task behind.
+    tasks: list[asyncio.Task[Any] | None] = []
+
+    async def which_task(request: Any) -> Any:
+        tasks.append(asyncio.current_task())
+        return {"text": request.text}
+
+    server.add_service("/which_task", Echo, which_task)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        for id in (1, 2, 3):
+            reply = await w.request("/which_task", {"text": str(id)}, id=id)
+            assert reply["result"] == {"text": str(id)}
+        (conn,) = running._connections
+        assert tasks[0] is not None and tasks[0] is tasks[1] is tasks[2]
+        assert tasks[0] is conn.reader and not conn.counted and not conn.calls
+        await w.ws.close()
+
+
+async def test_a_call_that_waits_keeps_its_task_and_a_new_reader_takes_over(
+    server: Server,
+) -> None:
+    # A handler sees one task from its first line to its last, even though it started on the
+    # reader; meanwhile the connection goes on reading and answering.
+    seen: dict[str, asyncio.Task[Any] | None] = {}
+    release = asyncio.Event()
+
+    async def waits(request: Any) -> Any:
+        seen["before"] = asyncio.current_task()
+        await release.wait()
+        seen["after"] = asyncio.current_task()
+        return {"text": "done"}
+
+    async def which_task(request: Any) -> Any:
+        seen["other"] = asyncio.current_task()
+        return {"text": request.text}
+
+    server.add_service("/waits", Echo, waits)
+    server.add_service("/which_task", Echo, which_task)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send(request("/waits", {"text": ""}, id="slow"))
+        reply = await w.request("/which_task", {"text": "fast"}, id="fast")
+        assert reply["result"] == {"text": "fast"}
+        (conn,) = running._connections
+        assert seen["before"] is not None and seen["before"] in conn.counted
+        assert seen["other"] is conn.reader and seen["other"] is not seen["before"]
+        release.set()
+        assert (await w.recv_reply())["result"] == {"text": "done"}
+        assert seen["after"] is seen["before"]
+        assert not conn.counted and not conn.calls
+        await w.ws.close()
+
+
+async def test_each_call_runs_in_a_context_of_its_own(server: Server) -> None:
+    # What a handler sets in a context variable is not seen by the next call on the same
+    # connection, as if each call had a task of its own; it is seen by the rest of its own call.
+    import contextvars
+
+    tag: contextvars.ContextVar[str] = contextvars.ContextVar("tag", default="unset")
+    seen: list[str] = []
+
+    async def tags(request: Any) -> Any:
+        seen.append(tag.get())
+        tag.set(request.text)
+        await asyncio.sleep(0)  # wait once, so the rest runs in the call's own task
+        seen.append(tag.get())
+        return {"text": request.text}
+
+    async def tags_without_waiting(request: Any) -> Any:
+        seen.append(tag.get())
+        tag.set(request.text)
+        return {"text": request.text}
+
+    server.add_service("/tags", Echo, tags)
+    server.add_service("/tags_now", Echo, tags_without_waiting)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.request("/tags_now", {"text": "a"}, id=1)
+        await w.request("/tags_now", {"text": "b"}, id=2)
+        await w.request("/tags", {"text": "c"}, id=3)
+        await w.request("/tags_now", {"text": "d"}, id=4)
+        await w.ws.close()
+    assert seen == ["unset", "unset", "unset", "c", "unset"]
+
+
+async def test_a_timeout_a_handler_enters_before_waiting_cancels_only_that_handler(
+    server: Server,
+) -> None:
+    # asyncio.timeout() binds to the current task when it is entered, which for a call that
+    # has not waited yet is the reader's: that task must then stay the call's.
+    async def times_out(request: Any) -> Any:
+        try:
+            async with asyncio.timeout(0.01):
+                await asyncio.Event().wait()
+        except TimeoutError:
+            return {"text": "timed out"}
+        return {"text": "never"}
+
+    server.add_service("/times_out", Echo, times_out)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        assert (await w.request("/times_out", {"text": ""}, id=1))["result"] == {
+            "text": "timed out"
+        }
+        assert (await w.request("/echo", {"text": "still here"}, id=2))["result"] == {
+            "text": "still here"
+        }
+        await w.ws.close()
+
+
+async def test_messages_start_in_the_order_they_arrive(server: Server) -> None:
+    # A notification followed by a call in the same burst: the notification's handler runs
+    # first, as the wscat guide's "stop, then status" shows.
+    events: list[str] = []
+
+    async def record(request: Any) -> Any:
+        events.append(request.text)
+        return {"text": ",".join(events)}
+
+    server.add_service("/record", Echo, record)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send({"jsonrpc": "2.0", "method": "/record", "params": {"text": "note"}})
+        await w.send(request("/record", {"text": "call"}, id=1))
+        assert (await w.recv_reply())["result"] == {"text": "note,call"}
+        await w.ws.close()
+
+
+async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A handler that answers without waiting cannot be interrupted: its deadline needs no timer.
+    import srvwire.dispatch
+
+    armed: list[object] = []
+    real = srvwire.dispatch._Deadline
+
+    def counting(*args: Any) -> Any:
+        armed.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(srvwire.dispatch, "_Deadline", counting)
+
+    async def waits(request: Any) -> Any:
+        await asyncio.sleep(0)
+        return {"text": request.text}
+
+    server.add_service("/waits", Echo, waits)
+    meta = {"_meta": {"timeout": 30}}
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        assert (await w.request("/echo", {"text": "a", **meta}))["result"] == {"text": "a"}
+        assert armed == []
+        assert (await w.request("/waits", {"text": "b", **meta}))["result"] == {"text": "b"}
+        assert len(armed) == 1
+        await w.ws.close()

@@ -36,8 +36,10 @@ Invariants:
 * **A deadline is the caller's.** ``_meta.timeout`` is measured from the moment the request was
   read; an already-expired deadline answers ``DEADLINE_EXCEEDED`` without running the handler.
   It is enforced by one timer (``loop.call_later``) that cancels the call's task, armed only
-  when the request carries a deadline and cancelled as soon as the handler returns; the
-  CancelledError it causes, and only that one, becomes ``DEADLINE_EXCEEDED``.
+  when the request carries a deadline and the handler has to wait (a handler that answers
+  without awaiting anything cannot be interrupted, so it needs no timer; see
+  :mod:`srvwire.inline`), and cancelled as soon as the handler returns; the CancelledError it
+  causes, and only that one, becomes ``DEADLINE_EXCEEDED``.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ import logging
 import re
 import time
 import typing
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
@@ -67,6 +69,7 @@ from srvwire.errors import (
     RPCError,
     ServiceNotFound,
 )
+from srvwire.inline import Pending, finish, first_step
 from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
 from srvwire.protocol import Id, canonical_name, encode_json
 from srvwire.version import __version__
@@ -476,13 +479,17 @@ def _reasons(errors: list[dict[str, str]]) -> str:
     return "; ".join(f"{e['path'] or '(response)'}: {e['message']}" for e in errors)
 
 
-async def _invoke(
+def _invoke(
     entry: ServiceEntry,
     request: BaseModel,
     context: Context,
     executor: Executor | None,
-) -> tuple[Any, BaseModel | None]:
-    """Call the handler the way it was registered to be called, and return what it returns."""
+) -> tuple[Coroutine[Any, Any, Any], BaseModel | None]:
+    """Start calling the handler the way it was registered to be called.
+
+    Return the coroutine that runs it (the handler's own, for an async handler) and the
+    response built for a handler of the ROS shape ``(request, response)``.
+    """
     args: tuple[Any, ...]
     prebuilt: BaseModel | None = None
     if entry.takes_response:
@@ -492,13 +499,15 @@ async def _invoke(
         args = (request,)
     kwargs = {entry.context_param: context} if entry.context_param else {}
     if entry.is_async:
-        result = await entry.handler(*args, **kwargs)
-    else:
-        call = functools.partial(entry.handler, *args, **kwargs)
-        result = await asyncio.get_running_loop().run_in_executor(executor, call)
-        if inspect.isawaitable(result):
-            result = await result
-    return result, prebuilt
+        return entry.handler(*args, **kwargs), prebuilt
+    return _run_in_executor(functools.partial(entry.handler, *args, **kwargs), executor), prebuilt
+
+
+async def _run_in_executor(call: Callable[[], Any], executor: Executor | None) -> Any:
+    result = await asyncio.get_running_loop().run_in_executor(executor, call)
+    if inspect.isawaitable(result):
+        result = await result
+    return result
 
 
 async def dispatch(
@@ -527,19 +536,22 @@ async def dispatch(
     deadline = context.deadline
     timer: _Deadline | None = None
     try:
+        if deadline is not None and deadline <= time.monotonic():
+            raise _deadline_exceeded(entry, context)
+        handler, prebuilt = _invoke(entry, request, context, executor)
         if deadline is None:
-            result, prebuilt = await _invoke(entry, request, context, executor)
+            result = await handler
         else:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise _deadline_exceeded(entry, context)
-            timer = _Deadline(remaining)
-            try:
-                result, prebuilt = await _invoke(entry, request, context, executor)
-            finally:
-                timer.disarm()
-            if timer.fired:  # the handler swallowed its cancellation; the caller is gone
-                raise _deadline_exceeded(entry, context)
+            # The deadline can pass only while the handler waits: arm its timer only then.
+            result = first_step(handler)
+            if isinstance(result, Pending):
+                timer = _Deadline(deadline - time.monotonic())
+                try:
+                    result = await finish(result)
+                finally:
+                    timer.disarm()
+                if timer.fired:  # the handler swallowed its cancellation; the caller is gone
+                    raise _deadline_exceeded(entry, context)
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name

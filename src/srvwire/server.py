@@ -6,22 +6,34 @@ Theory of operation
 A :class:`Server` holds a :class:`~srvwire.dispatch.ServiceRegistry` and its options; it does not
 listen by itself. :func:`serve` binds it to a host and port and returns a :class:`RunningServer`.
 Each WebSocket connection gets a :class:`_Connection` whose *reader* is the only code that receives
-from the socket. For every message the reader calls :func:`~srvwire.protocol.parse_incoming`,
-answers what can be answered at once (errors, ``rpc.discover``, ``$/cancel``) and starts one task
-per service call, which replies by itself when the handler is done. A batch gets one more task that
-waits for its calls and sends their replies as one array.
+from the socket. For every message the reader calls :func:`~srvwire.protocol.parse_incoming` and
+answers what can be answered at once (errors, ``rpc.discover``, ``$/cancel``). A call or a
+notification to a service runs inline, on the reader's task, up to its first suspension
+(:func:`~srvwire.inline.first_step`): most handlers answer without waiting, and their reply is
+sent before the next message is read, with no task of their own. A call that has to wait keeps
+the task it started on (so the task it saw as ``asyncio.current_task()``, the one its
+``asyncio.timeout`` or deadline cancels, stays its own), and the connection starts a new reader
+task. A batch gets a task that starts its calls, each in a task of its own, and sends their
+replies as one array.
 
 Invariants:
 
 * **The reader never waits for a handler.** Calls on one connection run concurrently; a handler
-  that hangs holds only its own task. The reader waits only to send an immediate error reply, which
-  is what pushes back on a client that writes faster than it reads.
+  that hangs holds only its own task, since the reader it started on hands the reading to a new
+  task the moment the handler has to wait. Messages start in the order they arrive; a batch's
+  calls start once the whole batch is read, so a ``$/cancel`` in the same batch reaches them.
+  The reader waits only to send a reply, which is what pushes back on a client that writes
+  faster than it reads.
+* **Each call runs in a context of its own**, a copy of the reader's (as a task would), so
+  context variables a handler sets never reach the next call.
 * **In flight is bounded per connection.** At most ``max_in_flight`` calls and notifications run at
   once on a connection; past that a call is answered ``RESOURCE_EXHAUSTED`` at once (a notification
   is dropped and logged), and the connection carries on. Messages are bounded by
-  ``max_message_size``: websockets closes the connection with 1009 past it. A call or
+  ``max_message_size``: websockets closes the connection with 1009 past it. A call that waits
+  counts from the moment it takes over its reader's task until it has replied; a call that
+  never waits has ended before the reader reads on, so it never counts. A batch's call or
   notification counts from the creation of its task until the task's coroutine settles it in
-  its own ``finally`` (after the reply is sent); a task the connection's teardown cancels
+  its own ``finally`` (after the reply is built); a task the connection's teardown cancels
   before its first step is settled by a done-callback instead, since its coroutine never runs.
   The bookkeeping does not depend on when a task's first step runs: a call is registered
   before its task is created, and a task is counted only if it is not already done, so an
@@ -65,8 +77,9 @@ import logging
 import signal
 import threading
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Coroutine, Generator
 from concurrent.futures import Executor
+from contextvars import copy_context
 from types import TracebackType
 from typing import Any, TypeVar
 
@@ -75,7 +88,7 @@ from websockets.asyncio.server import (
     ServerConnection,
     serve as _ws_serve,
 )
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, ConnectionClosedOK
 
 from srvwire.dispatch import Context, Handler, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import (
@@ -86,6 +99,7 @@ from srvwire.errors import (
     RPCError,
     ServiceUnavailable,
 )
+from srvwire.inline import Pending, finish, first_step
 from srvwire.models import Service
 from srvwire.protocol import (
     CANCEL_METHOD,
@@ -446,7 +460,7 @@ class RunningServer:
             log.debug("connection from %s opened", conn.peer)
         try:
             await ws.send(services_notification(self.server.registry.services()).serialize())
-            await conn.read()
+            await conn.serve()
         except ConnectionClosed as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("connection from %s closed: %s", conn.peer, exc)
@@ -456,7 +470,11 @@ class RunningServer:
 
 
 class _Call:
-    """A call in flight: its task, its context, and whether the task has started running."""
+    """A call in flight: its task, its context, and whether it has started running.
+
+    ``task`` is None while a call runs inline, on the reader, before it has to wait: nothing
+    can cancel it then, since the reader reads nothing else meanwhile.
+    """
 
     __slots__ = ("cancelled", "context", "started", "task")
 
@@ -483,25 +501,41 @@ class _Call:
 class _Connection:
     """One client connection: its reader, and the calls it has in flight.
 
-    A call or notification task is in :attr:`counted` from its creation until its coroutine's
-    own ``finally`` takes it out (no done-callback: that would cost the loop one more turn per
-    call). A task cancelled before its first step never runs that ``finally``; the only code
-    that cancels tasks which may not have started is :meth:`cancel_all` without an error, and
-    it gives each such task a done-callback that settles it instead. A task already done when
-    :meth:`spawn_counted` gets it back (an eager task factory ran it to its end) settled
-    before it could be counted, and is not counted.
+    A reader task that a waiting call took over is in :attr:`counted` until the call is done;
+    :attr:`reader` is always the task that reads now. A batch's call or notification task is in
+    :attr:`counted` from its creation until its coroutine's own ``finally`` takes it out (no
+    done-callback: that would cost the loop one more turn per call). A task cancelled before
+    its first step never runs that ``finally``; the only code that cancels tasks which may not
+    have started is :meth:`cancel_all` without an error, and it gives each such task a
+    done-callback that settles it instead. A task already done when :meth:`spawn_counted` gets
+    it back (an eager task factory ran it to its end) settled before it could be counted, and
+    is not counted.
     """
 
-    __slots__ = ("anonymous", "calls", "counted", "peer", "running", "tasks", "ws")
+    __slots__ = (
+        "anonymous",
+        "calls",
+        "counted",
+        "loop",
+        "peer",
+        "reader",
+        "reading",
+        "running",
+        "tasks",
+        "ws",
+    )
 
     def __init__(self, running: RunningServer, ws: ServerConnection) -> None:
         self.running = running
         self.ws = ws
+        self.loop = asyncio.get_running_loop()
         self.peer: Any = ws.remote_address
         self.calls: dict[Id, _Call] = {}  # calls that $/cancel can reach, by id
         self.anonymous: set[_Call] = set()  # calls with "id": null, for shutdown to answer
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: batches, broadcasts
         self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
+        self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
+        self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
 
     @property
     def in_flight(self) -> int:
@@ -509,7 +543,7 @@ class _Connection:
         return len(self.counted)
 
     def spawn(self, coro: Any) -> asyncio.Task[Any]:
-        task: asyncio.Task[Any] = asyncio.create_task(coro)
+        task: asyncio.Task[Any] = self.loop.create_task(coro)
         self.tasks.add(task)
         task.add_done_callback(self.tasks.discard)
         return task
@@ -521,7 +555,7 @@ class _Connection:
         task factory it may have done so already, inside ``create_task``: a task that is done
         is not counted.
         """
-        task: asyncio.Task[Any] = asyncio.create_task(coro)
+        task: asyncio.Task[Any] = self.loop.create_task(coro)
         if not task.done():
             self.counted.add(task)
         return task
@@ -568,27 +602,99 @@ class _Connection:
                 task.cancel()
                 task.add_done_callback(self.counted.discard)
 
+    async def serve(self) -> None:
+        """Read the connection until it ends, one reader task at a time (see :meth:`read`)."""
+        self.start_reader()
+        try:
+            await self.reading
+        finally:
+            if not self.reading.done():  # this handler was cancelled: stop reading too
+                self.reading.cancel()
+                if self.reader is not None:
+                    self.reader.cancel()
+
+    def start_reader(self) -> None:
+        self.reader = self.loop.create_task(self.read())
+
     async def read(self) -> None:
-        async for message in self.ws:
+        """Read and answer messages until the connection ends or a call has to wait.
+
+        A call runs inline, in this task, up to its first suspension: most calls finish there,
+        with no task of their own. A call that has to wait keeps this task, so that whatever
+        its handler saw of ``asyncio.current_task()`` stays true, and a new reader takes over.
+        """
+        try:
+            waiting = await self.read_until_a_call_waits()
+        except asyncio.CancelledError:
+            self.reading.cancel()
+            raise
+        except BaseException as exc:  # the connection closed, or a bug in srvwire
+            if not self.reading.done():
+                self.reading.set_exception(exc)
+            if not isinstance(exc, ConnectionClosed):
+                raise
+            return
+        if waiting is None:
+            if not self.reading.done():
+                self.reading.set_result(None)
+            return
+        call, steps = waiting
+        task = asyncio.current_task()
+        assert task is not None
+        self.counted.add(task)
+        if call is not None:
+            call.task = task
+            call.started = True
+            if call.context._cancelled:  # cancelled while its first step ran
+                call.cancel(call.context._cancel_error)
+        self.start_reader()
+        try:
+            await finish(steps)
+        finally:
+            self.counted.discard(task)
+
+    async def read_until_a_call_waits(self) -> tuple[_Call | None, Pending] | None:
+        """Answer messages; return a call (None: a notification) that has to wait, and its
+        steps; return None when the connection ended.
+
+        Messages start in the order they arrive. A call or notification runs its first step
+        in a context of its own, as a task's would.
+        """
+        ws = self.ws
+        while True:
+            try:
+                message = await ws.recv()
+            except ConnectionClosedOK:
+                return None
             incoming = parse_incoming(message)
             if incoming.is_batch:
                 self.spawn(self.batch(incoming.items))
                 continue
             item = incoming.items[0]
             if type(item) is Request:
-                reply = self.start(item, send=True)
-                if isinstance(reply, str):
-                    await self.send(reply)
+                admitted = self.admit(item)
+                if isinstance(admitted, str):
+                    await self.send(admitted)
+                    continue
+                entry, call = admitted
+                steps = first_step(self.call(entry, item, call, send=True), copy_context())
+                if isinstance(steps, Pending):
+                    return call, steps
             elif type(item) is Notification:
-                self.notify(item)
+                notification = self.notify(item)
+                if notification is not None:
+                    steps = first_step(notification, copy_context())
+                    if isinstance(steps, Pending):
+                        return None, steps
             else:
                 assert isinstance(item, ErrorResponse)
                 await self.send(item.serialize())
 
-    def start(self, request: Request, *, send: bool) -> str | asyncio.Task[str | None] | None:
-        """Start ``request``; return the reply text if it is answered at once, else its task.
+    def admit(self, request: Request) -> tuple[ServiceEntry, _Call] | str:
+        """Check and register a call; return its entry and call, or the reply text at once.
 
-        With ``send``, the task sends its reply itself and None is returned.
+        Answered at once: a server shutting down, a method that is not a service (discovery,
+        ``$/cancel``, an unknown name), too many calls in flight, an id already in use.
         """
         running = self.running
         server = running.server
@@ -598,7 +704,7 @@ class _Connection:
         entry = server.registry.get(request.method)
         if entry is None:
             return self.special(request)
-        if self.in_flight >= server.max_in_flight:
+        if len(self.counted) >= server.max_in_flight:
             exhausted = ResourceExhausted(
                 f"too many calls in flight on this connection (the limit is "
                 f"{server.max_in_flight})",
@@ -622,17 +728,27 @@ class _Connection:
                 deadline=None if timeout is None else time.monotonic() + timeout,
             ),
         )
-        # Registered before its task exists: an eager task factory may run the call to its end,
-        # and forget it, inside create_task.
         if id is not None:
             self.calls[id] = call
         else:
             self.anonymous.add(call)
-        if send:
-            call.task = self.spawn_counted(self.call_and_send(entry, request, call))
-        else:
-            call.task = self.spawn_counted(self.call_in_batch(entry, request, call))
-        return None if send else call.task
+        return entry, call
+
+    def start(self, request: Request) -> str | asyncio.Task[str | None]:
+        """Start one call of a batch in a task of its own; return the task, or the reply text.
+
+        The call is registered before its task exists: an eager task factory may run it to its
+        end, and forget it, inside ``create_task``.
+        """
+        admitted = self.admit(request)
+        if isinstance(admitted, str):
+            return admitted
+        entry, call = admitted
+        task: asyncio.Task[str | None] = self.spawn_counted(
+            self.call_in_batch(entry, request, call)
+        )
+        call.task = task
+        return task
 
     def special(self, request: Request) -> str:
         """Answer a request for a method that is not a service: discovery, protocol, unknown."""
@@ -648,32 +764,39 @@ class _Connection:
             return ErrorResponse(request.id, exc).serialize()
         raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
 
-    async def call(self, entry: ServiceEntry, request: Request, call: _Call) -> str | bytes | None:
-        """Run one call and return its reply text; None if it was cancelled silently.
+    async def call(
+        self, entry: ServiceEntry, request: Request, call: _Call, *, send: bool
+    ) -> str | bytes | None:
+        """Run one call; with ``send`` send its reply, else return it (text or UTF-8 bytes).
 
-        A result is returned as UTF-8 bytes, as pydantic wrote it (no copy into a ``str``).
+        Return None when the reply was sent, or when the call was cancelled silently (the
+        connection went away). A result is UTF-8 bytes, as pydantic wrote it (no copy into
+        a ``str``).
         """
         call.started = True
         context = call.context
         server = self.running.server
         log = server.logger
+        reply: str | bytes
         try:
             if context._cancel_error is not None:  # cancelled before it started
-                return ErrorResponse(request.id, context._cancel_error).serialize()
-            result = await dispatch(
-                entry,
-                request.params if not isinstance(request.params, RawJSON) else None,
-                context,
-                executor=server.executor,
-                logger=log,
-            )
-            if log.isEnabledFor(logging.DEBUG):
-                log.debug("%s id %r from %s: ok", entry.name, request.id, self.peer)
-            return encode_result(request.id, result)
+                reply = ErrorResponse(request.id, context._cancel_error).serialize()
+            else:
+                params = request.params
+                result = await dispatch(
+                    entry,
+                    params if not isinstance(params, RawJSON) else None,
+                    context,
+                    executor=server.executor,
+                    logger=log,
+                )
+                if log.isEnabledFor(logging.DEBUG):
+                    log.debug("%s id %r from %s: ok", entry.name, request.id, self.peer)
+                reply = encode_result(request.id, result)
         except RPCError as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s id %r from %s: %s", entry.name, request.id, self.peer, exc)
-            return ErrorResponse(request.id, exc).serialize()
+            reply = ErrorResponse(request.id, exc).serialize()
         except asyncio.CancelledError:
             error = context._cancel_error
             if error is None:  # the connection went away: nobody to answer
@@ -681,7 +804,7 @@ class _Connection:
             task = asyncio.current_task()
             if task is not None:
                 task.uncancel()
-            return ErrorResponse(request.id, error).serialize()
+            reply = ErrorResponse(request.id, error).serialize()
         except Exception:  # a bug in srvwire: still answer, so that the caller is not left waiting
             log.exception(
                 "%s id %r from %s failed inside srvwire", entry.name, request.id, self.peer
@@ -689,21 +812,17 @@ class _Connection:
             internal = InternalError(
                 f"the server failed to answer {entry.name}", service=entry.name
             )
-            return ErrorResponse(request.id, internal).serialize()
+            reply = ErrorResponse(request.id, internal).serialize()
         finally:
             self.forget(call)  # from here on, $/cancel no longer finds it
-
-    async def call_and_send(self, entry: ServiceEntry, request: Request, call: _Call) -> None:
-        try:
-            reply = await self.call(entry, request, call)
-            if reply is not None:
-                await self.send(reply)
-        finally:
-            self.settle()
+        if not send:
+            return reply
+        await self.send(reply)
+        return None
 
     async def call_in_batch(self, entry: ServiceEntry, request: Request, call: _Call) -> str | None:
         try:
-            reply = await self.call(entry, request, call)
+            reply = await self.call(entry, request, call, send=False)
             return reply.decode() if isinstance(reply, bytes) else reply
         finally:
             self.settle()
@@ -719,35 +838,39 @@ class _Connection:
         if call is not None:
             call.cancel(Cancelled("the caller cancelled the call"))
 
-    def notify(self, note: Notification) -> None:
-        """Handle a notification: protocol ones here, a service's in a task; never a reply."""
+    def notify(self, note: Notification) -> Coroutine[Any, Any, None] | None:
+        """Handle a notification; return the coroutine that runs a service's, else None.
+
+        A protocol notification (``$/cancel``) is handled here; one that cannot run is dropped
+        (and logged); a notification is never answered.
+        """
         method = note.method
         if method.startswith(_PROTOCOL_PREFIX):
             if method == CANCEL_METHOD:
                 self.cancel(note.params)
-            return
+            return None
         running = self.running
         entry = running.server.registry.get(method)
         if entry is None or running.closing:
-            return
+            return None
         log = running.server.logger
         if note.error is not None:
             log.info("dropped a notification to %s from %s: %s", entry.name, self.peer, note.error)
-            return
+            return None
         if self.in_flight >= running.server.max_in_flight:
             log.warning(
                 "dropped a notification to %s from %s: too many calls in flight",
                 entry.name,
                 self.peer,
             )
-            return
+            return None
         timeout = note.timeout
         context = Context(
             service=entry.name,
             peer=self.peer,
             deadline=None if timeout is None else time.monotonic() + timeout,
         )
-        self.spawn_counted(self.run_notification(entry, note, context))
+        return self.run_notification(entry, note, context)
 
     async def run_notification(
         self, entry: ServiceEntry, note: Notification, context: Context
@@ -772,11 +895,11 @@ class _Connection:
         replies: list[str | asyncio.Task[str | None]] = []
         for item in items:
             if type(item) is Request:
-                started = self.start(item, send=False)
-                if started is not None:
-                    replies.append(started)
+                replies.append(self.start(item))
             elif type(item) is Notification:
-                self.notify(item)
+                notification = self.notify(item)
+                if notification is not None:
+                    self.spawn_counted(notification)
             else:
                 assert isinstance(item, ErrorResponse)
                 replies.append(item.serialize())

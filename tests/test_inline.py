@@ -1,0 +1,138 @@
+"""Running a coroutine's first step inline, and finishing it in the same task."""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+from typing import Any
+
+import pytest
+
+from srvwire.inline import Pending, finish, first_step
+
+tag: contextvars.ContextVar[str] = contextvars.ContextVar("tag", default="outside")
+
+
+async def answers(value: int) -> int:
+    return value * 2
+
+
+async def waits_for(future: asyncio.Future[int]) -> int:
+    return await future + 1
+
+
+async def test_a_coroutine_that_does_not_wait_finishes_in_its_first_step() -> None:
+    assert first_step(answers(21)) == 42
+
+
+async def test_a_coroutine_that_waits_is_finished_in_the_same_task() -> None:
+    future: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    tasks: list[asyncio.Task[Any] | None] = []
+
+    async def notes_its_task() -> int:
+        tasks.append(asyncio.current_task())
+        value = await future
+        tasks.append(asyncio.current_task())
+        return value
+
+    steps = first_step(notes_its_task())
+    assert isinstance(steps, Pending) and steps.yielded is future
+    asyncio.get_running_loop().call_soon(future.set_result, 7)
+    assert await finish(steps) == 7
+    assert tasks == [asyncio.current_task()] * 2
+
+
+async def test_an_exception_in_the_first_step_propagates() -> None:
+    async def fails() -> None:
+        raise ValueError("no")
+
+    with pytest.raises(ValueError, match="no"):
+        first_step(fails())
+
+
+async def test_an_exception_after_waiting_propagates() -> None:
+    future: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    steps = first_step(waits_for(future))
+    assert isinstance(steps, Pending)
+    future.set_exception(KeyError("later"))
+    with pytest.raises(KeyError, match="later"):
+        await finish(steps)
+
+
+async def test_cancelling_the_task_while_it_waits_is_thrown_into_the_coroutine() -> None:
+    entered = asyncio.Event()
+    outcome: list[str] = []
+
+    async def handles_cancellation() -> str:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            outcome.append("cancelled inside")
+            raise
+        return "never"
+
+    async def runner() -> Any:
+        steps = first_step(handles_cancellation())
+        assert isinstance(steps, Pending)
+        entered.set()
+        return await finish(steps)
+
+    task = asyncio.create_task(runner())
+    await entered.wait()
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert outcome == ["cancelled inside"]
+
+
+async def test_a_coroutine_may_catch_its_cancellation_and_return() -> None:
+    entered = asyncio.Event()
+
+    async def recovers() -> str:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            return "recovered"
+        return "never"
+
+    async def runner() -> Any:
+        steps = first_step(recovers())
+        assert isinstance(steps, Pending)
+        entered.set()
+        return await finish(steps)
+
+    task = asyncio.create_task(runner())
+    await entered.wait()
+    task.cancel()
+    assert await task == "recovered"
+
+
+async def test_every_step_runs_in_the_given_context() -> None:
+    future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+    seen: list[str] = []
+
+    async def sets_and_reads() -> str:
+        seen.append(tag.get())
+        tag.set("inside")
+        await future
+        seen.append(tag.get())
+        return tag.get()
+
+    context = contextvars.copy_context()
+    steps = first_step(sets_and_reads(), context)
+    assert tag.get() == "outside"  # the first step did not touch this task's context
+    assert isinstance(steps, Pending)
+    future.set_result(None)
+    assert await finish(steps) == "inside"
+    assert seen == ["outside", "inside"] and tag.get() == "outside"
+    assert context[tag] == "inside"
+
+
+async def test_sleep_zero_yields_once_and_finishes() -> None:
+    async def yields_once() -> str:
+        await asyncio.sleep(0)
+        return "done"
+
+    steps = first_step(yields_once())
+    assert isinstance(steps, Pending) and steps.yielded is None
+    assert await finish(steps) == "done"
