@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
@@ -18,6 +19,7 @@ import pytest
 from websockets.asyncio.server import Server as WsServer, ServerConnection, serve as ws_serve
 from websockets.exceptions import ConnectionClosed
 
+import srvwire.client
 from srvwire.client import Client, ServiceInfo, connect
 from srvwire.errors import (
     Cancelled,
@@ -688,6 +690,288 @@ async def test_a_reply_larger_than_max_message_size_drops_the_connection(
     assert caught.value.data["close_code"] == 1009
 
 
+# --- replies routed unparsed ------------------------------------------------------------------
+
+STATE_TYPE = "advanced_communication_tutorials/srv/RobotStateQuery"
+
+
+def compact(id: int, result: str) -> str:
+    """A response written as srvwire servers write it, with ``result`` as it is."""
+    return f'{{"jsonrpc":"2.0","id":{id},"result":{result}}}'
+
+
+async def answer_add_compactly(ws: ServerConnection, message: dict[str, Any]) -> None:
+    """Answer AddTwoInts calls as a srvwire server does: compact JSON, one result member."""
+    if message.get("method") == ADD and "id" in message:
+        params = message["params"]
+        total = params.get("a", 0) + params.get("b", 0)
+        await ws.send(compact(message["id"], f'{{"sum":{total}}}'))
+
+
+class Parses:
+    """Records every message the client parses in full: in its reader, or in a caller."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        module = srvwire.client
+        self.by_reader: list[str | bytes] = []
+        self.by_callers: list[str] = []
+        reader_parse, caller_parse = module.parse_replies, module.parse_raw_reply
+
+        def by_reader(data: str | bytes) -> Any:
+            self.by_reader.append(data)
+            return reader_parse(data)
+
+        def by_caller(raw: Any) -> Any:
+            self.by_callers.append(raw.message)
+            return caller_parse(raw)
+
+        monkeypatch.setattr(module, "parse_replies", by_reader)
+        monkeypatch.setattr(module, "parse_raw_reply", by_caller)
+
+
+async def next_call_id(peer: FakePeer) -> int:
+    request = await peer.next(ADD)
+    return int(request["id"])
+
+
+async def test_a_reply_as_srvwire_servers_write_it_is_never_parsed_apart_from_its_result(
+    peer: FakePeer, client: Client, add_two_ints: type[Service], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    parses = Parses(monkeypatch)
+    peer.reply = answer_add_compactly
+    response = await client.call(ADD, a=1, b=2)
+    assert type(response) is add_two_ints.Response and response.sum == 3
+    assert (parses.by_reader, parses.by_callers) == ([], [])
+    assert client.in_flight == 0
+
+
+async def test_an_untyped_call_gets_the_dict_from_a_reply_routed_unparsed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    unknown = FakePeer([{"name": "/echo", "type": "nowhere_msgs/srv/Echo"}])
+
+    async def echo(ws: ServerConnection, message: dict[str, Any]) -> None:
+        params = {k: v for k, v in message["params"].items() if k != "_meta"}
+        await ws.send(compact(message["id"], json.dumps(params, separators=(",", ":"))))
+
+    unknown.reply = echo
+    await unknown.start()
+    try:
+        async with connect(unknown.url, timeout=scaled(5)) as client:
+            parses = Parses(monkeypatch)
+            assert await client.call("/echo", {"x": [1, 2.5], "y": None}) == {
+                "x": [1, 2.5],
+                "y": None,
+            }
+            # Parsed once, in full, by the caller: the reader only routed it.
+            assert parses.by_reader == []
+            assert [json.loads(text)["result"] for text in parses.by_callers] == [
+                {"x": [1, 2.5], "y": None}
+            ]
+    finally:
+        await unknown.stop()
+
+
+async def test_a_reply_with_more_members_after_its_result_still_works(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    parses = Parses(monkeypatch)
+    typed = asyncio.create_task(client.call(ADD, a=1, b=2))
+    untyped = asyncio.create_task(client.call("/unadvertised", {}))  # no type: plain data
+    ws = peer.connections[0]
+    first, second = await peer.next(), await peer.next()
+    calls = {first["method"]: first["id"], second["method"]: second["id"]}
+    # The text between the opening and the final brace is no JSON value, but the message is
+    # valid JSON-RPC, and the member after the result is ignored, as it always was.
+    await ws.send(compact(calls[ADD], '{"sum":3},"x":2'))
+    await ws.send(compact(calls["/unadvertised"], '1,"x":2'))
+    assert (await typed).sum == 3
+    assert await untyped == 1
+    assert parses.by_reader == []
+    assert len(parses.by_callers) == 2
+    assert client.connected
+
+
+async def test_a_raw_reply_that_is_not_json_rpc_fails_every_pending_call(
+    peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    calls = [asyncio.create_task(client.call(ADD, a=i, timeout=scaled(30))) for i in range(3)]
+    ids = [await next_call_id(peer) for _ in calls]
+    ws = peer.connections[0]
+    error = '{"code":1,"message":"m"}'
+    await ws.send(compact(ids[0], f'{{}},"error":{error}'))
+    results = await asyncio.gather(*calls, return_exceptions=True)
+    assert all(type(r) is ConnectionLost for r in results), results
+    expected = "the server broke the protocol: Invalid reply: both 'result' and 'error'"
+    for lost in results:
+        assert isinstance(lost, ConnectionLost)
+        assert (lost.message, lost.service) == (expected, ADD)
+        assert lost.data == {"close_code": 1008, "url": peer.url}
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    assert ws.close_code == 1008
+    assert client.in_flight == 0 and not client.connected
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR] == [
+        f"{peer.url} sent something that is not JSON-RPC: Invalid reply: both 'result' and "
+        "'error'; closing the connection"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("tail", "reason"),
+    [
+        (',"id":{other}', "Invalid reply: 'id' given twice ({id} and {other})"),
+        (',"method":"$/services","params":{{}}', "Invalid reply: both 'result' and 'method'"),
+        (",x", "Parse error: key must be a string at line 1 column {column}"),
+    ],
+)
+async def test_a_raw_reply_that_is_not_the_response_it_opens_as_fails_the_connection(
+    peer: FakePeer, client: Client, tail: str, reason: str
+) -> None:
+    calls = [asyncio.create_task(client.call(ADD, a=i, timeout=scaled(30))) for i in range(2)]
+    ids = [await next_call_id(peer) for _ in calls]
+    text = compact(ids[0], "{}" + tail.format(other=ids[1]))
+    await peer.connections[0].send(text)
+    results = await asyncio.gather(*calls, return_exceptions=True)
+    why = reason.format(id=ids[0], other=ids[1], column=len(text) - 1)  # where the x is
+    assert [getattr(r, "message", r) for r in results] == [
+        f"the server broke the protocol: {why}"
+    ] * 2
+    assert not client.connected
+
+
+async def test_invalid_utf8_in_a_reply_routed_unparsed_still_closes_with_1007(
+    peer: FakePeer, client: Client
+) -> None:
+    task = asyncio.create_task(client.call("/trigger", timeout=scaled(30)))
+    request = await peer.next("/trigger")
+    ws = peer.connections[0]
+    text = compact(request["id"], '{"success":true,"message":"\xff"}').encode("latin-1")
+    await ws.send(text, text=True)  # a text frame that is not UTF-8
+    with pytest.raises(ConnectionLost) as caught:
+        await task
+    position = text.index(b"\xff")
+    reason = f"invalid start byte at position {position}"
+    assert caught.value.message == f"the connection closed with code 1007 ({reason})"
+    assert caught.value.data == {"close_code": 1007, "close_reason": reason, "url": peer.url}
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    assert ws.close_code == 1007
+
+
+async def test_a_reply_in_a_binary_frame_is_parsed_by_the_reader(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    parses = Parses(monkeypatch)
+    task = asyncio.create_task(client.call(ADD, a=1, b=2))
+    text = compact(await next_call_id(peer), '{"sum":3}')
+    await peer.connections[0].send(text.encode())  # bytes: a binary frame
+    assert (await task).sum == 3
+    assert parses.by_reader == [text.encode()]
+
+
+async def test_a_reply_nobody_waits_for_is_parsed_and_dropped_or_fails_the_connection(
+    peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.DEBUG, logger="srvwire.client")
+    with pytest.raises(DeadlineExceeded):
+        await client.call(ADD, a=1, b=2, timeout=scaled(0.1))
+    late = await next_call_id(peer)
+    ws = peer.connections[0]
+    await ws.send(compact(late, '{"sum":3}'))  # well-formed: dropped
+    peer.reply = answer_add_compactly
+    assert (await client.call(ADD, a=2, b=2)).sum == 4
+    assert f"dropping a reply for id {late}: no call waits for it" in caplog.messages
+    # The same reply with a tail that is not JSON is checked as before, and fails the connection.
+    peer.reply = None
+    task = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+    await peer.next(ADD)
+    await ws.send(compact(late, '{"sum":3},"error":{}'))
+    with pytest.raises(ConnectionLost) as caught:
+        await task
+    assert caught.value.message == (
+        "the server broke the protocol: Invalid reply: both 'result' and 'error'"
+    )
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    assert ws.close_code == 1008
+
+
+async def test_a_raw_reply_that_does_not_match_the_type_is_an_internal_error(
+    peer: FakePeer, client: Client
+) -> None:
+    async def wrong(ws: ServerConnection, message: dict[str, Any]) -> None:
+        await ws.send(compact(message["id"], '{"sum":"three","extra":1}'))
+
+    peer.reply = wrong
+    with pytest.raises(InternalError) as caught:
+        await client.call(ADD, a=1, b=2)
+    # The errors and their wording are those of validating the decoded data, as before.
+    assert caught.value.message == (
+        "the response does not match example_interfaces/srv/AddTwoInts: "
+        "sum: Input should be a valid integer (and 1 more)"
+    )
+    assert caught.value.data == {
+        "errors": [
+            {"path": "sum", "message": "Input should be a valid integer", "type": "int_type"},
+            {
+                "path": "extra",
+                "message": "Extra inputs are not permitted",
+                "type": "extra_forbidden",
+            },
+        ]
+    }
+    assert client.connected
+
+
+async def test_non_finite_floats_and_integers_beyond_a_double_decode_as_infinity() -> None:
+    state = FakePeer([{"name": "/state", "type": STATE_TYPE}])
+    values: list[str] = []
+
+    async def answer(ws: ServerConnection, message: dict[str, Any]) -> None:
+        await ws.send(compact(message["id"], f'{{"values":[{values.pop(0)}]}}'))
+
+    state.reply = answer
+    await state.start()
+    beyond = "1" + "0" * 309  # an integer literal a double cannot hold
+    try:
+        async with connect(state.url, timeout=scaled(5)) as client:
+            values.append("NaN,Infinity,-Infinity")
+            nan, inf, minus_inf = (await client.call("/state")).values
+            assert nan != nan and (inf, minus_inf) == (float("inf"), float("-inf"))
+            # Too large for a double, written as a float or as an integer: infinity either way.
+            values.append(f"1e400,{beyond},-{beyond}")
+            assert (await client.call("/state")).values == [math.inf, math.inf, -math.inf]
+            values.append('"not a number"')
+            with pytest.raises(InternalError) as caught:
+                await client.call("/state")
+            (error,) = caught.value.data["errors"]
+            assert (error["path"], error["type"]) == ("values[0]", "float_type")
+    finally:
+        await state.stop()
+
+
+async def test_a_raw_reply_checked_as_its_caller_gives_up_still_fails_the_connection(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The reader hands the unparsed reply over, and in the same step the caller is cancelled:
+    # the reply is checked anyway, as the reader checked every reply before.
+    receive = client._receive
+    call: asyncio.Task[Any] | None = None
+
+    def receive_then_cancel(data: str | bytes) -> None:
+        receive(data)
+        if call is not None and client.in_flight == 0:
+            call.cancel()
+
+    monkeypatch.setattr(client, "_receive", receive_then_cancel)
+    call = asyncio.create_task(client.call(ADD, a=1, b=2))
+    ws = peer.connections[0]
+    await ws.send(compact(await next_call_id(peer), '{"sum":3},"error":{}'))
+    with pytest.raises(asyncio.CancelledError):
+        await call
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    assert ws.close_code == 1008
+    assert not client.connected
+
+
 # --- waiting for services and for the server --------------------------------------------------
 
 
@@ -791,6 +1075,24 @@ async def test_round_trips_with_the_real_server(server: RunningServer) -> None:
         assert state.message == ""  # every field is present in the result
         add_proxy = client.service(ADD)
         assert (await add_proxy(a=20, b=22)).sum == 42
+
+
+async def test_the_real_servers_replies_are_routed_unparsed(
+    server: RunningServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async with connect(server.url, timeout=scaled(5)) as client:
+        parses = Parses(monkeypatch)
+        state = await client.call("/robot1/get_robot_state", query_type="pose")
+        assert type(state) is load_service(STATE_TYPE).Response
+        assert (state.success, state.values, state.names) == (True, [1.5, -2.0], ["x", "y"])
+        assert (await client.call(ADD, a=1, b=2)).sum == 3
+        assert (parses.by_reader, parses.by_callers) == ([], [])
+        # rpc.discover has no type: its caller parses the whole reply, once.
+        assert len(await client.list_services()) == 2
+        assert parses.by_reader == [] and len(parses.by_callers) == 1
+        with pytest.raises(ServiceNotFound):  # an error reply: the reader parses it
+            await client.call("/nowhere")
+        assert len(parses.by_reader) == 1
 
 
 async def test_errors_from_the_real_server(server: RunningServer) -> None:
@@ -1006,3 +1308,24 @@ async def test_a_request_model_that_is_not_an_object_is_refused_before_sending(
     # Nothing was sent: the first message the peer sees is the next, valid call.
     assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
     assert (await peer.next())["method"] == ADD
+
+
+async def test_only_a_send_that_waits_is_bounded_by_a_timer(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A send that fits in the socket's buffer finishes in its first step: nothing to bound.
+    armed: list[object] = []
+    real = srvwire.client._SendDeadline
+
+    def counting(*args: Any) -> Any:
+        armed.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(srvwire.client, "_SendDeadline", counting)
+    peer.reply = answer_add
+    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    assert armed == []
+    hold_sends_of(client, ADD)
+    with pytest.raises(DeadlineExceeded):
+        await client.call(ADD, a=1, b=2, timeout=scaled(0.2))
+    assert len(armed) == 1

@@ -6,25 +6,45 @@ Theory of operation
 A :class:`Client` owns at most one WebSocket connection at a time. Opening it means: the TCP
 connection, the WebSocket handshake, and the server's first message, the ``$/services``
 notification that lists every service and its type, all within ``open_timeout``. From then on
-one *reader task* is the only code that receives from the socket. It parses each message with
-:func:`srvwire.protocol.parse_replies` and either resolves the future of the call the reply
-answers, or updates the advertised services.
+one *reader task* is the only code that receives from the socket.
 
 A call encodes its request once (``model_dump_json``, with ``_meta`` spliced in by
 :func:`srvwire.protocol.encode_call`), registers a future under a fresh integer id in
-``_pending``, sends the text, and awaits the future under its deadline. The reply is
-decoded in the caller's task, not in the reader, so a slow or failing validation never holds up
-the other calls on the connection.
+``_pending``, sends the text, and awaits the future under its deadline.
+
+The reader parses a message only when it must. A text message that opens exactly as a srvwire
+server writes a response, ``{"jsonrpc":"2.0","id":<id>,"result":`` (see
+:func:`srvwire.protocol.peek_reply`), ends with ``}`` and names a call still waiting is handed to
+that call unparsed, as a :class:`~srvwire.protocol.RawReply`: routing it costs the same whatever
+the size of the result. Every other message (a notification, an error reply, a reply nobody
+waits for, a batch, a binary frame) the reader parses with
+:func:`srvwire.protocol.parse_replies`, then resolves the future of the call it answers or
+updates the advertised services. Messages arrive as text: websockets decodes each text frame,
+and closes the connection with code 1007 when one is not UTF-8.
+
+The caller decodes its reply in its own task, so a large or failing decoding never holds up the
+other calls on the connection. A typed call validates the text between the opening and the final
+``}`` straight into its ``Response``, in one pass (``model_validate_json``). Anything else is
+parsed in full with :func:`srvwire.protocol.parse_raw_reply` and then handled as if the reader had
+parsed it: the reply of an untyped call, and any result the one pass refuses, whether it does not
+match the type (the errors then come from validating the parsed data, as they always have), is
+followed by more members (``"result":1,"x":2}``) or is not JSON-RPC at all. Validating JSON text
+and validating the data it parses to agree on every type srvwire ships and on ROS 2's test
+corpus, valid input or not, save for the wording of some errors and for one input: an integer
+literal too large for a double (309 digits or more), in a float field, reads as infinity, as a
+float literal such as ``1e400`` always has, where the data it parses to is refused.
 
 Invariants:
 
 * **Every call ends.** Every call has a finite deadline (the client's ``timeout`` unless the call
   gives its own), fixed as a point in loop time when the call starts. ``asyncio.wait_for`` on
   the pending reply future enforces it (on a future it adds a timer and a done callback, no
-  task); the send before it is bounded by the same deadline with a bare loop timer that cancels
-  the caller's task (:class:`_SendDeadline`: ``asyncio.timeout_at`` for one purpose, cheaper),
-  since a send waits only on backpressure and ``wait_for`` would wrap the coroutine in a task
-  on Python 3.11. Waiting for the connection or the service (``wait_for_ready``) spends from the
+  task); the send before it is bounded by the same deadline. A send waits only on
+  backpressure, so it runs inline up to its first suspension (:func:`srvwire.inline.first_step`)
+  and, only if it does wait, finishes under a bare loop timer that cancels the caller's task
+  (:class:`_SendDeadline`: ``asyncio.timeout_at`` for one purpose, cheaper; ``wait_for`` would
+  wrap the coroutine in a task on Python 3.11). Waiting for the connection or the service
+  (``wait_for_ready``) spends from the
   same deadline. The remaining time travels to the server in ``params._meta.timeout``. That is
   why calls take a ``timeout`` argument instead of leaving it to an outer ``asyncio.timeout``,
   which the server could not see.
@@ -39,14 +59,20 @@ Invariants:
   or on ``task.cancel()`` the client schedules a ``$/cancel`` notification in a background task
   (best effort: it is dropped if the connection is gone) and raises at once.
 * **A reply nobody waits for is harmless.** A reply whose id is not pending (its caller gave up)
-  is dropped with a debug log.
+  is parsed in full by the reader, like any message that is not routed unparsed, and dropped
+  with a debug log.
 * **A dropped connection fails every pending call at once** with
   :class:`~srvwire.errors.ConnectionLost`; none waits for its deadline. The pending map is
   swapped for an empty one in the same step, so a reconnected client never sees old entries.
 * **Anything the server sends that is not JSON-RPC fails the connection.** It is logged, the
   connection is closed with code 1008, and every pending call fails with ``ConnectionLost``: a
-  peer that breaks the protocol cannot be trusted to route the other replies either.
-  Notifications other than ``$/services`` are ignored, for forward compatibility.
+  peer that breaks the protocol cannot be trusted to route the other replies either. The reader
+  finds it when it parses a message; a caller finds it when it parses the reply the reader left
+  unparsed, and then fails the connection the same way (:meth:`Client._violation`), its own call
+  included. A reply that opens as the response to one call but turns out to be another message
+  (a second ``id``, or a ``method``) is such a violation. Text that is not UTF-8 is refused by
+  websockets, which closes with code 1007. Notifications other than ``$/services`` are ignored,
+  for forward compatibility.
 * **Waiting for a service is event-driven.** ``wait_for_service`` and ``wait_for_ready`` sleep
   on an :class:`asyncio.Event` that is pulsed when ``$/services`` arrives or the connection
   comes or goes; nothing polls.
@@ -104,20 +130,30 @@ from srvwire.errors import (
     ParseError,
     ServiceUnavailable,
 )
+from srvwire.inline import Pending, finish, first_step
 from srvwire.loader import SearchPath, load_service
-from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
+from srvwire.models import (
+    Message,
+    Service,
+    summarize_errors,
+    unencodable_strings,
+    validation_errors,
+)
 from srvwire.protocol import (
     DISCOVER_METHOD,
     SERVICES_METHOD,
     ErrorResponse,
     Notification,
+    RawReply,
     Request,
     Response,
     cancel_notification,
     canonical_name,
     encode_call,
     encode_json,
+    parse_raw_reply,
     parse_replies,
+    peek_reply,
 )
 
 __all__ = [
@@ -245,10 +281,11 @@ class Client:
             "open_timeout": None,  # the whole opening is bounded by open_timeout in _dial
         }
         self._ids = itertools.count(1)
+        self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
         self._ws: ClientConnection | None = None
         self._reader: asyncio.Task[None] | None = None
         self._supervisor: asyncio.Task[None] | None = None
-        self._pending: dict[int, asyncio.Future[Response | ErrorResponse]] = {}
+        self._pending: dict[int, asyncio.Future[Response | ErrorResponse | RawReply]] = {}
         self._services: dict[str, str] = {}
         self._types: dict[str, type[Service] | None] = {}
         self._method_json: dict[str, str] = {}  # method names written as JSON, a small cache
@@ -268,6 +305,7 @@ class Client:
         if self._opened:
             raise RuntimeError("this client was already opened")
         self._opened = True
+        self._loop = asyncio.get_running_loop()
         if not self.reconnect:
             await self._dial()
             return self
@@ -397,31 +435,31 @@ class Client:
     async def _read(self, ws: ClientConnection) -> None:
         """Receive every message of one connection; on its end, fail what is pending."""
         cause: ConnectionClosed | None = None
-        failure: str | None = None  # why this side ends the connection, if it does
         try:
             async for data in ws:
                 try:
                     self._receive(data)
                 except (ParseError, InvalidRequest) as exc:
-                    failure = f"the server broke the protocol: {exc.message}"
-                    self.logger.error(
-                        "%s sent something that is not JSON-RPC: %s; closing the connection",
-                        self.url,
-                        exc.message,
-                    )
+                    self._violation(ws, exc)
                     break
         except ConnectionClosed as exc:
             cause = exc
         except Exception:  # a bug here must not leave calls waiting for their deadlines
             self.logger.exception("the reader of %s failed; closing the connection", self.url)
-            failure = "the client failed to process a message from the server"
+            self._fail(ws, "the client failed to process a message from the server")
         finally:
-            # Fail the pending calls first: closing may wait for the peer's close frame.
-            self._lost(ws, failure, cause)
-        if failure is not None:
-            await ws.close(_CLOSE_PROTOCOL_VIOLATION, "invalid JSON-RPC")
+            self._lost(ws, None, cause)  # nothing to do when this side failed the connection
 
     def _receive(self, data: str | bytes) -> None:
+        """Route one message: a reply a call waits for unparsed (when it can), else parsed."""
+        if type(data) is str:
+            raw = peek_reply(data)
+            if raw is not None:
+                future = self._pending.get(raw.id)
+                if future is not None and not future.done():
+                    del self._pending[raw.id]
+                    future.set_result(raw)
+                    return
         for message in parse_replies(data):
             if isinstance(message, Notification):
                 if message.method == SERVICES_METHOD:
@@ -490,6 +528,29 @@ class Client:
                 future.set_exception(error)
         self._pulse()
 
+    def _fail(self, ws: ClientConnection, failure: str) -> ConnectionLost:
+        """End a connection from this side: fail every pending call, close with code 1008.
+
+        The calls fail first and the close runs in the background, since it may wait for the
+        peer's close frame. Return the error the pending calls got.
+        """
+        self._lost(ws, failure, None)
+        self._close_in_background(ws, _CLOSE_PROTOCOL_VIOLATION, "invalid JSON-RPC")
+        return ConnectionLost(failure, {"close_code": _CLOSE_PROTOCOL_VIOLATION, "url": self.url})
+
+    def _violation(self, ws: ClientConnection, exc: ParseError | InvalidRequest) -> ConnectionLost:
+        """Fail a connection whose server sent something that is not JSON-RPC; see :meth:`_fail`.
+
+        The reader calls it for a message it parsed, a caller for the reply the reader left
+        unparsed.
+        """
+        self.logger.error(
+            "%s sent something that is not JSON-RPC: %s; closing the connection",
+            self.url,
+            exc.message,
+        )
+        return self._fail(ws, f"the server broke the protocol: {exc.message}")
+
     def _pulse(self) -> None:
         """Wake every task waiting for a change in the connection or the services."""
         self._changed.set()
@@ -525,7 +586,9 @@ class Client:
         """
         method = canonical_name(name)
         budget = self.timeout if timeout is None else _check_timeout(timeout)
-        deadline = asyncio.get_running_loop().time() + budget
+        # The client's own loop, not asyncio.get_running_loop(): on Python 3.11 that asks the
+        # kernel for the process id on every call, to notice a fork.
+        deadline = (self._loop or asyncio.get_running_loop()).time() + budget
         if wait_for_ready:
             await self._wait_until_ready(method, deadline, budget)
         ws = self._ws
@@ -534,14 +597,15 @@ class Client:
         srv = self._resolve_type(method, srv_type)
         params = self._encode_request(method, srv, request, fields)
         reply = await self._roundtrip(ws, method, params, deadline, budget)
-        if isinstance(reply, ErrorResponse):
-            error = reply.error
-            error.service = method
-            raise error
+        if srv is not None and isinstance(reply, RawReply):
+            response = self._decode_in_one_pass(srv.Response, reply.result)
+            if response is not None:
+                return response
+        result = self._result(ws, method, reply)
         if srv is None:
-            return reply.result
+            return result
         try:
-            return srv.Response.model_validate(reply.result)
+            return srv.Response.model_validate(result)
         except ValidationError as exc:
             errors = validation_errors(exc)
             raise InternalError(
@@ -585,10 +649,7 @@ class Client:
         if ws is None:
             raise self._not_connected(DISCOVER_METHOD)
         reply = await self._roundtrip(ws, DISCOVER_METHOD, None, deadline, budget)
-        if isinstance(reply, ErrorResponse):
-            reply.error.service = DISCOVER_METHOD
-            raise reply.error
-        document = reply.result
+        document = self._result(ws, DISCOVER_METHOD, reply)
         methods = document.get("methods") if isinstance(document, dict) else None
         if not isinstance(methods, list):
             raise InternalError(
@@ -603,6 +664,39 @@ class Client:
             and isinstance(entry.get("x-srvwire-type"), str)
         ]
         return sorted(found, key=lambda info: info.name)
+
+    def _result(
+        self, ws: ClientConnection, method: str, reply: Response | ErrorResponse | RawReply
+    ) -> Any:
+        """Return the result of ``reply``, parsed in full if it is raw; raise an error reply.
+
+        A raw reply that is not JSON-RPC after all fails the connection, as the reader would
+        have (:meth:`_violation`), and raises the ``ConnectionLost`` every pending call got.
+        """
+        if isinstance(reply, RawReply):
+            try:
+                reply = parse_raw_reply(reply)
+            except (ParseError, InvalidRequest) as exc:
+                lost = self._violation(ws, exc)
+                lost.service = method
+                raise lost from None
+        if isinstance(reply, ErrorResponse):
+            reply.error.service = method
+            raise reply.error
+        return reply.result
+
+    def _decode_in_one_pass(self, model: type[Message], text: str) -> Message | None:
+        """Validate JSON ``text`` straight into ``model``; None when it does not validate.
+
+        Then only a full parse can tell whether the reply does not match the type or is not even
+        JSON-RPC (see the module's theory of operation).
+        """
+        try:
+            # model_validate_json without its Python wrapper: a quarter of it on a small reply
+            response: Message = model.__pydantic_validator__.validate_json(text)
+        except ValidationError:
+            return None
+        return response
 
     def _not_connected(self, method: str) -> ConnectionLost:
         why = "the client is closed" if self._closed else f"not connected to {self.url}"
@@ -698,13 +792,13 @@ class Client:
         params: str | None,
         deadline: float,
         budget: float,
-    ) -> Response | ErrorResponse:
+    ) -> Response | ErrorResponse | RawReply:
         """Send one request and wait for its reply until ``deadline``.
 
         ``params`` is the request's JSON object text, sent with the remaining time spliced in as
         ``_meta.timeout``; None sends no params (and no deadline).
         """
-        loop = asyncio.get_running_loop()
+        loop = self._loop or asyncio.get_running_loop()
         remaining = deadline - loop.time()
         request_id = next(self._ids)
         if remaining <= 0:
@@ -717,24 +811,26 @@ class Client:
             text = Request(request_id, method).serialize()
         else:
             text = encode_call(request_id, self._encode_method(method), params, round(remaining, 6))
-        future: asyncio.Future[Response | ErrorResponse] = loop.create_future()
+        future: asyncio.Future[Response | ErrorResponse | RawReply] = loop.create_future()
         pending = self._pending
         pending[request_id] = future
-        task = asyncio.current_task()
+        task = asyncio.current_task(loop)
         cancelling = task.cancelling() if task is not None else 0
         try:
-            # The send rarely waits (only on backpressure): a bare timer bounds it, cheaper
-            # than a timeout context, and with no task, where wait_for would wrap the
-            # coroutine in one on Python 3.11.
-            bound = _SendDeadline(loop, task, deadline)
-            try:
-                await ws.send(text)
-            except asyncio.CancelledError:
-                if bound.disarm():  # the deadline cancelled the send, and nothing else did
-                    raise TimeoutError from None
-                raise
-            finally:
-                bound.disarm()
+            # The send waits only on backpressure, so it is bounded only if it does wait: by a
+            # bare timer, cheaper than a timeout context, and with no task, where wait_for
+            # would wrap the coroutine in one on Python 3.11.
+            sending = first_step(ws.send(text))
+            if isinstance(sending, Pending):
+                bound = _SendDeadline(loop, task, deadline)
+                try:
+                    await finish(sending)
+                except asyncio.CancelledError:
+                    if bound.disarm():  # the deadline cancelled the send, and nothing else did
+                        raise TimeoutError from None
+                    raise
+                finally:
+                    bound.disarm()
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
             if task is not None and task.cancelling() > cancelling:
@@ -774,12 +870,19 @@ class Client:
         ws: ClientConnection,
         method: str,
         request_id: int,
-        pending: dict[int, asyncio.Future[Response | ErrorResponse]],
-        future: asyncio.Future[Response | ErrorResponse],
+        pending: dict[int, asyncio.Future[Response | ErrorResponse | RawReply]],
+        future: asyncio.Future[Response | ErrorResponse | RawReply],
     ) -> None:
         """Tell the server to cancel a call we gave up on, in the background."""
-        if future.done() and not future.cancelled():
-            future.exception()  # resolved as we gave up: mark it seen so asyncio stays quiet
+        # Resolved as we gave up: mark an error seen so asyncio stays quiet, and check a reply
+        # the reader left unparsed as the reader would have checked it.
+        if future.done() and not future.cancelled() and future.exception() is None:
+            reply = future.result()
+            if isinstance(reply, RawReply):
+                try:
+                    parse_raw_reply(reply)
+                except (ParseError, InvalidRequest) as exc:
+                    self._violation(ws, exc)
         if request_id not in pending or self._ws is not ws:
             return  # answered meanwhile, or the connection is gone: nothing to cancel
         self.logger.debug("cancelling %s (id %d) on the server", method, request_id)
@@ -789,8 +892,10 @@ class Client:
         self._background.add(task)
         task.add_done_callback(self._background.discard)
 
-    def _close_in_background(self, ws: ClientConnection) -> None:
-        task = asyncio.get_running_loop().create_task(ws.close())
+    def _close_in_background(
+        self, ws: ClientConnection, code: int = 1000, reason: str = ""
+    ) -> None:
+        task = asyncio.get_running_loop().create_task(ws.close(code, reason))
         self._background.add(task)
         task.add_done_callback(self._background.discard)
 

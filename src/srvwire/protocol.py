@@ -37,6 +37,9 @@ Invariants:
 :func:`parse_replies` is the client's side: it parses what a server sends and raises
 :class:`~srvwire.errors.ParseError` or :class:`~srvwire.errors.InvalidRequest` when that is not
 JSON-RPC, since a server that breaks the protocol is a bug to report, not a peer to answer.
+:func:`peek_reply` recognises a response as :func:`encode_result` writes it by its opening alone,
+so that the client can route it by id and decode its result in one pass; :func:`parse_raw_reply`
+checks such a reply in full when the one pass is not enough.
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ __all__ = [
     "Notification",
     "Params",
     "RawJSON",
+    "RawReply",
     "Reply",
     "Request",
     "Response",
@@ -78,7 +82,9 @@ __all__ = [
     "encode_json",
     "encode_result",
     "parse_incoming",
+    "parse_raw_reply",
     "parse_replies",
+    "peek_reply",
     "serialize",
     "serialize_batch",
     "services_notification",
@@ -482,3 +488,58 @@ def parse_replies(data: str | bytes) -> list[Response | ErrorResponse | Notifica
             raise InvalidRequest("Invalid reply: empty batch")
         return [_parse_reply(item) for item in decoded]
     return [_parse_reply(decoded)]
+
+
+# The opening of the response a srvwire server writes for one of the client's calls (see
+# encode_result), up to its result: the id is one the client made, a positive integer.
+_RESULT_OPENING = re.compile(r'\{"jsonrpc":"2\.0","id":([1-9][0-9]{0,17}),"result":')
+
+
+@dataclass(slots=True)  # not frozen: one is made per reply, and frozen ones cost 3x as much
+class RawReply:
+    """A response recognised by its opening alone and not parsed: see :func:`peek_reply`.
+
+    ``message`` opens with ``{"jsonrpc":"2.0","id":<id>,"result":`` and ends with ``}``;
+    ``start`` is where the result begins. Nothing else was checked: a srvwire server puts one
+    JSON value between the two, but another server may have written more members after it,
+    which only :func:`parse_raw_reply` can tell.
+    """
+
+    id: int
+    message: str
+    start: int
+
+    @property
+    def result(self) -> str:
+        """The text between the opening and the final ``}``: the result, if nothing follows it."""
+        return self.message[self.start : -1]
+
+
+def peek_reply(message: str) -> RawReply | None:
+    """Recognise a response by its opening, without parsing it; None for any other message.
+
+    Only the opening ``{"jsonrpc":"2.0","id":<positive integer>,"result":`` (written exactly
+    so, with no blanks) and a final ``}`` are checked, so the cost does not grow with the
+    result: the reader routes the reply by its id, and its caller decodes the result in one
+    pass. Whether the message really is that response, :func:`parse_raw_reply` finds out.
+    """
+    opening = _RESULT_OPENING.match(message)
+    if opening is None or not message.endswith("}"):
+        return None
+    return RawReply(int(opening[1]), message, opening.end())
+
+
+def parse_raw_reply(reply: RawReply) -> Response:
+    """Parse the whole message of ``reply``, as :func:`parse_replies` does, and return it.
+
+    Raise what :func:`parse_replies` raises, and :class:`~srvwire.errors.InvalidRequest` when
+    the message, for all that it opens as the response to ``reply.id``, is not that response:
+    a later ``method`` member makes it a notification, a later ``id`` member another reply.
+    """
+    (message,) = parse_replies(reply.message)  # it opens with "{": one message, not a batch
+    if isinstance(message, Notification):
+        raise InvalidRequest("Invalid reply: both 'result' and 'method'")
+    # A message with a 'result' is never an error reply; another id means 'id' came twice.
+    if not isinstance(message, Response) or type(message.id) is not int or message.id != reply.id:
+        raise InvalidRequest(f"Invalid reply: 'id' given twice ({reply.id} and {message.id!r})")
+    return message
