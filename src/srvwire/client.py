@@ -771,7 +771,8 @@ class Client:
         try:
             if not isinstance(value, BaseModel):
                 return encode_json(dict(value))
-            text = value.model_dump_json(by_alias=True)
+            # model_dump_json(by_alias=True) without its Python wrapper, by the instance's class
+            text = type(value).__pydantic_serializer__.to_json(value, by_alias=True).decode()
         except PydanticSerializationError as exc:
             # A string with a lone surrogate validates, but cannot be written as UTF-8.
             errors = unencodable_strings(value) or [
