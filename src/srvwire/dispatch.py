@@ -262,7 +262,9 @@ class ServiceEntry:
                 )
             params = dict(zip(self.field_names, params, strict=False))
         try:
-            return self.request_model.model_validate(params)
+            # model_validate without its Python wrapper
+            request: BaseModel = self.request_model.__pydantic_validator__.validate_python(params)
+            return request
         except ValidationError as exc:
             errors = validation_errors(exc)
             raise InvalidParams(
