@@ -1492,3 +1492,52 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
         assert (await w.request("/waits", {"text": "b", **meta}))["result"] == {"text": "b"}
         assert len(armed) == 1
         await w.ws.close()
+
+
+async def test_a_handler_that_cancels_its_task_and_returns_does_not_stop_the_reading(
+    server: Server, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Running inline, the handler's task is the reader's: the cancellation it asks for is taken
+    # back, its answer is sent, and the connection reads on.
+    async def cancels_itself(request: Any) -> Any:
+        task = asyncio.current_task()
+        assert task is not None
+        task.cancel()
+        return {"text": "returned"}
+
+    server.add_service("/cancels_itself", Echo, cancels_itself)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        with caplog.at_level(logging.WARNING, logger="srvwire.server"):
+            reply = await w.request("/cancels_itself", {"text": ""}, id=1)
+        assert reply["result"] == {"text": "returned"}
+        assert "cancelled its own task without waiting" in caplog.text
+        for id in (2, 3):
+            assert (await w.request("/echo", {"text": str(id)}, id=id))["result"] == {
+                "text": str(id)
+            }
+        (conn,) = running._connections
+        reader = conn.reader
+        assert reader is not None and reader.cancelling() == 0
+        await w.ws.close()
+
+
+async def test_a_handler_that_cancels_its_task_and_waits_is_answered_internal(
+    server: Server,
+) -> None:
+    # Nothing in srvwire asked for that cancellation: the call still gets its one reply.
+    async def cancels_then_waits(request: Any) -> Any:
+        task = asyncio.current_task()
+        assert task is not None
+        task.cancel()
+        await asyncio.sleep(0)
+        return {"text": "never"}
+
+    server.add_service("/cancels_then_waits", Echo, cancels_then_waits)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        reply = await w.request("/cancels_then_waits", {"text": ""}, id=1)
+        assert error(reply) == (1, -32603, "INTERNAL")
+        assert "cancelled by its own code" in reply["error"]["message"]
+        assert (await w.request("/echo", {"text": "next"}, id=2))["result"] == {"text": "next"}
+        await w.ws.close()

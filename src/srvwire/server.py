@@ -52,8 +52,12 @@ Invariants:
   ``uncancel`` it does before replying leaves ``Task.cancelling()`` at 0). A task cancelled
   without a reason (the connection went away) sends nothing. A CancelledError that a handler
   raises by itself, while nothing cancels its task, is turned into ``INTERNAL`` by
-  :func:`~srvwire.dispatch.dispatch`, so it cannot end a call silently; any other exception
-  that escapes it (a bug in srvwire) is logged and answered ``INTERNAL`` too.
+  :func:`~srvwire.dispatch.dispatch`, so it cannot end a call silently; so is a cancellation
+  of its task that srvwire did not request (the handler cancelled ``asyncio.current_task()``),
+  and any other exception that escapes it (a bug in srvwire) is logged and answered
+  ``INTERNAL`` too. A handler that cancels its task while running inline, and then returns
+  without waiting, cancelled the reader: that request is taken back (and logged), so the
+  connection reads on.
 * **Nothing a client sends stops the server.** Only this module knows websockets' exceptions; a
   closed connection ends that connection's reader and cancels that connection's calls, nothing
   more. Handler exceptions are turned into replies by :func:`~srvwire.dispatch.dispatch`.
@@ -661,6 +665,8 @@ class _Connection:
         in a context of its own, as a task's would.
         """
         ws = self.ws
+        reader = asyncio.current_task(self.loop)
+        assert reader is not None
         while True:
             try:
                 message = await ws.recv()
@@ -680,15 +686,38 @@ class _Connection:
                 steps = first_step(self.call(entry, item, call, send=True), copy_context())
                 if isinstance(steps, Pending):
                     return call, steps
+                if reader.cancelling():
+                    await self.ignore_cancellation(entry)
             elif type(item) is Notification:
                 notification = self.notify(item)
                 if notification is not None:
                     steps = first_step(notification, copy_context())
                     if isinstance(steps, Pending):
                         return None, steps
+                    if reader.cancelling():
+                        await self.ignore_cancellation(None)
             else:
                 assert isinstance(item, ErrorResponse)
                 await self.send(item.serialize())
+
+    async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
+        """Take back a cancellation of the reader that a handler requested while it ran inline.
+
+        Nothing else can cancel the reader while a call runs on it without waiting: the handler
+        cancelled what it took for its own task (``asyncio.current_task().cancel()``), and that
+        call is over. The request is delivered at the reader's next suspension; it is made here,
+        and taken back, so that it can reach neither the reading nor the next call.
+        """
+        what = f"the handler for {entry.name}" if entry is not None else "a notification handler"
+        self.running.server.logger.warning(
+            "%s cancelled its own task without waiting for anything; ignored", what
+        )
+        try:
+            await asyncio.sleep(0)
+        except asyncio.CancelledError:
+            task = asyncio.current_task(self.loop)
+            if task is not None:
+                task.uncancel()
 
     def admit(self, request: Request) -> tuple[ServiceEntry, _Call] | str:
         """Check and register a call; return its entry and call, or the reply text at once.
@@ -799,8 +828,14 @@ class _Connection:
             reply = ErrorResponse(request.id, exc).serialize()
         except asyncio.CancelledError:
             error = context._cancel_error
-            if error is None:  # the connection went away: nobody to answer
-                raise
+            if error is None:
+                if call.cancelled:  # the connection went away: nobody to answer
+                    raise
+                # Nothing in srvwire cancelled it: the handler cancelled its own task.
+                log.error("the handler for %s id %r cancelled its own task", entry.name, request.id)
+                error = InternalError(
+                    f"handler for {entry.name} was cancelled by its own code", service=entry.name
+                )
             task = asyncio.current_task()
             if task is not None:
                 task.uncancel()
