@@ -495,3 +495,23 @@ async def test_a_subclass_of_the_response_model_is_written_with_its_own_fields()
         return Annotated(difference=4)
 
     assert json.loads(await run(handler, [6, 2])) == {"difference": 4, "note": "extra"}
+
+
+async def test_an_async_handler_may_return_any_awaitable_with_or_without_a_deadline() -> None:
+    # A function marked as a coroutine function (inspect.markcoroutinefunction, Python 3.12+)
+    # may return a future rather than a coroutine; registered as async, it is awaited either way.
+    import dataclasses
+
+    def returns_a_future(request: Any) -> Any:
+        future = asyncio.get_running_loop().create_future()
+        future.set_result({"text": request.text})
+        return future
+
+    registry = ServiceRegistry()
+    registry.add("/future", Echo, returns_a_future)
+    entry = registry.get("/future")
+    assert entry is not None
+    marked = dataclasses.replace(entry, is_async=True)
+    for deadline in (None, time.monotonic() + scaled(30)):
+        context = Context(service="/future", deadline=deadline)
+        assert await dispatch(marked, {"text": "hi"}, context) == b'{"text":"hi"}'

@@ -1541,3 +1541,84 @@ async def test_a_handler_that_cancels_its_task_and_waits_is_answered_internal(
         assert "cancelled by its own code" in reply["error"]["message"]
         assert (await w.request("/echo", {"text": "next"}, id=2))["result"] == {"text": "next"}
         await w.ws.close()
+
+
+async def test_a_handler_that_cancels_its_task_and_raises_is_answered_internal(
+    server: Server,
+) -> None:
+    # The handler asks for its own cancellation and raises CancelledError at once, before the
+    # request was delivered: alone or in a batch, the call is answered and the connection lives.
+    async def cancels_and_raises(request: Any) -> Any:
+        task = asyncio.current_task()
+        assert task is not None
+        task.cancel()
+        raise asyncio.CancelledError
+
+    server.add_service("/cancels_and_raises", Echo, cancels_and_raises)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        reply = await w.request("/cancels_and_raises", {"text": ""}, id=1)
+        assert error(reply) == (1, -32603, "INTERNAL")
+        assert (await w.request("/echo", {"text": "next"}, id=2))["result"] == {"text": "next"}
+        batch = [
+            request("/cancels_and_raises", {"text": ""}, id=3),
+            request("/echo", {"text": "b"}, id=4),
+        ]
+        replies = await w.call(batch)
+        assert [reply["id"] for reply in replies] == [3, 4]
+        assert error(replies[0]) == (3, -32603, "INTERNAL")
+        assert replies[1]["result"] == {"text": "b"}
+        assert (await w.request("/echo", {"text": "last"}, id=5))["result"] == {"text": "last"}
+        await w.ws.close()
+
+
+async def test_a_notification_handler_that_cancels_its_task_does_not_stop_the_reading(
+    server: Server,
+) -> None:
+    async def cancels_and_raises(request: Any) -> Any:
+        task = asyncio.current_task()
+        assert task is not None
+        task.cancel()
+        task.cancel()  # twice: both requests are taken back
+        raise asyncio.CancelledError
+
+    server.add_service("/cancels_and_raises", Echo, cancels_and_raises)
+    async with serve(server, "127.0.0.1", 0) as running:
+        w = await open_wire(running.url)
+        await w.send({"jsonrpc": "2.0", "method": "/cancels_and_raises", "params": {"text": ""}})
+        assert (await w.request("/echo", {"text": "next"}, id=1))["result"] == {"text": "next"}
+        (conn,) = running._connections
+        reader = conn.reader
+        assert reader is not None and reader.cancelling() == 0
+        await w.ws.close()
+
+
+async def test_readers_stay_readers_under_an_eager_task_factory(server: Server) -> None:
+    # A waiting call hands the reading to a new task; under an eager task factory that task
+    # must not run (and hand over again) inside the hand-over, nesting readers in one stack.
+    release = asyncio.Event()
+
+    async def waits(request: Any) -> Any:
+        await release.wait()
+        return {"text": request.text}
+
+    server.add_service("/waits", Echo, waits)
+    loop = asyncio.get_running_loop()
+    loop.set_task_factory(_imitate_eager_task_factory())
+    try:
+        async with serve(server, "127.0.0.1", 0) as running:
+            w = await open_wire(running.url)
+            count = 50
+            for id in range(count):
+                await w.send(request("/waits", {"text": str(id)}, id=id))
+            reply = await w.request("/echo", {"text": "fast"}, id="fast")
+            assert reply["result"] == {"text": "fast"}
+            (conn,) = running._connections
+            assert conn.reader is not None and conn.reader not in conn.counted
+            assert len(conn.counted) == count
+            release.set()
+            replies = [await w.recv_reply() for _ in range(count)]
+            assert sorted(reply["id"] for reply in replies) == list(range(count))
+            await w.ws.close()
+    finally:
+        loop.set_task_factory(None)

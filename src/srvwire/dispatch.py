@@ -56,6 +56,7 @@ import typing
 from collections.abc import Callable, Coroutine, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
+from types import CoroutineType
 from typing import Any
 
 from pydantic import BaseModel, ValidationError
@@ -501,8 +502,15 @@ def _invoke(
         args = (request,)
     kwargs = {entry.context_param: context} if entry.context_param else {}
     if entry.is_async:
-        return entry.handler(*args, **kwargs), prebuilt
+        awaitable = entry.handler(*args, **kwargs)
+        if type(awaitable) is not CoroutineType:  # a function marked as a coroutine function
+            awaitable = _await(awaitable)
+        return awaitable, prebuilt
     return _run_in_executor(functools.partial(entry.handler, *args, **kwargs), executor), prebuilt
+
+
+async def _await(awaitable: Any) -> Any:
+    return await awaitable
 
 
 async def _run_in_executor(call: Callable[[], Any], executor: Executor | None) -> Any:

@@ -20,8 +20,9 @@ Invariants:
 
 * **The reader never waits for a handler.** Calls on one connection run concurrently; a handler
   that hangs holds only its own task, since the reader it started on hands the reading to a new
-  task the moment the handler has to wait. Messages start in the order they arrive; a batch's
-  calls start once the whole batch is read, so a ``$/cancel`` in the same batch reaches them.
+  task the moment the handler has to wait. Single messages start in the order they arrive; a
+  batch's calls start in tasks of their own once the whole batch is read (so a ``$/cancel`` in
+  the same batch reaches them), which may be after the first step of a message that follows.
   The reader waits only to send a reply, which is what pushes back on a client that writes
   faster than it reads.
 * **Each call runs in a context of its own**, a copy of the reader's (as a task would), so
@@ -618,7 +619,9 @@ class _Connection:
                     self.reader.cancel()
 
     def start_reader(self) -> None:
-        self.reader = self.loop.create_task(self.read())
+        # A plain task, not the loop's task factory: an eager factory would run the new reader
+        # inside this call, before it is recorded, and nest one reader in the next.
+        self.reader = asyncio.Task(self.read(), loop=self.loop)
 
     async def read(self) -> None:
         """Read and answer messages until the connection ends or a call has to wait.
@@ -661,7 +664,7 @@ class _Connection:
         """Answer messages; return a call (None: a notification) that has to wait, and its
         steps; return None when the connection ended.
 
-        Messages start in the order they arrive. A call or notification runs its first step
+        Single messages start in the order they arrive. A call or notification runs its first step
         in a context of its own, as a task's would.
         """
         ws = self.ws
@@ -691,7 +694,10 @@ class _Connection:
             elif type(item) is Notification:
                 notification = self.notify(item)
                 if notification is not None:
-                    steps = first_step(notification, copy_context())
+                    try:
+                        steps = first_step(notification, copy_context())
+                    except asyncio.CancelledError:  # only the handler can have cancelled it
+                        steps = None
                     if isinstance(steps, Pending):
                         return None, steps
                     if reader.cancelling():
@@ -715,9 +721,11 @@ class _Connection:
         try:
             await asyncio.sleep(0)
         except asyncio.CancelledError:
-            task = asyncio.current_task(self.loop)
-            if task is not None:
-                task.uncancel()
+            if self.reading.done():  # serve() stopped the reading meanwhile: stop
+                raise
+        task = asyncio.current_task(self.loop)
+        while task is not None and task.cancelling():
+            task.uncancel()
 
     def admit(self, request: Request) -> tuple[ServiceEntry, _Call] | str:
         """Check and register a call; return its entry and call, or the reply text at once.
@@ -828,6 +836,7 @@ class _Connection:
             reply = ErrorResponse(request.id, exc).serialize()
         except asyncio.CancelledError:
             error = context._cancel_error
+            task = asyncio.current_task()
             if error is None:
                 if call.cancelled:  # the connection went away: nobody to answer
                     raise
@@ -836,7 +845,13 @@ class _Connection:
                 error = InternalError(
                     f"handler for {entry.name} was cancelled by its own code", service=entry.name
                 )
-            task = asyncio.current_task()
+                if call.task is None:
+                    task = None  # inline, on the reader: the reader takes the request back
+                elif task is not None:
+                    # The request may not have been delivered yet (the handler raised by
+                    # itself): let it arrive here, or it would end the task after the reply.
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await asyncio.sleep(0)
             if task is not None:
                 task.uncancel()
             reply = ErrorResponse(request.id, error).serialize()
