@@ -1494,15 +1494,21 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
         await w.ws.close()
 
 
+def cancel_own_task(times: int = 1) -> None:
+    """Cancel the running task, as a handler that means to stop itself might."""
+    task = asyncio.current_task()
+    assert task is not None
+    for _ in range(times):
+        task.cancel()
+
+
 async def test_a_handler_that_cancels_its_task_and_returns_does_not_stop_the_reading(
     server: Server, caplog: pytest.LogCaptureFixture
 ) -> None:
     # Running inline, the handler's task is the reader's: the cancellation it asks for is taken
     # back, its answer is sent, and the connection reads on.
     async def cancels_itself(request: Any) -> Any:
-        task = asyncio.current_task()
-        assert task is not None
-        task.cancel()
+        cancel_own_task()
         return {"text": "returned"}
 
     server.add_service("/cancels_itself", Echo, cancels_itself)
@@ -1527,9 +1533,7 @@ async def test_a_handler_that_cancels_its_task_and_waits_is_answered_internal(
 ) -> None:
     # Nothing in srvwire asked for that cancellation: the call still gets its one reply.
     async def cancels_then_waits(request: Any) -> Any:
-        task = asyncio.current_task()
-        assert task is not None
-        task.cancel()
+        cancel_own_task()
         await asyncio.sleep(0)
         return {"text": "never"}
 
@@ -1549,9 +1553,7 @@ async def test_a_handler_that_cancels_its_task_and_raises_is_answered_internal(
     # The handler asks for its own cancellation and raises CancelledError at once, before the
     # request was delivered: alone or in a batch, the call is answered and the connection lives.
     async def cancels_and_raises(request: Any) -> Any:
-        task = asyncio.current_task()
-        assert task is not None
-        task.cancel()
+        cancel_own_task()
         raise asyncio.CancelledError
 
     server.add_service("/cancels_and_raises", Echo, cancels_and_raises)
@@ -1576,10 +1578,7 @@ async def test_a_notification_handler_that_cancels_its_task_does_not_stop_the_re
     server: Server,
 ) -> None:
     async def cancels_and_raises(request: Any) -> Any:
-        task = asyncio.current_task()
-        assert task is not None
-        task.cancel()
-        task.cancel()  # twice: both requests are taken back
+        cancel_own_task(times=2)  # both requests are taken back
         raise asyncio.CancelledError
 
     server.add_service("/cancels_and_raises", Echo, cancels_and_raises)

@@ -741,7 +741,7 @@ class _Connection:
         entry = server.registry.get(request.method)
         if entry is None:
             return self.special(request)
-        if len(self.counted) >= server.max_in_flight:
+        if self.in_flight >= server.max_in_flight:
             exhausted = ResourceExhausted(
                 f"too many calls in flight on this connection (the limit is "
                 f"{server.max_in_flight})",
