@@ -436,7 +436,8 @@ class Client:
         """Receive every message of one connection; on its end, fail what is pending."""
         cause: ConnectionClosed | None = None
         try:
-            async for data in ws:
+            while True:
+                data = await ws.recv()  # not ``async for``: one async generator less per reply
                 try:
                     self._receive(data)
                 except (ParseError, InvalidRequest) as exc:
