@@ -306,7 +306,7 @@ def encode_call(id: int, method_json: str, params_json: str, timeout: float) -> 
     """Return a request with ``_meta.timeout`` spliced into its params: the client's hot path.
 
     The same text as ``Request(id, method, RawJSON(params_json), timeout).serialize()``, built
-    in one join: ``method_json`` is the method already written as JSON (:func:`encode_json`),
+    in one go: ``method_json`` is the method already written as JSON (:func:`encode_json`),
     ``params_json`` a compact JSON object as pydantic writes it (``{`` first, no blanks), and
     ``timeout`` a finite float >= 0, written by ``repr``, which is a JSON number for every
     finite float (``2.5``, ``1e-05``, ``1e+16``). Raise ValueError for params that are not
@@ -316,11 +316,15 @@ def encode_call(id: int, method_json: str, params_json: str, timeout: float) -> 
         raise ValueError(f"params must be a JSON object, not {params_json[:20]!r}")
     if not math.isfinite(timeout):
         raise ValueError(f"the timeout must be a finite number of seconds, not {timeout!r}")
-    head = '{"jsonrpc":"2.0","id":', str(id), ',"method":', method_json
+    # One f-string: a little cheaper than joining the pieces.
     if params_json == "{}":
-        return "".join((*head, ',"params":{"_meta":{"timeout":', repr(timeout), "}}}"))
-    return "".join(
-        (*head, ',"params":{"_meta":{"timeout":', repr(timeout), "},", params_json[1:], "}")
+        return (
+            f'{{"jsonrpc":"2.0","id":{id},"method":{method_json},'
+            f'"params":{{"_meta":{{"timeout":{timeout!r}}}}}}}'
+        )
+    return (
+        f'{{"jsonrpc":"2.0","id":{id},"method":{method_json},'
+        f'"params":{{"_meta":{{"timeout":{timeout!r}}},{params_json[1:]}}}'
     )
 
 
