@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import pytest
 
@@ -36,3 +38,16 @@ def ros_test_interfaces() -> Path:
             pytrace=False,
         )
     return folder
+
+
+def record_calls(monkeypatch: pytest.MonkeyPatch, module: ModuleType, name: str) -> list[Any]:
+    """Wrap ``module.name`` so that each call's arguments are recorded; return the record."""
+    calls: list[Any] = []
+    real = getattr(module, name)
+
+    def recording(*args: Any) -> Any:
+        calls.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(module, name, recording)
+    return calls

@@ -40,7 +40,7 @@ from srvwire.errors import (
 from srvwire.loader import load_service
 from srvwire.models import Service
 from srvwire.server import RunningServer, Server, serve
-from support import scaled
+from support import record_calls, scaled
 
 ADD = "/add_two_ints"
 ADD_TYPE = "example_interfaces/srv/AddTwoInts"
@@ -1314,14 +1314,7 @@ async def test_only_a_send_that_waits_is_bounded_by_a_timer(
     peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # A send that fits in the socket's buffer finishes in its first step: nothing to bound.
-    armed: list[object] = []
-    real = srvwire.client._SendDeadline
-
-    def counting(*args: Any) -> Any:
-        armed.append(args)
-        return real(*args)
-
-    monkeypatch.setattr(srvwire.client, "_SendDeadline", counting)
+    armed = record_calls(monkeypatch, srvwire.client, "finish_within")
     peer.reply = answer_add
     assert (await client.call(ADD, a=1, b=2)).sum == 3
     assert armed == []

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from srvwire.inline import Pending, finish, first_step
+from srvwire.inline import Expired, Pending, finish, finish_within, first_step
 
 tag: contextvars.ContextVar[str] = contextvars.ContextVar("tag", default="outside")
 
@@ -136,3 +136,60 @@ async def test_sleep_zero_yields_once_and_finishes() -> None:
     steps = first_step(yields_once())
     assert isinstance(steps, Pending) and steps.yielded is None
     assert await finish(steps) == "done"
+
+
+# --- finish_within: finish under a deadline ------------------------------------------------
+
+
+def waiting_forever(recovers: bool = False) -> Pending:
+    """A coroutine suspended on an event nobody sets; it may swallow its cancellation."""
+
+    async def waits() -> str:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            if not recovers:
+                raise
+        return "swallowed"
+
+    steps = first_step(waits())
+    assert isinstance(steps, Pending)
+    return steps
+
+
+async def test_a_passed_deadline_raises_expired_and_takes_its_cancellation_back() -> None:
+    task = asyncio.current_task()
+    assert task is not None
+    with pytest.raises(Expired):
+        await finish_within(waiting_forever(), 0.01)
+    assert task.cancelling() == 0
+    assert issubclass(Expired, TimeoutError)
+
+
+async def test_a_coroutine_that_swallows_the_deadline_still_expires() -> None:
+    with pytest.raises(Expired):
+        await finish_within(waiting_forever(recovers=True), 0.01)
+
+
+async def test_a_coroutine_done_in_time_returns_and_leaves_no_timer_behind() -> None:
+    future: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    steps = first_step(waits_for(future))
+    assert isinstance(steps, Pending)
+    asyncio.get_running_loop().call_soon(future.set_result, 1)
+    assert await finish_within(steps, 0.05) == 2
+    done = asyncio.Event()
+    asyncio.get_running_loop().call_later(0.1, done.set)
+    await done.wait()  # past the deadline: the disarmed timer cancels nothing
+    task = asyncio.current_task()
+    assert task is not None and task.cancelling() == 0
+
+
+async def test_a_cancellation_other_than_the_deadlines_stays_a_cancellation() -> None:
+    async def runner() -> Any:
+        return await finish_within(waiting_forever(), 0.01)
+
+    task = asyncio.create_task(runner())
+    await asyncio.sleep(0)  # let it start waiting
+    task.cancel()  # before the deadline
+    with pytest.raises(asyncio.CancelledError):
+        await task

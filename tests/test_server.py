@@ -28,7 +28,7 @@ from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
 from srvwire.protocol import Notification, Request
 from srvwire.server import RunningServer, Server, _Connection, serve
-from support import ROOT, scaled
+from support import ROOT, record_calls, scaled
 
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
 Notify = build("int64[] values\n---\n", "Notify")
@@ -1470,14 +1470,7 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
     # A handler that answers without waiting cannot be interrupted: its deadline needs no timer.
     import srvwire.dispatch
 
-    armed: list[object] = []
-    real = srvwire.dispatch._Deadline
-
-    def counting(*args: Any) -> Any:
-        armed.append(args)
-        return real(*args)
-
-    monkeypatch.setattr(srvwire.dispatch, "_Deadline", counting)
+    armed = record_calls(monkeypatch, srvwire.dispatch, "finish_within")
 
     async def waits(request: Any) -> Any:
         await asyncio.sleep(0)

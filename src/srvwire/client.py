@@ -42,7 +42,7 @@ Invariants:
   task); the send before it is bounded by the same deadline. A send waits only on
   backpressure, so it runs inline up to its first suspension (:func:`srvwire.inline.first_step`)
   and, only if it does wait, finishes under a bare loop timer that cancels the caller's task
-  (:class:`_SendDeadline`: ``asyncio.timeout_at`` for one purpose, cheaper; ``wait_for`` would
+  (:func:`srvwire.inline.finish_within`, as the server bounds a handler; ``wait_for`` would
   wrap the coroutine in a task on Python 3.11). Waiting for the connection or the service
   (``wait_for_ready``) spends from the
   same deadline. The remaining time travels to the server in ``params._meta.timeout``. That is
@@ -130,7 +130,7 @@ from srvwire.errors import (
     ParseError,
     ServiceUnavailable,
 )
-from srvwire.inline import Pending, finish, first_step
+from srvwire.inline import Pending, finish_within, first_step
 from srvwire.loader import SearchPath, load_service
 from srvwire.models import (
     Message,
@@ -820,19 +820,11 @@ class Client:
         cancelling = task.cancelling() if task is not None else 0
         try:
             # The send waits only on backpressure, so it is bounded only if it does wait: by a
-            # bare timer, cheaper than a timeout context, and with no task, where wait_for
-            # would wrap the coroutine in one on Python 3.11.
+            # bare timer (Expired is a TimeoutError), and with no task, where wait_for would
+            # wrap the coroutine in one on Python 3.11.
             sending = first_step(ws.send(text))
             if isinstance(sending, Pending):
-                bound = _SendDeadline(loop, task, deadline)
-                try:
-                    await finish(sending)
-                except asyncio.CancelledError:
-                    if bound.disarm():  # the deadline cancelled the send, and nothing else did
-                        raise TimeoutError from None
-                    raise
-                finally:
-                    bound.disarm()
+                await finish_within(sending, deadline - loop.time())
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
             if task is not None and task.cancelling() > cancelling:
@@ -906,42 +898,6 @@ class Client:
             await ws.send(text)
         except ConnectionClosed:
             pass  # best effort: a closed connection has cancelled everything anyway
-
-
-class _SendDeadline:
-    """Cancel a task that is still sending when the deadline passes: a bare timer and a flag.
-
-    ``asyncio.timeout_at`` for one purpose, a few times cheaper per call. :meth:`disarm`
-    must follow, whatever happened.
-    """
-
-    __slots__ = ("_cancelling", "_fired", "_handle", "_task")
-
-    def __init__(
-        self, loop: asyncio.AbstractEventLoop, task: asyncio.Task[Any] | None, when: float
-    ) -> None:
-        if task is None:
-            raise RuntimeError("a call must run inside a task")
-        self._task = task
-        self._cancelling = task.cancelling()
-        self._fired = False
-        self._handle = loop.call_at(when, self._fire)
-
-    def _fire(self) -> None:
-        self._fired = True
-        self._task.cancel()
-
-    def disarm(self) -> bool:
-        """Stop the timer; return True when it fired and nothing else cancelled the task.
-
-        A timer that fired has its cancellation taken back (once: a second call returns
-        False); the caller then raises TimeoutError instead of CancelledError.
-        """
-        self._handle.cancel()
-        if not self._fired:
-            return False
-        self._fired = False
-        return self._task.uncancel() <= self._cancelling
 
 
 class ServiceProxy:

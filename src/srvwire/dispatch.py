@@ -35,11 +35,11 @@ Invariants:
   :attr:`Context.cancelled` turns true so the handler can stop early.
 * **A deadline is the caller's.** ``_meta.timeout`` is measured from the moment the request was
   read; an already-expired deadline answers ``DEADLINE_EXCEEDED`` without running the handler.
-  It is enforced by one timer (``loop.call_later``) that cancels the call's task, armed only
-  when the request carries a deadline and the handler has to wait (a handler that answers
-  without awaiting anything cannot be interrupted, so it needs no timer; see
-  :mod:`srvwire.inline`), and cancelled as soon as the handler returns; the CancelledError it
-  causes, and only that one, becomes ``DEADLINE_EXCEEDED``.
+  It is enforced by :func:`srvwire.inline.finish_within`, one timer that cancels the call's
+  task, armed only when the request carries a deadline and the handler has to wait (a handler
+  that answers without awaiting anything cannot be interrupted, so it needs no timer), and
+  cancelled as soon as the handler returns; the cancellation it causes, and only that one,
+  becomes ``DEADLINE_EXCEEDED``.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ from srvwire.errors import (
     RPCError,
     ServiceNotFound,
 )
-from srvwire.inline import Pending, finish, first_step
+from srvwire.inline import Expired, Pending, finish_within, first_step
 from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
 from srvwire.protocol import Id, canonical_name, encode_json
 from srvwire.version import __version__
@@ -544,7 +544,6 @@ async def dispatch(
         # awaits, so not even a CancelledError from it can be this task's own cancellation.
         raise _handler_raised(entry, context, exc, logger, "validating the request") from None
     deadline = context.deadline
-    timer: _Deadline | None = None
     try:
         if deadline is not None and deadline <= time.monotonic():
             raise _deadline_exceeded(entry, context)
@@ -555,24 +554,14 @@ async def dispatch(
             # The deadline can pass only while the handler waits: arm its timer only then.
             result = first_step(handler)
             if isinstance(result, Pending):
-                timer = _Deadline(deadline - time.monotonic())
-                try:
-                    result = await finish(result)
-                finally:
-                    timer.disarm()
-                if timer.fired:  # the handler swallowed its cancellation; the caller is gone
-                    raise _deadline_exceeded(entry, context)
+                result = await finish_within(result, deadline - time.monotonic())
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name
         raise
-    except TimeoutError as exc:
-        if timer is not None and timer.fired:
-            raise _deadline_exceeded(entry, context) from None
-        raise _handler_raised(entry, context, exc, logger) from None
+    except Expired:
+        raise _deadline_exceeded(entry, context) from None
     except asyncio.CancelledError as exc:
-        if timer is not None and timer.expired:
-            raise _deadline_exceeded(entry, context) from None
         if _being_cancelled():
             context._mark_cancelled()
             raise
@@ -582,38 +571,6 @@ async def dispatch(
     except Exception as exc:
         raise _handler_raised(entry, context, exc, logger) from None
     return _encode_response(entry, result, prebuilt, logger)
-
-
-class _Deadline:
-    """Cancel the running task when a deadline passes: ``asyncio.timeout`` for one purpose.
-
-    A bare timer (``loop.call_later``) and a flag, a few times cheaper per call than the
-    context manager. :meth:`disarm` must follow, whatever happened; then :attr:`fired` says
-    whether the deadline cancelled the task, and :attr:`expired` whether that cancellation was
-    the only one, so that the CancelledError the task sees means "deadline exceeded".
-    """
-
-    __slots__ = ("_cancelling", "_handle", "_task", "expired", "fired")
-
-    def __init__(self, delay: float) -> None:
-        task = asyncio.current_task()
-        if task is None:
-            raise RuntimeError("a deadline needs to run inside a task")
-        self._task = task
-        self._cancelling = task.cancelling()
-        self.fired = False
-        self.expired = False
-        self._handle = asyncio.get_running_loop().call_later(delay, self._fire)
-
-    def _fire(self) -> None:
-        self.fired = True
-        self._task.cancel()
-
-    def disarm(self) -> None:
-        """Stop the timer; if it fired, take back the cancellation it requested."""
-        self._handle.cancel()
-        if self.fired:
-            self.expired = self._task.uncancel() <= self._cancelling
 
 
 def _being_cancelled() -> bool:

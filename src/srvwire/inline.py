@@ -16,16 +16,23 @@ Invariants:
   :func:`first_step`; a cancellation of the task while the coroutine waits is thrown into it.
 * **An optional context.** Given a :class:`contextvars.Context`, every step of the coroutine
   runs in it, so a coroutine that sets context variables leaves the caller's context alone.
+* **One deadline mechanism.** :func:`finish_within` is :func:`finish` under a deadline, the one
+  guard both the server (a handler's deadline) and the client (a send held by backpressure)
+  arm: ``asyncio.timeout`` for one purpose, a bare ``loop.call_later`` timer that cancels the
+  task, a few times cheaper. When the deadline passed, it raises :class:`Expired` (a
+  ``TimeoutError``), whatever the coroutine did with its cancellation, unless something else
+  cancelled the task too, which then stays a cancellation.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextvars
 import types
 from collections.abc import Coroutine, Generator
 from typing import Any, TypeVar
 
-__all__ = ["Pending", "finish", "first_step"]
+__all__ = ["Expired", "Pending", "finish", "finish_within", "first_step"]
 
 T = TypeVar("T")
 
@@ -87,3 +94,47 @@ def finish(pending: Pending) -> Generator[Any, Any, Any]:
             yielded = step(argument) if context is None else context.run(step, argument)
         except StopIteration as stop:
             return stop.value
+
+
+class Expired(TimeoutError):
+    """The deadline of :func:`finish_within` passed before the coroutine finished."""
+
+
+async def finish_within(pending: Pending, delay: float) -> Any:
+    """:func:`finish` ``pending``, cancelling it after ``delay`` seconds; raise Expired then.
+
+    The cancellation the deadline requested is always taken back. A coroutine that swallowed it
+    and returned, or turned it into a TimeoutError, still raises :class:`Expired`: its caller
+    is gone. Must run in a task.
+    """
+    task = asyncio.current_task()
+    if task is None:
+        raise RuntimeError("a deadline needs to run inside a task")
+    cancelling = task.cancelling()
+    fired = False
+
+    def fire() -> None:
+        nonlocal fired
+        fired = True
+        task.cancel()
+
+    handle = asyncio.get_running_loop().call_later(delay, fire)
+    try:
+        result = await finish(pending)
+    except asyncio.CancelledError:
+        handle.cancel()
+        if fired and task.uncancel() <= cancelling:
+            raise Expired from None  # the deadline's was the only cancellation
+        raise
+    except BaseException as exc:
+        handle.cancel()
+        if fired:
+            task.uncancel()
+            if isinstance(exc, TimeoutError):
+                raise Expired from exc
+        raise
+    handle.cancel()
+    if fired:  # the coroutine swallowed its cancellation and finished: too late all the same
+        task.uncancel()
+        raise Expired
+    return result
