@@ -556,12 +556,11 @@ async def test_cancelling_the_caller_cancels_the_call_on_the_server(
     assert client.in_flight == 0
 
 
-async def test_a_cancellation_that_races_the_reply_still_cancels(
-    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # The reply resolves the call, and in the same step the caller is cancelled, before the
-    # call resumes: Python 3.11's wait_for would return the reply and lose the cancellation.
-    peer.reply = answer_add
+def call_cancelled_as_answered(client: Client, monkeypatch: pytest.MonkeyPatch) -> Any:
+    """Start ``client.call(ADD, a=1, b=2)`` in a task, cancelled in the step its reply arrives.
+
+    The reader resolves the call, then at once (before the call resumes) its task is cancelled.
+    """
     receive = client._receive
     call: asyncio.Task[Any] | None = None
 
@@ -572,6 +571,17 @@ async def test_a_cancellation_that_races_the_reply_still_cancels(
 
     monkeypatch.setattr(client, "_receive", receive_then_cancel)
     call = asyncio.create_task(client.call(ADD, a=1, b=2))
+    return call
+
+
+async def test_a_cancellation_that_races_the_reply_still_cancels(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The reply resolves the call, and in the same step the caller is cancelled, before the
+    # call resumes: Python 3.11's wait_for would return the reply and lose the cancellation.
+    peer.reply = answer_add
+    receive = client._receive
+    call = call_cancelled_as_answered(client, monkeypatch)
     with pytest.raises(asyncio.CancelledError):
         await call
     assert client.in_flight == 0
@@ -953,16 +963,7 @@ async def test_a_raw_reply_checked_as_its_caller_gives_up_still_fails_the_connec
 ) -> None:
     # The reader hands the unparsed reply over, and in the same step the caller is cancelled:
     # the reply is checked anyway, as the reader checked every reply before.
-    receive = client._receive
-    call: asyncio.Task[Any] | None = None
-
-    def receive_then_cancel(data: str | bytes) -> None:
-        receive(data)
-        if call is not None and client.in_flight == 0:
-            call.cancel()
-
-    monkeypatch.setattr(client, "_receive", receive_then_cancel)
-    call = asyncio.create_task(client.call(ADD, a=1, b=2))
+    call = call_cancelled_as_answered(client, monkeypatch)
     ws = peer.connections[0]
     await ws.send(compact(await next_call_id(peer), '{"sum":3},"error":{}'))
     with pytest.raises(asyncio.CancelledError):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+from collections.abc import Coroutine
 from typing import Any
 
 import pytest
@@ -59,8 +60,23 @@ async def test_an_exception_after_waiting_propagates() -> None:
         await finish(steps)
 
 
-async def test_cancelling_the_task_while_it_waits_is_thrown_into_the_coroutine() -> None:
+async def cancelled_while_waiting(coroutine: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
+    """Run ``coroutine`` by first_step and finish in a task; cancel the task once it waits."""
     entered = asyncio.Event()
+
+    async def runner() -> Any:
+        steps = first_step(coroutine)
+        assert isinstance(steps, Pending)
+        entered.set()
+        return await finish(steps)
+
+    task = asyncio.create_task(runner())
+    await entered.wait()
+    task.cancel()
+    return task
+
+
+async def test_cancelling_the_task_while_it_waits_is_thrown_into_the_coroutine() -> None:
     outcome: list[str] = []
 
     async def handles_cancellation() -> str:
@@ -71,23 +87,13 @@ async def test_cancelling_the_task_while_it_waits_is_thrown_into_the_coroutine()
             raise
         return "never"
 
-    async def runner() -> Any:
-        steps = first_step(handles_cancellation())
-        assert isinstance(steps, Pending)
-        entered.set()
-        return await finish(steps)
-
-    task = asyncio.create_task(runner())
-    await entered.wait()
-    task.cancel()
+    task = await cancelled_while_waiting(handles_cancellation())
     with pytest.raises(asyncio.CancelledError):
         await task
     assert outcome == ["cancelled inside"]
 
 
 async def test_a_coroutine_may_catch_its_cancellation_and_return() -> None:
-    entered = asyncio.Event()
-
     async def recovers() -> str:
         try:
             await asyncio.Event().wait()
@@ -95,15 +101,7 @@ async def test_a_coroutine_may_catch_its_cancellation_and_return() -> None:
             return "recovered"
         return "never"
 
-    async def runner() -> Any:
-        steps = first_step(recovers())
-        assert isinstance(steps, Pending)
-        entered.set()
-        return await finish(steps)
-
-    task = asyncio.create_task(runner())
-    await entered.wait()
-    task.cancel()
+    task = await cancelled_while_waiting(recovers())
     assert await task == "recovered"
 
 

@@ -79,16 +79,19 @@ def same_outcome(a: Outcome, b: Outcome) -> bool:
     return conformance.same(a, b)
 
 
-def loader_for(source: str, corpus: InterfaceLoader) -> InterfaceLoader:
-    return corpus if source == "corpus" else BUNDLED
+def part(
+    corpus: InterfaceLoader, source: str, name: str, index: int
+) -> tuple[InterfaceLoader, type[Message]]:
+    """The loader a part comes from (the corpus or the bundled types), and the part's class."""
+    interfaces = corpus if source == "corpus" else BUNDLED
+    return interfaces, conformance.class_parts(interfaces, name)[index]
 
 
 @pytest.mark.parametrize(("source", "name", "index"), PARTS, ids=PART_IDS)
 def test_random_valid_instances_decode_alike_in_one_pass_and_in_two(
     loader: InterfaceLoader, source: str, name: str, index: int
 ) -> None:
-    interfaces = loader_for(source, loader)
-    cls = conformance.class_parts(interfaces, name)[index]
+    interfaces, cls = part(loader, source, name, index)
     client = Client()
 
     @settings(max_examples=30, deadline=None)
@@ -220,8 +223,7 @@ def is_known(document: str) -> bool:
 def test_wrong_documents_are_refused_alike_in_one_pass_and_in_two(
     loader: InterfaceLoader, source: str, name: str, index: int
 ) -> None:
-    interfaces = loader_for(source, loader)
-    cls = conformance.class_parts(interfaces, name)[index]
+    interfaces, cls = part(loader, source, name, index)
     client = Client()
     refused = 0
     for document in documents(interfaces, cls.spec):
