@@ -1,0 +1,97 @@
+"""The benchmark harness runs both implementations end to end and reports what they did.
+
+Nothing here judges speed (timing claims live in ``benchmarks/``, as ratios): a quick run must
+measure srvwire and the baseline on the same workloads, with the same number of calls and the
+same reply bytes, and report medians and ratios that follow from its own runs.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from support import ROOT, scaled
+
+RUN = ROOT / "benchmarks" / "run.py"
+
+
+def harness(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(RUN), *argv],
+        capture_output=True,
+        text=True,
+        timeout=scaled(300),
+        cwd=ROOT,
+        check=False,
+    )
+
+
+def large_reply_bytes() -> int:
+    spec = importlib.util.spec_from_file_location("bench_common", ROOT / "benchmarks" / "common.py")
+    assert spec is not None and spec.loader is not None
+    common = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(common)
+    size: int = common.large_reply_bytes()
+    return size
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], str]:
+    # Other processes (this suite) may be busy: do not wait for a quiet machine here.
+    out: Path = tmp_path_factory.mktemp("bench") / "report.json"
+    done = harness(
+        "--quick", "--repeat", "2", "--workloads", "W1,W4", "--loop", "asyncio",
+        "--no-pin", "--max-other-load", "64", "--json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(out.read_text()), done.stdout
+
+
+def test_both_implementations_run_every_workload_alike(
+    quick_run: tuple[dict[str, Any], str],
+) -> None:
+    report, _ = quick_run
+    runs = report["asyncio"]["runs"]
+    assert report["repeat"] == 2 and report["quick"] is True
+    for workload, calls in (("W1", 20_000 // 20), ("W4", 3)):
+        mine = [run for run in runs if run["workload"] == workload]
+        assert sorted(run["impl"] for run in mine) == ["baseline"] * 2 + ["srvwire"] * 2
+        assert all(run["calls"] == calls for run in mine), mine
+        assert all(run["client_cpu_s"] > 0 and run["server_cpu_s"] > 0 for run in mine)
+    large = [run["reply_bytes"] for run in runs if run["workload"] == "W4"]
+    assert large == [large_reply_bytes()] * 4  # the same 100 000 floats from both servers
+
+
+def test_medians_and_ratios_follow_from_the_runs(quick_run: tuple[dict[str, Any], str]) -> None:
+    report, table = quick_run
+    runs = report["asyncio"]["runs"]
+    (rate,) = [
+        row
+        for row in report["asyncio"]["summary"]
+        if (row["workload"], row["metric"]) == ("W1", "calls/s")
+    ]
+    for impl in ("baseline", "srvwire"):
+        rates = [
+            run["calls"] / run["elapsed_s"]
+            for run in runs
+            if (run["workload"], run["impl"]) == ("W1", impl)
+        ]
+        assert sorted(rate["runs"][impl]) == pytest.approx(sorted(rates))
+        assert rate[impl] == pytest.approx(statistics.median(rates))
+    assert rate["ratio"] == pytest.approx(rate["srvwire"] / rate["baseline"])
+    assert "== asyncio event loop: medians of 2 run(s), quick" in table
+    assert f"{rate['ratio']:.2f}" in table
+
+
+def test_a_bad_choice_is_refused_before_anything_runs() -> None:
+    done = harness("--compare", "baseline,nothing")
+    assert done.returncode == 2 and "--compare takes two of" in done.stderr
+    done = harness("--workloads", "W9")
+    assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
