@@ -191,6 +191,9 @@ def test_bad_arguments_are_refused_at_once() -> None:
         Client(timeout=float("inf"))
     with pytest.raises(ValueError, match="finite number of seconds"):
         Client(timeout=0)
+    with pytest.raises(ValueError, match="not an integer too large for a float"):
+        Client(timeout=10**400)
+    assert Client(timeout=3).timeout == 3.0
     with pytest.raises(TypeError, match="number of seconds"):
         Client(timeout="5")  # type: ignore[arg-type]
 

@@ -97,7 +97,23 @@ def test_meta_timeout_is_taken_out_of_params() -> None:
         (
             '{"timeout":Infinity}',
             "_meta.timeout",
-            "invalid _meta.timeout: must be a number of seconds >= 0, not null",
+            "invalid _meta.timeout: must be a number of seconds >= 0, not Infinity",
+        ),
+        (
+            '{"timeout":1e400}',  # read as infinity
+            "_meta.timeout",
+            "invalid _meta.timeout: must be a number of seconds >= 0, not Infinity",
+        ),
+        (
+            '{"timeout":NaN}',
+            "_meta.timeout",
+            "invalid _meta.timeout: must be a number of seconds >= 0, not NaN",
+        ),
+        (
+            '{"timeout":1' + "0" * 400 + "}",  # an exact integer no float can hold
+            "_meta.timeout",
+            "invalid _meta.timeout: must be a number of seconds >= 0, "
+            "not an integer too large for a float",
         ),
     ],
 )
@@ -116,6 +132,11 @@ def test_a_bad_meta_is_invalid_params(meta: str, path: str, message: str) -> Non
     [
         ("5", "invalid _meta: must be an object, not a number"),
         ('{"timeout":-0.5}', "invalid _meta.timeout: must be a number of seconds >= 0, not -0.5"),
+        (
+            '{"timeout":-1' + "0" * 400 + "}",
+            "invalid _meta.timeout: must be a number of seconds >= 0, "
+            "not an integer too large for a float",
+        ),
     ],
 )
 def test_a_notification_with_a_bad_meta_carries_the_error_and_is_never_answered(

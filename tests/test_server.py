@@ -724,6 +724,7 @@ async def test_bad_input_is_answered_and_the_connection_carries_on(wire: Wire) -
         (request("subtract", {"extra": 1}, id=7), (7, -32602, "INVALID_PARAMS")),
         (request("subtract", [1, 2, 3], id=8), (8, -32602, "INVALID_PARAMS")),
         (request("subtract", {"_meta": {"timeout": "x"}}, id=9), (9, -32602, "INVALID_PARAMS")),
+        (request("subtract", {"_meta": {"timeout": 10**400}}, id=9), (9, -32602, "INVALID_PARAMS")),
         (request("/a//b", id=10), (10, -32601, "SERVICE_NOT_FOUND")),
         (request("$/whatever", id=11), (11, -32601, "SERVICE_NOT_FOUND")),
     ]

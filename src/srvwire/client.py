@@ -200,9 +200,15 @@ def _check_timeout(timeout: float, what: str = "timeout") -> float:
         return timeout
     if isinstance(timeout, bool) or not isinstance(timeout, int | float):
         raise TypeError(f"{what} must be a number of seconds, not {type(timeout).__name__}")
-    if not (math.isfinite(timeout) and timeout > 0):
+    try:
+        seconds = float(timeout)
+    except OverflowError:  # an int beyond any float
+        raise ValueError(
+            f"{what} must be a finite number of seconds > 0, not an integer too large for a float"
+        ) from None
+    if not (math.isfinite(seconds) and seconds > 0):
         raise ValueError(f"{what} must be a finite number of seconds > 0, not {timeout!r}")
-    return float(timeout)
+    return seconds
 
 
 def _backoff() -> Iterator[float]:

@@ -393,6 +393,31 @@ def _bad_meta(path: str, message: str, type_: str) -> InvalidParams:
     return InvalidParams(f"invalid {path}: {message}", {"errors": [error]})
 
 
+def _seconds(value: Any) -> float | None:
+    """Return ``value`` as a finite number of seconds >= 0, or None if it is not one.
+
+    An integer too large for a float (decoded exactly) is not one, like ``1e400``.
+    """
+    kind = type(value)
+    if kind is int:
+        try:
+            value = float(value)
+        except OverflowError:
+            return None
+    elif kind is not float:
+        return None
+    return value if math.isfinite(value) and value >= 0 else None
+
+
+def _show_number(value: Any) -> str:
+    """Write what was given for a number in an error message: JSON, or what it is instead."""
+    if type(value) is float and not math.isfinite(value):
+        return _id_kind(value)  # NaN, Infinity or -Infinity, which JSON has no word for
+    if type(value) is int and value.bit_length() > 1024:  # beyond any float
+        return "an integer too large for a float"
+    return encode_json(value)
+
+
 def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
     """Turn one decoded JSON value into a request, a notification, or the error answering it.
 
@@ -419,14 +444,13 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
             if type(meta) is not dict:
                 bad_meta = _bad_meta("_meta", f"must be an object, not {_kind(meta)}", "dict_type")
             elif (raw := meta.get("timeout")) is not None:
-                if type(raw) not in (int, float) or not math.isfinite(raw) or raw < 0:
+                timeout = _seconds(raw)
+                if timeout is None:
                     bad_meta = _bad_meta(
                         "_meta.timeout",
-                        f"must be a number of seconds >= 0, not {encode_json(raw)}",
+                        f"must be a number of seconds >= 0, not {_show_number(raw)}",
                         "timeout",
                     )
-                else:
-                    timeout = float(raw)
     elif type(params) is not list and "params" in item:
         return _invalid(id, f"'params' must be an object or an array, not {_kind(params)}")
     if not has_id:  # a notification is never answered, not even with an error
