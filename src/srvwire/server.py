@@ -830,6 +830,7 @@ class _Connection:
                 if log.isEnabledFor(logging.DEBUG):
                     log.debug("%s id %r from %s: ok", entry.name, request.id, self.peer)
                 reply = encode_result(request.id, result)
+                del result  # not held through the send: a large result would be held twice
         except RPCError as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("%s id %r from %s: %s", entry.name, request.id, self.peer, exc)
