@@ -39,7 +39,7 @@ SRV_TYPE = "advanced_communication_tutorials/srv/RobotStateQuery"
 SMALL_REQUEST: dict[str, Any] = {"query_type": "position", "target_frame": ""}
 LARGE_REQUEST: dict[str, Any] = {"query_type": "large", "target_frame": ""}
 CALL_TIMEOUT = 30.0  # seconds; the deadline every call carries (never reached in a healthy run)
-MAX_MESSAGE = 16 * 2**20  # bytes; W4's reply is about 1.9 MB and websockets' default cap is 1 MiB
+MAX_MESSAGE = 16 * 2**20  # bytes; W4's reply is about 1.7 MB and websockets' default cap is 1 MiB
 
 SMALL_NAMES = ["x", "y", "z", "yaw", "battery"]
 SMALL_VALUES = [1.0 / 3.0, -2.718281828459045, 0.001, 3.141592653589793, 98.5]

@@ -4,16 +4,22 @@ Usage::
 
     python benchmarks/run.py [--quick] [--repeat 3] [--workloads W1,W2,W3,W4,MEM,CORPUS]
                              [--loop asyncio|uvloop|asyncio,uvloop] [--json out.json]
+                             [--compare baseline,srvwire]
+
+``--compare A,B`` picks the two implementations of :data:`IMPLEMENTATIONS` to compare:
+``baseline`` (raw ``websockets``, nothing typed), ``floor`` (the least a typed JSON-RPC
+framework must do per call) and ``srvwire``.
 
 Every measurement starts a fresh server process (on 127.0.0.1, port 0, its port read from its
 stdout) and a fresh client process, pinned to different CPUs when there are two. The client
 warms up, then ``run.py`` reads the server's CPU time, tells the client to go, reads the
 client's result and the server's CPU time again, so each side's CPU per call covers exactly the
-measured calls. Implementations alternate (baseline first on even repeats, srvwire first on odd
-ones) so slow drift of the machine lands on both. The table shows medians over the repeats and
-the ratio srvwire / baseline: for rate metrics (↑) 0.85 means srvwire does 85 % of the
-baseline's work per second; for cost metrics (↓: latency, CPU, memory) above 1 means srvwire
-costs more.
+measured calls. The two implementations alternate (A first on even repeats, B first on odd ones)
+so slow drift of the machine lands on both. The table shows medians over the repeats and the
+ratio B / A, of the medians and of each repeat's pair of runs: with the default
+``baseline,srvwire``, 0.85 for a rate metric (↑) means srvwire does 85 % of the baseline's work
+per second, and above 1 for a cost metric (↓: latency, CPU, memory) means srvwire costs more.
+CORPUS measures srvwire's loader alone, so it runs only when srvwire is one of the two.
 
 ``--profile DIR`` instead runs srvwire alone, once per workload, with cProfile in both processes,
 and writes ``DIR/<loop>-<workload>-{server,client}.prof`` plus a text summary of each.
@@ -44,6 +50,7 @@ PYTHON = sys.executable
 
 IMPLEMENTATIONS = {
     "baseline": (HERE / "baseline_server.py", HERE / "baseline_client.py"),
+    "floor": (HERE / "floor_server.py", HERE / "floor_client.py"),
     "srvwire": (HERE / "srvwire_server.py", HERE / "srvwire_client.py"),
 }
 NETWORK_WORKLOADS = ["W1", "W2", "W3", "W4", "MEM"]
@@ -376,6 +383,7 @@ class Table:
         header = ("workload", "metric", f"{base_name} (median)", f"{candidate_name} (median)")
         lines = [
             title,
+            f"ratio = {candidate_name} / {base_name}: of the medians, and lowest..highest per run",
             f"{header[0]:<8} {header[1]:<32} {header[2]:>18} {header[3]:>18} {'ratio':>7}"
             f" {'per-run ratios':>15}",
         ]
@@ -504,7 +512,8 @@ async def profile_loop(config: Config, workloads: list[str]) -> None:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        description="Measure srvwire against a raw-websockets baseline, side by side."
+        description="Measure two implementations side by side: by default, srvwire against a"
+        " raw-websockets baseline."
     )
     parser.add_argument("--quick", action="store_true", help=f"1/{QUICK_DIVISOR} of every workload")
     parser.add_argument("--repeat", type=int, default=None, help="runs of each (3; quick: 1)")
@@ -515,7 +524,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--compare",
         default="baseline,srvwire",
-        help="the two implementations to compare (baseline,baseline checks the harness itself)",
+        help=f"two of {', '.join(IMPLEMENTATIONS)}; the ratios are the second / the first"
+        " (baseline,baseline checks the harness itself)",
     )
     parser.add_argument("--profile", type=Path, default=None, help="profile srvwire into DIR")
     parser.add_argument(

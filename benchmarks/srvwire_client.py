@@ -2,7 +2,7 @@
 
 Each call passes a typed ``RobotStateQuery.Request`` (built once) and gets the typed
 ``Response`` back, with the call's deadline enforced by the client. The only option changed
-from the defaults is ``max_message_size``, so W4's 1.9 MB replies are accepted.
+from the defaults is ``max_message_size``, so W4's 1.7 MB replies are accepted.
 """
 
 from __future__ import annotations

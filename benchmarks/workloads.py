@@ -93,10 +93,12 @@ async def ready_then_wait_for_go() -> None:
         raise SystemExit(f"expected 'go' on stdin, got {line!r}")
 
 
-async def check_reply(adapter: Adapter, call: Call, request: Any, expected: int) -> None:
+async def check_reply(adapter: Adapter, call: Call, request: Any, expected: int) -> int:
+    """Call once and return how many values the reply holds; exit unless ``expected``."""
     got = adapter.values_of(await call(request))
     if got != expected:
         raise SystemExit(f"the reply holds {got} values, expected {expected}")
+    return got
 
 
 async def sequential(adapter: Adapter, url: str, request: Any, warmup: int, calls: int) -> Measure:
@@ -228,9 +230,9 @@ def main(adapter: Adapter, description: str) -> None:
             case "W4":
                 async with AsyncExitStack() as stack:
                     call = await adapter.open(url, stack)
-                    await check_reply(adapter, call, large, LARGE_VALUES_COUNT)
+                    values = await check_reply(adapter, call, large, LARGE_VALUES_COUNT)
                 measure = await sequential(adapter, url, large, args.warmup, args.calls)
-                return measure.result(reply_bytes=large_reply_bytes())
+                return measure.result(reply_bytes=large_reply_bytes(), reply_values=values)
             case _:
                 measure = await idle(adapter, url, args.connections)
                 return measure.result(connections=args.connections)

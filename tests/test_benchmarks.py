@@ -1,8 +1,9 @@
 """The benchmark harness runs both implementations end to end and reports what they did.
 
 Nothing here judges speed (timing claims live in ``benchmarks/``, as ratios): a quick run must
-measure srvwire and the baseline on the same workloads, with the same number of calls and the
-same reply bytes, and report medians and ratios that follow from its own runs.
+measure srvwire and the baseline (or the floor) on the same workloads, with the same number of
+calls and as many values in every large reply, and report medians and ratios that follow from its
+own runs.
 """
 
 from __future__ import annotations
@@ -65,8 +66,9 @@ def test_both_implementations_run_every_workload_alike(
         assert sorted(run["impl"] for run in mine) == ["baseline"] * 2 + ["srvwire"] * 2
         assert all(run["calls"] == calls for run in mine), mine
         assert all(run["client_cpu_s"] > 0 and run["server_cpu_s"] > 0 for run in mine)
-    large = [run["reply_bytes"] for run in runs if run["workload"] == "W4"]
-    assert large == [large_reply_bytes()] * 4  # the same 100 000 floats from both servers
+    large = [run for run in runs if run["workload"] == "W4"]
+    assert [run["reply_values"] for run in large] == [100_000] * 4  # counted in each reply
+    assert [run["reply_bytes"] for run in large] == [large_reply_bytes()] * 4  # for MB/s
 
 
 def test_medians_and_ratios_follow_from_the_runs(quick_run: tuple[dict[str, Any], str]) -> None:
@@ -90,8 +92,27 @@ def test_medians_and_ratios_follow_from_the_runs(quick_run: tuple[dict[str, Any]
     assert f"{rate['ratio']:.2f}" in table
 
 
+def test_the_floor_runs_every_workload_like_srvwire(tmp_path: Path) -> None:
+    out = tmp_path / "report.json"
+    done = harness(
+        "--quick", "--repeat", "1", "--workloads", "W1,W4", "--loop", "asyncio",
+        "--compare", "floor,srvwire", "--no-pin", "--max-other-load", "64", "--json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    runs = json.loads(out.read_text())["asyncio"]["runs"]
+    for workload, calls in (("W1", 20_000 // 20), ("W4", 3)):
+        mine = [run for run in runs if run["workload"] == workload]
+        assert sorted(run["impl"] for run in mine) == ["floor", "srvwire"]
+        assert all(run["calls"] == calls for run in mine), mine
+        assert all(run["client_cpu_s"] > 0 and run["server_cpu_s"] > 0 for run in mine)
+    large = [run for run in runs if run["workload"] == "W4"]
+    assert [run["reply_values"] for run in large] == [100_000] * 2  # counted in each reply
+    assert "ratio = srvwire / floor" in done.stdout
+
+
 def test_a_bad_choice_is_refused_before_anything_runs() -> None:
     done = harness("--compare", "baseline,nothing")
-    assert done.returncode == 2 and "--compare takes two of" in done.stderr
+    assert done.returncode == 2
+    assert "--compare takes two of: baseline, floor, srvwire" in done.stderr
     done = harness("--workloads", "W9")
     assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
