@@ -8,16 +8,15 @@ sent straight back from the connection's read loop. It validates nothing, runs e
 
 from __future__ import annotations
 
-import argparse
 import functools
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 import orjson
-from websockets.asyncio.server import ServerConnection, serve
+from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from common import MAX_MESSAGE, SERVICE, ServerControl, emit, reply_fields, run, server_parser
+from common import SERVICE, reply_fields, run, serve_websockets, server_parser
 
 Handler = Callable[[Any], Awaitable[Any]]
 
@@ -57,14 +56,6 @@ async def respond(connection: ServerConnection) -> None:
         return
 
 
-async def main(args: argparse.Namespace) -> None:
-    control = ServerControl()
-    async with serve(respond, args.host, 0, compression=None, max_size=MAX_MESSAGE) as server:
-        port = next(iter(server.sockets)).getsockname()[1]
-        emit("listening", port=port)
-        await control.stopped.wait()
-
-
 if __name__ == "__main__":
     args = server_parser(__doc__ or "").parse_args()
-    run(functools.partial(main, args), args)
+    run(functools.partial(serve_websockets, respond, args.host), args)

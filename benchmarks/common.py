@@ -25,7 +25,7 @@ import os
 import resource
 import sys
 import threading
-from collections.abc import Callable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -155,6 +155,18 @@ class ServerControl:
                 peak, current = memory_kib()
                 emit("stats", cpu_s=cpu_seconds(), maxrss_kib=peak, rss_kib=current)
         self._loop.call_soon_threadsafe(self.stopped.set)
+
+
+async def serve_websockets(respond: Callable[[Any], Awaitable[None]], host: str) -> None:
+    """Serve ``respond`` per connection on ``websockets``' own server, as the baseline and the
+    floor do (compression off, :data:`MAX_MESSAGE`); print the port; stop when stdin closes."""
+    from websockets.asyncio.server import serve  # only the servers that use it load it
+
+    control = ServerControl()
+    async with serve(respond, host, 0, compression=None, max_size=MAX_MESSAGE) as server:
+        port = next(iter(server.sockets)).getsockname()[1]
+        emit("listening", port=port)
+        await control.stopped.wait()
 
 
 def server_parser(description: str) -> argparse.ArgumentParser:

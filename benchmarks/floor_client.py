@@ -22,12 +22,10 @@ from pydantic_core import from_json, to_json
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from srvwire.loader import load_service
-
-from common import CALL_TIMEOUT, MAX_MESSAGE, SERVICE, SRV_TYPE
+from common import CALL_TIMEOUT, MAX_MESSAGE, SERVICE
+from typed import RobotStateQuery, make_request, values_of
 from workloads import Adapter, Call, main
 
-RobotStateQuery = load_service(SRV_TYPE)
 serialize_request = RobotStateQuery.Request.__pydantic_serializer__.to_json
 validate_response = RobotStateQuery.Response.__pydantic_validator__.validate_python
 
@@ -90,17 +88,6 @@ async def open_connection(url: str, stack: AsyncExitStack) -> Call:
     caller = FloorConnection(connection)
     stack.push_async_callback(caller.close)
     return caller.call
-
-
-def make_request(fields: dict[str, Any]) -> Any:
-    return RobotStateQuery.Request(**fields)
-
-
-def values_of(reply: Any) -> int:
-    if not isinstance(reply, RobotStateQuery.Response):
-        raise SystemExit(f"expected a typed {SRV_TYPE} response, got {type(reply).__name__}")
-    values: list[float] = reply.model_dump()["values"]
-    return len(values)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ any server that releases a call's objects when the call ends.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import math
 import time
@@ -33,23 +32,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from pydantic_core import ValidationError, from_json, to_json
-from websockets.asyncio.server import ServerConnection, serve
+from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from srvwire.loader import load_service
-
-from common import (
-    MAX_MESSAGE,
-    SERVICE,
-    SRV_TYPE,
-    ServerControl,
-    emit,
-    reply_fields,
-    run,
-    server_parser,
-)
-
-RobotStateQuery = load_service(SRV_TYPE)
+from common import SERVICE, reply_fields, run, serve_websockets, server_parser
+from typed import RobotStateQuery
 
 PARSE_ERROR = -32700
 INVALID_REQUEST = -32600
@@ -153,14 +140,6 @@ async def respond(connection: ServerConnection) -> None:
         return
 
 
-async def main(args: argparse.Namespace) -> None:
-    control = ServerControl()
-    async with serve(respond, args.host, 0, compression=None, max_size=MAX_MESSAGE) as server:
-        port = next(iter(server.sockets)).getsockname()[1]
-        emit("listening", port=port)
-        await control.stopped.wait()
-
-
 if __name__ == "__main__":
     args = server_parser(__doc__ or "").parse_args()
-    run(functools.partial(main, args), args)
+    run(functools.partial(serve_websockets, respond, args.host), args)

@@ -9,15 +9,12 @@ from __future__ import annotations
 
 import functools
 from contextlib import AsyncExitStack
-from typing import Any
 
 from srvwire.client import connect
-from srvwire.loader import load_service
 
-from common import CALL_TIMEOUT, MAX_MESSAGE, SERVICE, SRV_TYPE
+from common import CALL_TIMEOUT, MAX_MESSAGE, SERVICE
+from typed import make_request, values_of
 from workloads import Adapter, Call, main
-
-RobotStateQuery = load_service(SRV_TYPE)
 
 
 async def open_connection(url: str, stack: AsyncExitStack) -> Call:
@@ -25,17 +22,6 @@ async def open_connection(url: str, stack: AsyncExitStack) -> Call:
         connect(url, timeout=CALL_TIMEOUT, max_message_size=MAX_MESSAGE)
     )
     return functools.partial(client.call, SERVICE, timeout=CALL_TIMEOUT)
-
-
-def make_request(fields: dict[str, Any]) -> Any:
-    return RobotStateQuery.Request(**fields)
-
-
-def values_of(reply: Any) -> int:
-    if not isinstance(reply, RobotStateQuery.Response):
-        raise SystemExit(f"expected a typed {SRV_TYPE} response, got {type(reply).__name__}")
-    values: list[float] = reply.model_dump()["values"]
-    return len(values)
 
 
 if __name__ == "__main__":

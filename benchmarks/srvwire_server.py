@@ -13,21 +13,10 @@ import argparse
 import functools
 from typing import Any
 
-from srvwire.loader import load_service
 from srvwire.server import Server, serve
 
-from common import (
-    MAX_MESSAGE,
-    SERVICE,
-    SRV_TYPE,
-    ServerControl,
-    emit,
-    reply_fields,
-    run,
-    server_parser,
-)
-
-RobotStateQuery = load_service(SRV_TYPE)
+from common import MAX_MESSAGE, SERVICE, ServerControl, emit, reply_fields, run, server_parser
+from typed import RobotStateQuery
 
 
 async def get_robot_state(request: Any) -> Any:
