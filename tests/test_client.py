@@ -187,8 +187,12 @@ async def test_a_server_whose_first_message_is_not_the_services_list_is_refused(
 def test_bad_arguments_are_refused_at_once() -> None:
     with pytest.raises(ValueError, match="not a WebSocket URL"):
         Client("http://localhost:8765")
-    with pytest.raises(ValueError, match="finite number of seconds"):
+    with pytest.raises(ValueError, match="finite number of seconds > 0, not Infinity"):
         Client(timeout=float("inf"))
+    with pytest.raises(ValueError, match="finite number of seconds > 0, not NaN"):
+        Client(timeout=float("nan"))
+    with pytest.raises(ValueError, match="finite number of seconds > 0, not -1"):
+        Client(timeout=-1)
     with pytest.raises(ValueError, match="finite number of seconds"):
         Client(timeout=0)
     with pytest.raises(ValueError, match="not an integer too large for a float"):

@@ -149,11 +149,13 @@ from srvwire.protocol import (
     Response,
     cancel_notification,
     canonical_name,
+    describe_value,
     encode_call,
     encode_json,
     parse_raw_reply,
     parse_replies,
     peek_reply,
+    timeout_seconds,
 )
 
 __all__ = [
@@ -200,14 +202,11 @@ def _check_timeout(timeout: float, what: str = "timeout") -> float:
         return timeout
     if isinstance(timeout, bool) or not isinstance(timeout, int | float):
         raise TypeError(f"{what} must be a number of seconds, not {type(timeout).__name__}")
-    try:
-        seconds = float(timeout)
-    except OverflowError:  # an int beyond any float
+    seconds = timeout_seconds(timeout)
+    if not seconds:  # not a finite number >= 0, or zero
         raise ValueError(
-            f"{what} must be a finite number of seconds > 0, not an integer too large for a float"
-        ) from None
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"{what} must be a finite number of seconds > 0, not {timeout!r}")
+            f"{what} must be a finite number of seconds > 0, not {describe_value(timeout)}"
+        )
     return seconds
 
 

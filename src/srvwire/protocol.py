@@ -78,6 +78,7 @@ __all__ = [
     "cancel_notification",
     "canonical_name",
     "decode_json",
+    "describe_value",
     "encode_call",
     "encode_json",
     "encode_result",
@@ -88,6 +89,7 @@ __all__ = [
     "serialize",
     "serialize_batch",
     "services_notification",
+    "timeout_seconds",
 ]
 
 CANCEL_METHOD = "$/cancel"
@@ -393,27 +395,27 @@ def _bad_meta(path: str, message: str, type_: str) -> InvalidParams:
     return InvalidParams(f"invalid {path}: {message}", {"errors": [error]})
 
 
-def _seconds(value: Any) -> float | None:
-    """Return ``value`` as a finite number of seconds >= 0, or None if it is not one.
+def timeout_seconds(value: Any) -> float | None:
+    """Return ``value`` as a deadline: a finite number of seconds >= 0; None if it is not one.
 
-    An integer too large for a float (decoded exactly) is not one, like ``1e400``.
+    A bool is not a number here, and neither is an integer too large for a float (JSON is
+    decoded exactly), just as ``1e400`` is not. The server reads ``_meta.timeout`` with it,
+    the client its ``timeout`` arguments.
     """
-    kind = type(value)
-    if kind is int:
-        try:
-            value = float(value)
-        except OverflowError:
-            return None
-    elif kind is not float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
         return None
-    return value if math.isfinite(value) and value >= 0 else None
+    try:
+        seconds = float(value)
+    except OverflowError:
+        return None
+    return seconds if math.isfinite(seconds) and seconds >= 0 else None
 
 
-def _show_number(value: Any) -> str:
-    """Write what was given for a number in an error message: JSON, or what it is instead."""
-    if type(value) is float and not math.isfinite(value):
-        return _id_kind(value)  # NaN, Infinity or -Infinity, which JSON has no word for
-    if type(value) is int and value.bit_length() > 1024:  # beyond any float
+def describe_value(value: Any) -> str:
+    """Write a value for an error message: as JSON, or in words where JSON has none."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return _id_kind(float(value))  # NaN, Infinity or -Infinity
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1024:
         return "an integer too large for a float"
     return encode_json(value)
 
@@ -444,11 +446,11 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
             if type(meta) is not dict:
                 bad_meta = _bad_meta("_meta", f"must be an object, not {_kind(meta)}", "dict_type")
             elif (raw := meta.get("timeout")) is not None:
-                timeout = _seconds(raw)
+                timeout = timeout_seconds(raw)
                 if timeout is None:
                     bad_meta = _bad_meta(
                         "_meta.timeout",
-                        f"must be a number of seconds >= 0, not {_show_number(raw)}",
+                        f"must be a number of seconds >= 0, not {describe_value(raw)}",
                         "timeout",
                     )
     elif type(params) is not list and "params" in item:
