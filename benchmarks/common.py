@@ -29,6 +29,8 @@ from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any, TypeVar
 
+from websockets.asyncio.server import serve
+
 T = TypeVar("T")
 
 HERE = Path(__file__).resolve().parent
@@ -159,9 +161,8 @@ class ServerControl:
 
 async def serve_websockets(respond: Callable[[Any], Awaitable[None]], host: str) -> None:
     """Serve ``respond`` per connection on ``websockets``' own server, as the baseline and the
-    floor do (compression off, :data:`MAX_MESSAGE`); print the port; stop when stdin closes."""
-    from websockets.asyncio.server import serve  # only the servers that use it load it
-
+    floor do (compression off, :data:`MAX_MESSAGE`); print the port; stop when stdin closes.
+    """
     control = ServerControl()
     async with serve(respond, host, 0, compression=None, max_size=MAX_MESSAGE) as server:
         port = next(iter(server.sockets)).getsockname()[1]

@@ -43,6 +43,18 @@ def large_reply_bytes() -> int:
     return size
 
 
+def check_quick_runs(runs: list[dict[str, Any]], impls: list[str]) -> None:
+    """Every implementation ran quick W1 and W4 alike: the calls, the CPU, the large replies."""
+    for workload, calls in (("W1", 20_000 // 20), ("W4", 3)):
+        mine = [run for run in runs if run["workload"] == workload]
+        assert sorted(run["impl"] for run in mine) == impls
+        assert all(run["calls"] == calls for run in mine), mine
+        assert all(run["client_cpu_s"] > 0 and run["server_cpu_s"] > 0 for run in mine)
+    large = [run for run in runs if run["workload"] == "W4"]
+    assert [run["reply_values"] for run in large] == [100_000] * len(impls)  # counted in each
+    assert [run["reply_bytes"] for run in large] == [large_reply_bytes()] * len(impls)  # MB/s
+
+
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], str]:
     # Other processes (this suite) may be busy: do not wait for a quiet machine here.
@@ -59,16 +71,8 @@ def test_both_implementations_run_every_workload_alike(
     quick_run: tuple[dict[str, Any], str],
 ) -> None:
     report, _ = quick_run
-    runs = report["asyncio"]["runs"]
     assert report["repeat"] == 2 and report["quick"] is True
-    for workload, calls in (("W1", 20_000 // 20), ("W4", 3)):
-        mine = [run for run in runs if run["workload"] == workload]
-        assert sorted(run["impl"] for run in mine) == ["baseline"] * 2 + ["srvwire"] * 2
-        assert all(run["calls"] == calls for run in mine), mine
-        assert all(run["client_cpu_s"] > 0 and run["server_cpu_s"] > 0 for run in mine)
-    large = [run for run in runs if run["workload"] == "W4"]
-    assert [run["reply_values"] for run in large] == [100_000] * 4  # counted in each reply
-    assert [run["reply_bytes"] for run in large] == [large_reply_bytes()] * 4  # for MB/s
+    check_quick_runs(report["asyncio"]["runs"], ["baseline"] * 2 + ["srvwire"] * 2)
 
 
 def test_medians_and_ratios_follow_from_the_runs(quick_run: tuple[dict[str, Any], str]) -> None:
@@ -99,14 +103,7 @@ def test_the_floor_runs_every_workload_like_srvwire(tmp_path: Path) -> None:
         "--compare", "floor,srvwire", "--no-pin", "--max-other-load", "64", "--json", str(out),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    runs = json.loads(out.read_text())["asyncio"]["runs"]
-    for workload, calls in (("W1", 20_000 // 20), ("W4", 3)):
-        mine = [run for run in runs if run["workload"] == workload]
-        assert sorted(run["impl"] for run in mine) == ["floor", "srvwire"]
-        assert all(run["calls"] == calls for run in mine), mine
-        assert all(run["client_cpu_s"] > 0 and run["server_cpu_s"] > 0 for run in mine)
-    large = [run for run in runs if run["workload"] == "W4"]
-    assert [run["reply_values"] for run in large] == [100_000] * 2  # counted in each reply
+    check_quick_runs(json.loads(out.read_text())["asyncio"]["runs"], ["floor", "srvwire"])
     assert "ratio = srvwire / floor" in done.stdout
 
 
