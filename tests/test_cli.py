@@ -20,18 +20,22 @@ from typing import Any
 import pytest
 
 from srvwire import cli, version
-from srvwire.cli import ExitCode, main
+from srvwire.cli import ExitCode, common as cli_common, interface as cli_interface, main
+from srvwire.cli.common import EXIT_CODES, EXIT_CODES_HELP, exit_code_for
 from srvwire.client import Client
 from srvwire.errors import (
+    ConnectionLost,
+    ErrorCode,
     ResourceExhausted,
     RPCError,
     ServiceError,
     ServiceNotFound,
     ServiceUnavailable,
+    error_from_code,
 )
 from srvwire.loader import InterfaceLoader, default_search_path
 from srvwire.server import Server, serve
-from support import scaled
+from support import ROOT, scaled
 
 # --- helpers ----------------------------------------------------------------------------------
 
@@ -226,6 +230,59 @@ def test_a_closed_stdout_ends_quietly(argv: list[str]) -> None:
     finally:
         os.close(writer)
     assert (done.returncode, done.stderr) == (ExitCode.FAILURE, "")
+
+
+# --- exit codes -------------------------------------------------------------------------------
+
+
+def test_every_error_code_has_an_exit_code() -> None:
+    assert set(EXIT_CODES) == set(ErrorCode)
+
+
+@pytest.mark.parametrize(
+    ("error", "expected"),
+    [
+        (error_from_code(ErrorCode.PARSE_ERROR, "x"), ExitCode.OTHER_RPC_ERROR),
+        (error_from_code(ErrorCode.INVALID_REQUEST, "x"), ExitCode.OTHER_RPC_ERROR),
+        (error_from_code(ErrorCode.SERVICE_NOT_FOUND, "x"), ExitCode.SERVICE_NOT_FOUND),
+        (error_from_code(ErrorCode.INVALID_PARAMS, "x"), ExitCode.INVALID_PARAMS),
+        (error_from_code(ErrorCode.INTERNAL, "x"), ExitCode.SERVICE_FAILED),
+        (error_from_code(ErrorCode.DEADLINE_EXCEEDED, "x"), ExitCode.DEADLINE_EXCEEDED),
+        (error_from_code(ErrorCode.CANCELLED, "x"), ExitCode.OTHER_RPC_ERROR),
+        (error_from_code(ErrorCode.UNAVAILABLE, "x"), ExitCode.UNAVAILABLE),
+        (ConnectionLost("x"), ExitCode.UNAVAILABLE),
+        (error_from_code(ErrorCode.RESOURCE_EXHAUSTED, "x"), ExitCode.OTHER_RPC_ERROR),
+        (error_from_code(ErrorCode.UNAUTHENTICATED, "x"), ExitCode.OTHER_RPC_ERROR),
+        (ServiceError(42, "x"), ExitCode.SERVICE_FAILED),
+        (ServiceError(-1, "x"), ExitCode.SERVICE_FAILED),
+        (error_from_code(-32050, "x"), ExitCode.OTHER_RPC_ERROR),  # reserved, but unnamed
+    ],
+    ids=repr,
+)
+def test_the_exit_code_of_each_error(error: RPCError, expected: ExitCode) -> None:
+    assert exit_code_for(error) is expected
+
+
+def exit_code_table(lines: list[str], row: str) -> dict[int, str]:
+    """Read ``code: meaning`` from the lines that match ``row`` (a regex with two groups)."""
+    matches = (re.fullmatch(row, line) for line in lines)
+    return {int(match[1]): match[2] for match in matches if match}
+
+
+def test_the_exit_codes_agree_with_the_docs_and_the_help() -> None:
+    docs = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    section = docs.split("\n## Exit codes\n", 1)[1].split("\n## ", 1)[0]
+    documented = exit_code_table(section.splitlines(), r"\| (\d+) \| (.+) \|")
+    helped = exit_code_table(EXIT_CODES_HELP.splitlines(), r"  (\d+) +(.+)")
+    assert list(documented) == list(helped) == [int(code) for code in ExitCode]
+    for code in ErrorCode:
+        # Where a status is named, it is named under its own exit code, and only there.
+        for table, name in ((documented, f"`{code.name}`"), (helped, code.name)):
+            rows = [exit_code for exit_code, meaning in table.items() if name in meaning]
+            assert rows in ([], [EXIT_CODES[code]]), (code, rows)
+        if EXIT_CODES[code] is not ExitCode.OTHER_RPC_ERROR:  # the others end in "..."
+            assert f"`{code.name}`" in documented[EXIT_CODES[code]], code
+            assert code.name in helped[EXIT_CODES[code]], code
 
 
 # --- srvwire interface ------------------------------------------------------------------------
@@ -882,7 +939,7 @@ def test_call_interrupted(
     def interrupt(*args: Any, **kwargs: Any) -> Any:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "connect", interrupt)
+    monkeypatch.setattr(cli_common, "connect", interrupt)
     code, out, err = run(capsys, "call", "/trigger", *argv)
     assert (code, out) == (expected, "")
     if expected:
@@ -1243,7 +1300,7 @@ def test_unexpected_errors_are_one_line(
     def fail(args: Any) -> int:
         raise error
 
-    monkeypatch.setattr(cli, "_cmd_interface_packages", fail)
+    monkeypatch.setattr(cli_interface, "_cmd_interface_packages", fail)
     code, out, err = run(capsys, "interface", "packages")
     assert (code, out) == (ExitCode.FAILURE, "")
     assert one_error_line(err) == message

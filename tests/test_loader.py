@@ -607,6 +607,15 @@ def test_specs_and_classes_are_built_once(loader: InterfaceLoader) -> None:
     assert other.load_message("demo/Pose2D") is not loader.load_message("demo/Pose2D")
 
 
+def test_spec_returns_whichever_kind_a_name_denotes(loader: InterfaceLoader) -> None:
+    assert loader.spec("demo/Pose2D") is loader.message_spec("demo/msg/Pose2D")
+    assert loader.spec("demo/srv/Move") is loader.service_spec("demo/Move")
+    assert loader.spec("demo/Go") is loader.action_spec("demo/action/Go")
+    with pytest.raises(InterfaceError) as excinfo:
+        loader.spec("demo/Thing")
+    assert message_of(excinfo).startswith("ambiguous interface name 'demo/Thing': ")
+
+
 def test_failures_are_not_cached(loader: InterfaceLoader, root: Path) -> None:
     path = write(root, "demo/msg/Fixable.msg", "int32\n")
     with pytest.raises(InterfaceSyntaxError):

@@ -37,7 +37,13 @@ from srvwire.idl import (
     TypeSpec,
     Value,
 )
-from srvwire.parser import parse_action, parse_file, parse_message, parse_service
+from srvwire.parser import (
+    parse_action,
+    parse_file,
+    parse_message,
+    parse_service,
+    split_comment,
+)
 from support import DATA, ros_test_interfaces
 
 INVALID = DATA / "invalid"
@@ -463,3 +469,72 @@ def test_rendering_a_service_and_parsing_it_gives_it_back(
 ) -> None:
     spec = parse_service(f"{render(request)}---\n{render(response)}", "demo_pkg", "Random")
     assert (without_lines(spec.request), without_lines(spec.response)) == (request, response)
+
+
+# --- comments -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("line", "code", "comment"),
+    [
+        ("", "", None),
+        (" \t", " \t", None),
+        ("int32 x", "int32 x", None),
+        ("int32 x  # doc", "int32 x  ", " doc"),
+        ("int32 x#doc", "int32 x", "doc"),
+        ("# only a comment", "", " only a comment"),
+        ("  --- # the response", "  --- ", " the response"),
+        ("---", "---", None),
+        ('string s "a # b"  # c', 'string s "a # b"  ', " c"),
+        ('string S="a # b"# c', 'string S="a # b"', " c"),
+        ("string[] s ['a # b', \"#\"] # c", "string[] s ['a # b', \"#\"] ", " c"),
+        ('string s "a \\" # b"', 'string s "a \\" # b"', None),
+        # Quotes open a string only where a value starts; elsewhere they are text.
+        ('string s a "b # c"', 'string s a "b ', ' c"'),
+        ("int32 x 1 # it's", "int32 x 1 ", " it's"),
+    ],
+)
+def test_split_comment(line: str, code: str, comment: str | None) -> None:
+    assert split_comment(line) == (code, comment)
+
+
+def test_split_comment_of_a_line_that_does_not_parse() -> None:
+    with pytest.raises(InterfaceSyntaxError) as info:
+        split_comment("int32 2bad  # doc")
+    assert str(info.value).startswith("<string>:1:7: '2bad' is an invalid field name: ")
+
+
+def without_docs(message: MessageSpec) -> MessageSpec:
+    return dataclasses.replace(
+        message,
+        doc="",
+        fields=tuple(dataclasses.replace(f, doc="") for f in message.fields),
+        constants=tuple(dataclasses.replace(c, doc="") for c in message.constants),
+    )
+
+
+def strip_comments(text: str) -> str:
+    """Cut every comment from ``text`` with split_comment, checking that nothing else goes."""
+    codes = []
+    for line in re.split(r"\r\n|\r|\n", text):
+        code, comment = split_comment(line)
+        assert (code if comment is None else f"{code}#{comment}") == line
+        codes.append(code)
+    return "\n".join(codes)
+
+
+@pytest.mark.parametrize("source", VALID_CASES, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_stripping_comments_from_a_valid_file_keeps_its_declarations(source: Path) -> None:
+    text = source.read_bytes().decode("utf-8").removeprefix("\ufeff")
+    original = parse_text(source.suffix, text, "demo_pkg", source.stem)
+    stripped = parse_text(source.suffix, strip_comments(text), "demo_pkg", source.stem)
+    assert [without_docs(p) for p in parts(stripped)] == [without_docs(p) for p in parts(original)]
+
+
+@settings(deadline=None, max_examples=200)
+@given(message=messages())
+def test_stripping_comments_from_a_rendered_message_keeps_its_declarations(
+    message: MessageSpec,
+) -> None:
+    parsed = parse_message(strip_comments(render(message)), "demo_pkg", "Random")
+    assert without_lines(parsed) == without_docs(message)

@@ -53,7 +53,7 @@ import logging
 import re
 import time
 import typing
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from types import CoroutineType
@@ -82,6 +82,7 @@ __all__ = [
     "ServiceRegistry",
     "dispatch",
     "normalize_name",
+    "service_not_found",
 ]
 
 Handler = Callable[..., Any]
@@ -332,6 +333,16 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
     return method
 
 
+def service_not_found(name: str, names: Iterable[str]) -> ServiceNotFound:
+    """The error for a service ``name`` that is not among ``names``, offering close ones."""
+    wanted = canonical_name(name)
+    candidates = difflib.get_close_matches(wanted, list(names), n=3, cutoff=0.6)
+    hint = f"; did you mean {', '.join(candidates)}?" if candidates else ""
+    return ServiceNotFound(
+        f"no service named {wanted}{hint}", {"candidates": candidates}, service=wanted
+    )
+
+
 class ServiceRegistry:
     """The services one server offers, by canonical name."""
 
@@ -400,12 +411,7 @@ class ServiceRegistry:
         entry = self.get(name)
         if entry is not None:
             return entry
-        wanted = canonical_name(name)
-        candidates = difflib.get_close_matches(wanted, list(self._entries), n=3, cutoff=0.6)
-        hint = f"; did you mean {', '.join(candidates)}?" if candidates else ""
-        raise ServiceNotFound(
-            f"no service named {wanted}{hint}", {"candidates": candidates}, service=wanted
-        )
+        raise service_not_found(name, self._entries)
 
     def __contains__(self, name: object) -> bool:
         return isinstance(name, str) and self.get(name) is not None

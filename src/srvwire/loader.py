@@ -216,6 +216,12 @@ class InterfaceLoader:
         assert isinstance(spec, ActionSpec)
         return spec
 
+    def spec(self, name: str) -> MessageSpec | ServiceSpec | ActionSpec:
+        """Parse (once) and return whichever kind of interface ``name`` denotes."""
+        with self._lock:
+            full = self.resolve_name(name)
+            return self._spec(full, _KINDS_BY_NAME[full.split("/")[1]])
+
     # --- classes ------------------------------------------------------------------------------
 
     def load_message(self, name: str) -> type[Message]:

@@ -25,7 +25,8 @@ Invariants
   feed) belongs to the token it touches, and the token's error shows it escaped.
 * A ``#`` outside a quoted string starts a comment, even one glued to a token
   (``int32 x#doc``). Quotes are only recognised where a value starts, so comment stripping is
-  quote-aware by construction.
+  quote-aware by construction; :func:`split_comment` finds a line's comment by reading the
+  line with the same rules.
 * Every problem is raised as :class:`~srvwire.errors.InterfaceSyntaxError` through
   :meth:`_Cursor.error` (or :func:`_error` for whole-file problems), pointing at the first
   character of the offending token; a missing separator is reported on the file's last line.
@@ -96,7 +97,7 @@ from srvwire.idl import (
     Value,
 )
 
-__all__ = ["parse_action", "parse_file", "parse_message", "parse_service"]
+__all__ = ["parse_action", "parse_file", "parse_message", "parse_service", "split_comment"]
 
 WS: Final = " \t"
 QUOTES: Final = "\"'"
@@ -261,6 +262,29 @@ def parse_file(
     return parse_action(text, package, file.stem, path=shown)
 
 
+def split_comment(line: str) -> tuple[str, str | None]:
+    """Split one line of an interface file into its code and its comment, as the parser reads it.
+
+    The comment is the text after the ``#`` that starts it, or None when there is none; the code
+    is everything before that ``#``, whitespace included. A ``#`` inside a quoted value is part
+    of the value (``string s "a # b"``). Raise :class:`InterfaceSyntaxError` (on line 1 of no
+    file) when the line is not blank, a comment, a separator or a declaration.
+    """
+    cur = _Cursor(line, 1, None)
+    cur.skip_ws()
+    if SEPARATOR.fullmatch(line):
+        cur.take_until("#")  # past the dashes: what is left is a comment or nothing
+    if cur.at_comment_or_end():
+        comment = None if cur.at_end() else _comment(cur)
+    else:
+        # The package only qualifies the type names, which do not move a comment.
+        spec, _ = _declaration(cur, package="")
+        comment = _trailing_comment(cur, spec)
+    if comment is None:
+        return line, None
+    return line[: len(line) - len(comment) - 1], comment
+
+
 # --- files and parts --------------------------------------------------------------------------
 
 
@@ -400,17 +424,22 @@ def _line(cur: _Cursor, message: _Message, package: str) -> None:
             name_pos,
         )
     seen[spec.name] = cur.line
-    if isinstance(spec, ConstantSpec):
-        what = "constant value"
-    else:
-        what = "field name" if spec.default is None else "default value"
-    message.declare(spec, _end_of_line(cur, what))
+    message.declare(spec, _trailing_comment(cur, spec))
 
 
 def _comment(cur: _Cursor) -> str:
     text = cur.text[cur.pos + 1 :]
     cur.pos = len(cur.text)
     return text
+
+
+def _trailing_comment(cur: _Cursor, spec: FieldSpec | ConstantSpec) -> str | None:
+    """Read what may follow a declaration: whitespace, then an optional comment."""
+    if isinstance(spec, ConstantSpec):
+        what = "constant value"
+    else:
+        what = "field name" if spec.default is None else "default value"
+    return _end_of_line(cur, what)
 
 
 def _end_of_line(cur: _Cursor, after: str) -> str | None:

@@ -1,0 +1,233 @@
+"""``srvwire call``: call a service, once or at a rate, and print what was sent and came back.
+
+TYPE and VALUES are both optional; with one of them given, it is TYPE when it reads like a type
+name (VALUES never does: a YAML mapping has a colon). The type is TYPE, else the one the server
+advertised; when it loads here, the request is checked before it is sent, and both sides print
+as ROS 2's Python messages do. Without it, the values go as they are and print as a mapping.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import re
+from typing import Any
+
+import pydantic
+import yaml
+
+from srvwire.cli.common import (
+    EXIT_CODES_HELP,
+    CommandError,
+    Commands,
+    ExitCode,
+    add_command,
+    interface_loader,
+    local_options,
+    open_client,
+    positive_float,
+    positive_int,
+    remote_options,
+)
+from srvwire.errors import InterfaceError, InvalidParams
+from srvwire.models import Service, summarize_errors, validation_errors
+from srvwire.protocol import canonical_name
+
+_TYPE_SHAPE = re.compile(r"^\w+/(?:\w+/)?\w+$")
+
+logger = logging.getLogger("srvwire.cli")
+
+
+def register(commands: Commands) -> None:
+    call = add_command(
+        commands,
+        "call",
+        "call a service and print its response",
+        "examples:\n"
+        "  srvwire call /add_two_ints '{a: 1, b: 2}'\n"
+        "  srvwire call /add_two_ints example_interfaces/srv/AddTwoInts '{a: 1, b: 2}'\n"
+        "  srvwire call /trigger --json\n"
+        "  srvwire call /get_robot_state '{query_type: pose}' --rate 2\n\n"
+        "TYPE may be left out when the server advertises the service's type. With only one of\n"
+        "TYPE and VALUES given, it is TYPE when it looks like pkg/srv/Name or pkg/Name.\n\n"
+        + EXIT_CODES_HELP,
+        [remote_options(), local_options()],
+    )
+    call.add_argument("name", metavar="NAME", help="the service to call, e.g. /add_two_ints")
+    call.add_argument(
+        "type", metavar="TYPE", nargs="?", help="its type, e.g. example_interfaces/srv/AddTwoInts"
+    )
+    call.add_argument(
+        "values",
+        metavar="VALUES",
+        nargs="?",
+        help="the request as a YAML mapping, e.g. '{a: 1, b: 2}' (default: {}, all defaults)",
+    )
+    call.add_argument(
+        "-r",
+        "--rate",
+        type=positive_float,
+        metavar="HZ",
+        help="repeat the call HZ times a second, until Ctrl-C or --count calls",
+    )
+    call.add_argument(
+        "-n",
+        "--count",
+        type=positive_int,
+        metavar="N",
+        help="make N calls, then stop (default: 1, or unlimited with --rate)",
+    )
+    call.add_argument(
+        "--json",
+        action="store_true",
+        help="print only each response, as one line of JSON",
+    )
+    call.set_defaults(command=_cmd_call, late_positionals=("type", "values"))
+
+
+def _cmd_call(args: argparse.Namespace) -> int:
+    type_arg: str | None = args.type
+    values_arg: str | None = args.values
+    if values_arg is None and type_arg is not None and not _TYPE_SHAPE.match(type_arg):
+        type_arg, values_arg = None, type_arg
+    values = _parse_values(values_arg)
+    srv_type = interface_loader(args).load_service(type_arg) if type_arg is not None else None
+    count: int | None = args.count if args.count is not None else None if args.rate else 1
+    try:
+        return asyncio.run(_call(args, srv_type, values, count))
+    except KeyboardInterrupt:
+        if args.rate is not None:  # Ctrl-C is how a repeating call is meant to end
+            return ExitCode.OK
+        raise
+
+
+def _parse_values(text: str | None) -> dict[str, Any]:
+    """Read VALUES: a YAML mapping, ``{}`` when left out."""
+    if text is None:
+        return {}
+    try:
+        values = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = exc.problem or exc.context or "not valid YAML"
+        raise CommandError(f"invalid VALUES{where}: {problem}", ExitCode.USAGE) from None
+    except yaml.YAMLError as exc:
+        raise CommandError(f"invalid VALUES: {exc}", ExitCode.USAGE) from None
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise CommandError(
+            f"invalid VALUES: expected a YAML mapping such as '{{a: 1, b: 2}}', "
+            f"got {type(values).__name__} {values!r}",
+            ExitCode.USAGE,
+        )
+    return values
+
+
+async def _call(
+    args: argparse.Namespace,
+    srv_type: type[Service] | None,
+    values: dict[str, Any],
+    count: int | None,
+) -> int:
+    name = canonical_name(args.name)
+    async with open_client(args) as client:
+        type_name = srv_type.type_name if srv_type is not None else None
+        # The server advertised its services' types on connecting; an unknown service is left
+        # for the call to report.
+        advertised = client.services.get(name)
+        if advertised is not None:
+            if srv_type is None:
+                type_name = advertised
+                srv_type = _try_load_service(args, advertised)
+            elif advertised != type_name:
+                raise CommandError(
+                    f"{name} is a {advertised} service, not {type_name}", ExitCode.USAGE
+                )
+        request: pydantic.BaseModel | dict[str, Any] = values
+        if srv_type is not None:
+            request = _validate_request(name, srv_type, values)
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        done = 0
+        while count is None or done < count:
+            if done and args.rate is not None:
+                await asyncio.sleep(max(0.0, start + done / args.rate - loop.time()))
+            if not args.json:
+                if done:
+                    print()
+                shown = _ros_repr(request, _part_label(srv_type, type_name, "Request"))
+                print(f"requester: making request: {shown}", flush=True)
+            response = await client.call(name, request, timeout=args.timeout, srv_type=srv_type)
+            if args.json:
+                print(json.dumps(_jsonable(response), ensure_ascii=False), flush=True)
+            else:
+                shown = _ros_repr(response, _part_label(srv_type, type_name, "Response"))
+                print(f"\nresponse:\n{shown}", flush=True)
+            done += 1
+    return ExitCode.OK
+
+
+def _try_load_service(args: argparse.Namespace, type_name: str) -> type[Service] | None:
+    """Load a type the server advertised; None (plain dicts) when it is not on the search path."""
+    try:
+        return interface_loader(args).load_service(type_name)
+    except InterfaceError as exc:
+        logger.debug("cannot load %s here (%s); sending a plain mapping", type_name, exc)
+        return None
+
+
+def _validate_request(name: str, srv_type: type[Service], values: dict[str, Any]) -> Any:
+    try:
+        return srv_type.Request.model_validate(values)
+    except pydantic.ValidationError as exc:
+        errors = validation_errors(exc)
+        raise InvalidParams(
+            f"VALUES do not fit {srv_type.type_name} (checked locally, not sent): "
+            f"{summarize_errors(errors)}",
+            {"errors": errors},
+            service=name,
+        ) from None
+
+
+def _part_label(srv_type: type[Service] | None, type_name: str | None, part: str) -> str | None:
+    """Name a request or response as ROS prints it: ``std_srvs.srv.Trigger_Request``."""
+    if srv_type is not None:
+        model: type[pydantic.BaseModel] = getattr(srv_type, part)
+        label = getattr(model, "type_name", None)
+        if isinstance(label, str):
+            return label.replace("/", ".")
+    if type_name is not None:
+        return f"{type_name.replace('/', '.')}_{part}"
+    return None  # the server did not say: the values print as a plain mapping
+
+
+def _ros_repr(value: Any, label: str | None = None) -> str:
+    """Write a value as ROS 2's Python messages print: ``pkg.msg.Name(field=value, ...)``."""
+    if isinstance(value, pydantic.BaseModel):
+        model = type(value)
+        if label is None:
+            type_name = getattr(model, "type_name", None)
+            label = type_name.replace("/", ".") if isinstance(type_name, str) else model.__name__
+        fields = ", ".join(
+            f"{info.alias or key}={_ros_repr(getattr(value, key))}"
+            for key, info in model.model_fields.items()
+        )
+        return f"{label}({fields})"
+    if isinstance(value, dict) and label is not None:
+        fields = ", ".join(f"{key}={_ros_repr(item)}" for key, item in value.items())
+        return f"{label}({fields})"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_ros_repr(item) for item in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{key!r}: {_ros_repr(item)}" for key, item in value.items()) + "}"
+    return repr(value)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, pydantic.BaseModel):
+        return value.model_dump(mode="json", by_alias=True)
+    return value

@@ -1,0 +1,236 @@
+"""What every ``srvwire`` command shares: exit codes, parser classes, argument types, options.
+
+A command reports failure by raising :class:`CommandError` (a message and an exit code) or by
+letting a srvwire error escape; :func:`srvwire.cli.main` prints either as one line. An error
+from a call exits with the code :data:`EXIT_CODES` gives its JSON-RPC code, or
+``SERVICE_FAILED`` for an application code (a ``ServiceError``'s, outside the reserved range).
+What each exit code means is written for users twice, briefly in :data:`EXIT_CODES_HELP`
+(``srvwire --help``) and at length in docs/cli.md; tests/test_cli.py checks that they agree
+with :class:`ExitCode` and :data:`EXIT_CODES`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import enum
+import os
+from collections.abc import AsyncIterator, Mapping, Sequence
+from pathlib import Path
+from typing import Final, NoReturn, TypeAlias
+
+from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect
+from srvwire.errors import ErrorCode, RPCError, is_reserved_code
+from srvwire.loader import InterfaceLoader, default_search_path
+
+URL_ENV_VAR = "SRVWIRE_URL"
+
+
+class ExitCode(enum.IntEnum):
+    """The process exit status of ``srvwire``."""
+
+    OK = 0
+    FAILURE = 1
+    USAGE = 2
+    UNAVAILABLE = 3
+    DEADLINE_EXCEEDED = 4
+    SERVICE_NOT_FOUND = 5
+    INVALID_PARAMS = 6
+    SERVICE_FAILED = 7
+    OTHER_RPC_ERROR = 8
+    INTERRUPTED = 130
+
+
+EXIT_CODES: Final[Mapping[ErrorCode, ExitCode]] = {
+    ErrorCode.PARSE_ERROR: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.INVALID_REQUEST: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.SERVICE_NOT_FOUND: ExitCode.SERVICE_NOT_FOUND,
+    ErrorCode.INVALID_PARAMS: ExitCode.INVALID_PARAMS,
+    ErrorCode.INTERNAL: ExitCode.SERVICE_FAILED,
+    ErrorCode.DEADLINE_EXCEEDED: ExitCode.DEADLINE_EXCEEDED,
+    ErrorCode.CANCELLED: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.UNAVAILABLE: ExitCode.UNAVAILABLE,  # ConnectionLost has this code too
+    ErrorCode.RESOURCE_EXHAUSTED: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.UNAUTHENTICATED: ExitCode.OTHER_RPC_ERROR,
+}
+"""The exit code for an error from a call, by the error's JSON-RPC code."""
+
+
+def exit_code_for(error: RPCError) -> ExitCode:
+    """Return the exit code for ``error``, chosen by its JSON-RPC code."""
+    if not is_reserved_code(error.code):
+        return ExitCode.SERVICE_FAILED  # an application error, sent with ServiceError
+    try:
+        return EXIT_CODES[ErrorCode(error.code)]
+    except ValueError:  # a reserved code srvwire has no name for
+        return ExitCode.OTHER_RPC_ERROR
+
+
+EXIT_CODES_HELP = """\
+exit codes:
+  0    success
+  1    local failure: unknown type or package, interface file that does not parse
+  2    usage error, or VALUES that are not a YAML mapping
+  3    server unreachable, connection lost, or server shutting down (UNAVAILABLE)
+  4    deadline exceeded (DEADLINE_EXCEEDED)
+  5    no such service (SERVICE_NOT_FOUND)
+  6    request does not fit the service type (INVALID_PARAMS)
+  7    the handler failed (INTERNAL, or an application error)
+  8    any other error from the server (CANCELLED, RESOURCE_EXHAUSTED, ...)
+  130  interrupted with Ctrl-C"""
+
+
+class CommandError(Exception):
+    """Raised by a command to stop with one line on stderr and a given exit code."""
+
+    def __init__(self, message: str, exit_code: ExitCode = ExitCode.FAILURE) -> None:
+        self.message = message
+        self.exit_code = exit_code
+        super().__init__(message)
+
+
+# --- the parser -------------------------------------------------------------------------------
+
+
+class UsageError(Exception):
+    """Raised instead of argparse's print-usage-and-exit, so main() can return 2."""
+
+    def __init__(self, message: str, prog: str) -> None:
+        self.message = message
+        self.prog = prog
+        super().__init__(message)
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keep the epilog's examples as written, and give option names a wider column."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, max_help_position=32)
+        self._action_max_length = 14  # room for "    interface" in the list of commands
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors reach main() instead of exiting the process."""
+
+    def error(self, message: str) -> NoReturn:
+        raise UsageError(message, self.prog)
+
+
+Commands: TypeAlias = "argparse._SubParsersAction[Parser]"
+"""Where a command group registers its parser: ``parser.add_subparsers(...)``."""
+
+
+def add_command(
+    commands: Commands,
+    name: str,
+    summary: str,
+    epilog: str,
+    parents: Sequence[Parser] = (),
+) -> Parser:
+    """Add the parser of one command or subcommand; ``summary`` is its line in the list."""
+    return commands.add_parser(
+        name,
+        help=summary,
+        description=summary[0].upper() + summary[1:] + ".",
+        epilog=epilog,
+        parents=list(parents),
+        formatter_class=HelpFormatter,
+    )
+
+
+def remote_options() -> Parser:
+    """The options of a command that talks to a server, read by :func:`open_client`."""
+    remote = Parser(add_help=False)
+    remote.add_argument(
+        "--url",
+        default=os.environ.get(URL_ENV_VAR) or DEFAULT_URL,
+        help=f"server to talk to (default: ${URL_ENV_VAR}, else {DEFAULT_URL})",
+    )
+    remote.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=DEFAULT_TIMEOUT,
+        metavar="SECONDS",
+        help=f"deadline for connecting and for each call (default: {DEFAULT_TIMEOUT:g})",
+    )
+    return remote
+
+
+def local_options() -> Parser:
+    """The option of a command that reads interface files, read by :func:`interface_loader`."""
+    local = Parser(add_help=False)
+    local.add_argument(
+        "--path",
+        action="append",
+        default=[],
+        type=Path,
+        metavar="DIR",
+        help="a folder of interface packages, searched before $SRVWIRE_INTERFACE_PATH and the "
+        "bundled interfaces (repeatable)",
+    )
+    return local
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number, not {text}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 65535, not {value}")
+    return value
+
+
+# --- what the options open --------------------------------------------------------------------
+
+
+def interface_loader(args: argparse.Namespace) -> InterfaceLoader:
+    """A loader for the ``--path`` folders, then the default search path."""
+    extra: list[Path] = args.path
+    return InterfaceLoader([*extra, *default_search_path()])
+
+
+@contextlib.asynccontextmanager
+async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
+    """Open a client on ``--url`` with ``--timeout`` and the search path, as ``async with``.
+
+    A URL that is not ``ws://`` or ``wss://`` is a usage error.
+    """
+    entered = False
+    try:
+        async with connect(
+            args.url,
+            timeout=args.timeout,
+            open_timeout=args.timeout,
+            search_path=[*getattr(args, "path", []), *default_search_path()],
+        ) as client:
+            entered = True
+            yield client
+    except ValueError as exc:
+        if entered:  # raised by the command, not by connecting: not about --url
+            raise
+        raise CommandError(f"bad --url: {exc}", ExitCode.USAGE) from None
+
+
+def plural(count: int, noun: str) -> str:
+    return f"{count} {noun}" if count == 1 else f"{count} {noun}s"

@@ -1,0 +1,264 @@
+"""``srvwire interface``: list, show, template and check interface files; no server involved.
+
+Every subcommand but ``check`` reads the search path (``--path``, then the default one) through
+one :class:`~srvwire.loader.InterfaceLoader`; ``check`` parses the files it is given, each on
+its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import pydantic
+import yaml
+
+from srvwire.cli.common import (
+    CommandError,
+    Commands,
+    ExitCode,
+    add_command,
+    interface_loader,
+    local_options,
+    plural,
+)
+from srvwire.errors import InterfaceError
+from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
+from srvwire.loader import InterfaceLoader
+from srvwire.parser import parse_file, split_comment
+
+INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
+
+_LINE_BREAK = re.compile(r"\r\n|\r|\n")
+_KIND_HEADINGS = (
+    (InterfaceKind.MSG, "Messages:"),
+    (InterfaceKind.SRV, "Services:"),
+    (InterfaceKind.ACTION, "Actions:"),
+)
+
+
+def register(commands: Commands) -> None:
+    interface = add_command(
+        commands,
+        "interface",
+        "inspect and check interface files on the local search path",
+        "examples:\n"
+        "  srvwire interface list\n"
+        "  srvwire interface show geometry_msgs/msg/Pose\n"
+        "  srvwire interface proto example_interfaces/srv/AddTwoInts\n"
+        "  srvwire interface check interfaces/",
+    )
+    verbs = interface.add_subparsers(title="subcommands", metavar="SUBCOMMAND", required=True)
+    local = local_options()
+
+    listing = add_command(
+        verbs,
+        "list",
+        "list every message, service and action type",
+        "example:\n  srvwire interface list -s",
+        [local],
+    )
+    listing.add_argument("-m", "--only-msgs", action="store_true", help="list messages only")
+    listing.add_argument("-s", "--only-srvs", action="store_true", help="list services only")
+    listing.add_argument("-a", "--only-actions", action="store_true", help="list actions only")
+    listing.set_defaults(command=_cmd_interface_list)
+
+    packages = add_command(
+        verbs,
+        "packages",
+        "list the interface packages",
+        "example:\n  srvwire interface packages --path ./my_interfaces",
+        [local],
+    )
+    packages.set_defaults(command=_cmd_interface_packages)
+
+    package = add_command(
+        verbs,
+        "package",
+        "list the types in one package",
+        "example:\n  srvwire interface package std_srvs",
+        [local],
+    )
+    package.add_argument("package", metavar="PACKAGE", help="a package name, e.g. std_srvs")
+    package.set_defaults(command=_cmd_interface_package)
+
+    show = add_command(
+        verbs,
+        "show",
+        "print an interface's definition, with nested types expanded",
+        "examples:\n"
+        "  srvwire interface show geometry_msgs/msg/Pose\n"
+        "  srvwire interface show sensor_msgs/JointState --no-comments\n\n"
+        "Nested types are printed beneath the field that uses them, indented by one tab.\n"
+        "By default only the comments of the type asked for are kept.",
+        [local],
+    )
+    show.add_argument("type", metavar="TYPE", help="pkg/msg/Name, pkg/srv/Name, or pkg/Name")
+    comments = show.add_mutually_exclusive_group()
+    comments.add_argument(
+        "--all-comments", action="store_true", help="keep the comments of nested types too"
+    )
+    comments.add_argument("--no-comments", action="store_true", help="strip every comment")
+    show.set_defaults(command=_cmd_interface_show)
+
+    proto = add_command(
+        verbs,
+        "proto",
+        "print a YAML template of a message, or of a service's request",
+        "examples:\n"
+        "  srvwire interface proto example_interfaces/srv/AddTwoInts\n"
+        '  srvwire call /add_two_ints "$(srvwire interface proto AddTwoInts --flow '
+        '--no-quotes)"\n\n'
+        "The template holds every field at its default value; for an action it is the goal.",
+        [local],
+    )
+    proto.add_argument("type", metavar="TYPE", help="pkg/msg/Name, pkg/srv/Name, or pkg/Name")
+    proto.add_argument(
+        "--no-quotes", action="store_true", help="do not wrap the template in double quotes"
+    )
+    proto.add_argument(
+        "--flow", action="store_true", help="print one line, {a: 0, b: 0}, instead of a block"
+    )
+    proto.set_defaults(command=_cmd_interface_proto)
+
+    check = add_command(
+        verbs,
+        "check",
+        "parse interface files and report every one that is broken",
+        "examples:\n"
+        "  srvwire interface check interfaces/\n"
+        "  srvwire interface check my_pkg/srv/Move.srv my_pkg/msg/\n\n"
+        "Folders are searched recursively for .msg, .srv and .action files. Each broken file\n"
+        "is reported as path:line:column: message; the exit code is 1 if any file is broken.",
+    )
+    check.add_argument(
+        "paths", metavar="PATH", nargs="+", type=Path, help="an interface file or a folder"
+    )
+    check.set_defaults(command=_cmd_interface_check)
+
+
+def _cmd_interface_list(args: argparse.Namespace) -> int:
+    wanted = {
+        InterfaceKind.MSG: args.only_msgs,
+        InterfaceKind.SRV: args.only_srvs,
+        InterfaceKind.ACTION: args.only_actions,
+    }
+    if not any(wanted.values()):
+        wanted = dict.fromkeys(wanted, True)
+    names = interface_loader(args).types()
+    for kind, heading in _KIND_HEADINGS:
+        if wanted[kind]:
+            print(heading)
+            for name in names:
+                if name.split("/")[1] == kind.value:
+                    print(f"    {name}")
+    return ExitCode.OK
+
+
+def _cmd_interface_packages(args: argparse.Namespace) -> int:
+    for package in interface_loader(args).packages():
+        print(package)
+    return ExitCode.OK
+
+
+def _cmd_interface_package(args: argparse.Namespace) -> int:
+    for name in interface_loader(args).types(args.package):
+        print(name)
+    return ExitCode.OK
+
+
+def _cmd_interface_show(args: argparse.Namespace) -> int:
+    loader = interface_loader(args)
+    keep = "all" if args.all_comments else "none" if args.no_comments else "top"
+    for line in _definition_lines(loader, loader.resolve_name(args.type), keep, ()):
+        print(line)
+    return ExitCode.OK
+
+
+def _definition_lines(
+    loader: InterfaceLoader, name: str, keep: str, outer: tuple[str, ...]
+) -> Iterator[str]:
+    """Yield the lines of ``name``'s file, each nested type's lines after the field using it.
+
+    ``keep`` says whose comments survive: ``"all"``, ``"top"`` (the outermost file's) or
+    ``"none"``. ``outer`` is the chain of types being expanded, so a cycle stops expanding.
+    """
+    spec = loader.spec(name)
+    nested = {
+        field.line: field.type.qualified_name
+        for part in _parts_of(spec)
+        for field in part.fields
+        if not field.type.is_primitive
+    }
+    text = loader.path_of(name).read_text(encoding="utf-8").removeprefix("\ufeff")
+    lines = _LINE_BREAK.split(text)
+    if lines and not lines[-1]:
+        lines.pop()
+    depth = len(outer)
+    strip = keep == "none" or (keep == "top" and depth > 0)
+    for number, raw in enumerate(lines, start=1):
+        line = split_comment(raw)[0].rstrip() if strip else raw.rstrip()
+        if strip and not line.strip():
+            continue
+        yield "\t" * depth + line if line else ""
+        inner = nested.get(number)
+        if inner is not None and inner not in outer and inner != name:
+            yield from _definition_lines(loader, inner, keep, (*outer, name))
+
+
+def _parts_of(spec: MessageSpec | ServiceSpec | ActionSpec) -> tuple[MessageSpec, ...]:
+    if isinstance(spec, MessageSpec):
+        return (spec,)
+    if isinstance(spec, ServiceSpec):
+        return (spec.request, spec.response)
+    return (spec.goal, spec.result, spec.feedback)
+
+
+def _cmd_interface_proto(args: argparse.Namespace) -> int:
+    loader = interface_loader(args)
+    name = loader.resolve_name(args.type)
+    kind = name.split("/")[1]
+    if kind == InterfaceKind.MSG.value:
+        instance: pydantic.BaseModel = loader.load_message(name)()
+    elif kind == InterfaceKind.SRV.value:
+        instance = loader.load_service(name).Request()
+    else:
+        instance = loader.load_action(name).Goal()
+    values = instance.model_dump(mode="json", by_alias=True)
+    if args.flow:
+        text = yaml.safe_dump(
+            values, default_flow_style=True, sort_keys=False, allow_unicode=True, width=float("inf")
+        )
+        text = text.rstrip("\n")
+    else:
+        text = yaml.safe_dump(values, default_flow_style=False, sort_keys=False, allow_unicode=True)
+    # Quoted, the template pastes into a shell as one argument, as `ros2 interface proto` prints.
+    print(text.rstrip("\n") if args.no_quotes else f'"{text}"')
+    return ExitCode.OK
+
+
+def _cmd_interface_check(args: argparse.Namespace) -> int:
+    files: list[Path] = []
+    for path in args.paths:
+        if path.is_dir():
+            files.extend(
+                sorted(p for p in path.rglob("*") if p.suffix in INTERFACE_SUFFIXES and p.is_file())
+            )
+        elif path.is_file():
+            files.append(path)
+        else:
+            raise CommandError(f"no such file or folder: {path}", ExitCode.USAGE)
+    errors = 0
+    for file in files:
+        try:
+            parse_file(file)
+        except InterfaceError as exc:
+            errors += 1
+            print(exc)
+        except OSError as exc:
+            errors += 1
+            print(f"{file}: cannot read the file: {exc.strerror}")
+    print(f"checked {plural(len(files), 'file')}, {plural(errors, 'error')}")
+    return ExitCode.FAILURE if errors else ExitCode.OK

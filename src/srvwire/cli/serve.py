@@ -1,0 +1,166 @@
+"""``srvwire serve``: run the services of a :class:`~srvwire.server.Server` defined in user code.
+
+TARGET is ``module[:attr]`` or ``file.py[:attr]``; the attribute defaults to ``server``, then
+``app``. The first line printed is always ``serving N services on URL``. Ctrl-C or SIGTERM stops
+the server gracefully and exits with 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import logging
+import os
+import re
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, plural, port
+from srvwire.server import RunningServer, Server
+
+_ATTRIBUTE_PATH = re.compile(r"^[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*$")
+_DEFAULT_TARGET_ATTRIBUTES = ("server", "app")
+
+
+def register(commands: Commands) -> None:
+    serve = add_command(
+        commands,
+        "serve",
+        "serve the services of a srvwire Server object",
+        "examples:\n"
+        "  srvwire serve my_app.services:server\n"
+        "  srvwire serve path/to/app.py --port 9000\n"
+        "  srvwire serve examples/robot_state_server.py:build_server --factory\n\n"
+        "TARGET is MODULE[:ATTR] or FILE.py[:ATTR]; ATTR defaults to 'server', then 'app'.\n"
+        "Ctrl-C stops the server gracefully.",
+    )
+    serve.add_argument("target", metavar="TARGET", help="where the Server object lives")
+    serve.add_argument(
+        "--factory",
+        action="store_true",
+        help="TARGET is a function that takes no arguments and returns the Server",
+    )
+    serve.add_argument(
+        "--host", default="127.0.0.1", help="interface to listen on (default: 127.0.0.1)"
+    )
+    serve.add_argument(
+        "--port",
+        type=port,
+        default=8765,
+        help="port to listen on; 0 picks a free one (default: 8765)",
+    )
+    serve.add_argument(
+        "--log-level",
+        type=str.lower,
+        choices=["debug", "info", "warning", "error"],
+        default="info",
+        help="how much the server logs to stderr (default: info)",
+    )
+    serve.set_defaults(command=_cmd_serve)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    server = _load_target(args.target, factory=args.factory)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    package_logger = logging.getLogger("srvwire")
+    previous_level = package_logger.level
+    package_logger.addHandler(handler)
+    package_logger.setLevel(args.log_level.upper())
+
+    def ready(running: RunningServer) -> None:
+        services = server.registry.services()
+        print(f"serving {plural(len(services), 'service')} on {running.url}", flush=True)
+        for name, type_name in services:
+            print(f"  {name} [{type_name}]", flush=True)
+
+    def stopping(running: RunningServer) -> None:
+        print("shutting down", flush=True)
+
+    try:
+        # run() stops on SIGINT or SIGTERM, and takes a KeyboardInterrupt where it cannot.
+        server.run(args.host, args.port, ready=ready, stopping=stopping)
+    except BrokenPipeError:
+        raise  # stdout was closed, which is not a listening problem
+    except OSError as exc:
+        raise CommandError(f"cannot listen on {args.host}:{args.port}: {exc}") from None
+    finally:
+        package_logger.removeHandler(handler)
+        package_logger.setLevel(previous_level)
+    print("stopped", flush=True)
+    return ExitCode.OK
+
+
+def _load_target(target: str, *, factory: bool = False) -> Server:
+    """Find the Server object TARGET names: ``module[:attr]`` or ``file.py[:attr]``.
+
+    With ``factory``, the attribute is a function to call (with no arguments) for the Server.
+    """
+    location, _, attribute = target.rpartition(":")
+    if not location or not _ATTRIBUTE_PATH.match(attribute):
+        location, attribute = target, ""
+    module = _import_target(location)
+    names = [attribute] if attribute else list(_DEFAULT_TARGET_ATTRIBUTES)
+    for name in names:
+        found: Any = module
+        try:
+            for part in name.split("."):
+                found = getattr(found, part)
+        except AttributeError:
+            continue
+        if factory:
+            if not callable(found):
+                raise CommandError(f"{location}:{name} is not callable, so it is not a factory")
+            try:
+                found = found()
+            except Exception as exc:
+                raise CommandError(
+                    f"{location}:{name}() failed: {type(exc).__name__}: {exc}"
+                ) from exc
+            if not isinstance(found, Server):
+                raise CommandError(
+                    f"{location}:{name}() returned {type(found).__name__!r}, not a srvwire Server"
+                )
+        if not isinstance(found, Server):
+            raise CommandError(
+                f"{location}:{name} is {type(found).__name__!r}, not a srvwire Server"
+            )
+        return found
+    wanted = " or ".join(repr(name) for name in names)
+    raise CommandError(
+        f"{location} has no attribute {wanted}; name the Server object as {location}:NAME"
+    )
+
+
+def _import_target(location: str) -> ModuleType:
+    path = Path(location)
+    if location.endswith(".py") or os.sep in location or "/" in location:
+        if not path.is_file():
+            raise CommandError(f"no such file: {location}")
+        directory = str(path.resolve().parent)
+        if directory not in sys.path:
+            sys.path.insert(0, directory)  # so the app can import its neighbours
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        if spec is None or spec.loader is None:
+            raise CommandError(f"cannot import {location}: not a Python file")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[path.stem] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as exc:
+            del sys.modules[path.stem]
+            raise CommandError(f"importing {location} failed: {type(exc).__name__}: {exc}") from exc
+        return module
+    if "" not in sys.path and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())  # as `python -m` would, so local modules are found
+    try:
+        return importlib.import_module(location)
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and location.startswith(exc.name):
+            raise CommandError(f"no module named {location!r}") from None
+        raise CommandError(f"importing {location} failed: {type(exc).__name__}: {exc}") from exc
+    except Exception as exc:
+        raise CommandError(f"importing {location} failed: {type(exc).__name__}: {exc}") from exc
