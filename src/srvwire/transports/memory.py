@@ -1,0 +1,293 @@
+"""An in-process transport: a server and its clients in one event loop, with no socket.
+
+Tests (srvwire's and its users') serve and connect on one :class:`MemoryTransport` instance,
+which is a little world of its own: ``listen`` registers an address there, ``connect`` finds it
+there, and another instance sees none of it. ::
+
+    transport = MemoryTransport()
+    async with serve(server, "localhost", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport) as client:
+            ...
+
+It keeps the rules of :mod:`srvwire.transports.base` as the WebSocket transport does:
+
+* Each end has an inbox: the messages its peer sent and it has not received yet, in order,
+  with their size in bytes. The connection ends for both ends at once, but ``recv`` returns
+  what is left in the inbox before it raises :class:`TransportClosed`, as a close frame
+  arrives after the data sent before it.
+* ``send`` puts the message in the peer's inbox, then waits while that inbox holds more than
+  the high-water mark, until the peer reads it down to the low-water mark (a quarter of it)
+  or the connection ends.
+* A message larger than the receiver's ``max_message_size`` is not delivered: the connection
+  ends with 1009. Bytes are delivered as text; when they are not UTF-8, the receiver ends the
+  connection with 1007 on reading them, and drops what it had not read.
+* ``close`` ends the connection at once, both ends: there is no handshake to wait for.
+  :meth:`MemoryConnection.abort` ends it without a close code, as a dropped TCP connection.
+* The listener runs each connection's handler in a task of its own, as websockets does: when
+  the handler returns, its end closes with 1000; when it raises, the error is logged and the
+  end closes with 1011; when it is cancelled, the connection drops.
+* There is no keepalive: an in-process peer cannot go silent while its event loop runs, so
+  ``ping_interval`` and ``ping_timeout`` are ignored, and so is ``compression``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import urllib.parse
+from collections import deque
+from typing import Any
+
+from srvwire.transports.base import (
+    Connection,
+    ConnectionHandler,
+    Listener,
+    Options,
+    Transport,
+    TransportClosed,
+    TransportError,
+)
+
+__all__ = ["MemoryConnection", "MemoryListener", "MemoryTransport"]
+
+logger = logging.getLogger(__name__)
+
+
+def _netloc(host: str, port: int) -> str:
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def _parse(url: str) -> tuple[str, int]:
+    """Return the address of a ``memory://host:port`` URL; raise ``ValueError`` saying why not."""
+    try:
+        parts = urllib.parse.urlsplit(url)
+        port = parts.port
+    except ValueError as exc:  # a port that is no number, a bad IPv6 host
+        why = str(exc)
+    else:
+        if parts.scheme != "memory":
+            why = "the scheme is not memory"
+        elif not parts.hostname:
+            why = "no host"
+        elif port is None:
+            why = "no port"
+        else:
+            return parts.hostname, port
+    raise ValueError(f"not a memory URL: {url!r} ({why})")
+
+
+class MemoryConnection(Connection):
+    """One end of an in-process connection."""
+
+    __slots__ = (
+        "_code",
+        "_ended",
+        "_high",
+        "_inbox",
+        "_limit",
+        "_low",
+        "_peer",
+        "_reason",
+        "_receiver",
+        "_unread",
+        "_writable",
+        "remote_address",
+    )
+
+    def __init__(self, remote_address: Any, max_message_size: int | None, high_water: int) -> None:
+        self.remote_address = remote_address
+        self._peer = self
+        self._limit = max_message_size
+        self._high = high_water
+        self._low = high_water // 4
+        self._inbox: deque[tuple[str | bytes, int]] = deque()
+        self._unread = 0  # bytes in the inbox
+        self._receiver: asyncio.Future[None] | None = None  # the recv waiting for a message
+        self._writable = asyncio.Event()  # the inbox is not above the high-water mark
+        self._writable.set()
+        self._ended = False
+        self._code: int | None = None
+        self._reason = ""
+
+    async def recv(self) -> str:
+        inbox = self._inbox
+        while not inbox:
+            if self._ended:
+                raise TransportClosed(self._code, self._reason)
+            if self._receiver is not None:
+                raise RuntimeError("another coroutine is already waiting for the next message")
+            self._receiver = asyncio.get_running_loop().create_future()
+            try:
+                await self._receiver
+            finally:
+                self._receiver = None
+        message, size = inbox.popleft()
+        self._unread -= size
+        if self._unread <= self._low:
+            self._writable.set()
+        if isinstance(message, str):
+            return message
+        try:
+            return message.decode()
+        except UnicodeDecodeError as exc:
+            inbox.clear()
+            self._unread = 0
+            self._end(1007, f"{exc.reason} at position {exc.start}")
+            raise TransportClosed(self._code, self._reason) from exc
+
+    async def send(self, message: str | bytes) -> None:
+        if self._ended:
+            raise TransportClosed(self._code, self._reason)
+        peer = self._peer
+        if isinstance(message, str):
+            size = len(message) if message.isascii() else len(message.encode())
+        else:
+            size = len(message)
+        limit = peer._limit
+        if limit is not None and size > limit:
+            # Sent, then refused by the peer: the sender learns it from the close, as on a socket.
+            self._end(1009, f"message of {size} bytes is over the limit of {limit} bytes")
+            return
+        peer._inbox.append((message, size))
+        peer._unread += size
+        receiver = peer._receiver
+        if receiver is not None and not receiver.done():
+            receiver.set_result(None)
+        if peer._unread > self._high:
+            peer._writable.clear()
+            await peer._writable.wait()
+            if self._ended:
+                raise TransportClosed(self._code, self._reason)
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        if not self._ended:
+            self._end(code, reason)
+
+    def abort(self) -> None:
+        """Drop the connection without a close code, as a lost network does; idempotent."""
+        if not self._ended:
+            self._end(None, "")
+
+    @property
+    def close_code(self) -> int | None:
+        return self._code
+
+    @property
+    def close_reason(self) -> str:
+        return self._reason
+
+    def _end(self, code: int | None, reason: str) -> None:
+        """End the connection at both ends; wake whoever waits on either."""
+        for end in (self, self._peer):
+            end._ended = True
+            end._code = code
+            end._reason = reason
+            receiver = end._receiver
+            if receiver is not None and not receiver.done():
+                receiver.set_result(None)
+            end._writable.set()
+
+
+class MemoryListener(Listener):
+    """Where a :class:`MemoryTransport` accepts connections, at ``memory://host:port``."""
+
+    def __init__(
+        self,
+        transport: MemoryTransport,
+        handler: ConnectionHandler,
+        host: str,
+        port: int,
+        options: Options,
+    ) -> None:
+        self.host = host
+        self.port = port
+        self.url = f"memory://{_netloc(host, port)}"
+        self._options = options
+        self._transport = transport
+        self._handler = handler
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._closed = asyncio.Event()
+
+    def close(self) -> None:
+        if not self._closed.is_set():
+            self._closed.set()
+            self._transport._listeners.pop((self.host.lower(), self.port), None)
+
+    async def wait_closed(self) -> None:
+        await self._closed.wait()
+        while self._tasks:
+            await asyncio.wait(set(self._tasks))
+
+    def _accept(self, server_end: MemoryConnection) -> None:
+        task = asyncio.get_running_loop().create_task(self._run(server_end))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _run(self, connection: MemoryConnection) -> None:
+        # As websockets does: close with 1000 when the handler returns, 1011 when it raises.
+        try:
+            await self._handler(connection)
+        except asyncio.CancelledError:
+            connection.abort()
+            raise
+        except Exception:
+            logger.exception("connection handler failed")
+            await connection.close(1011)
+        else:
+            await connection.close()
+
+
+class MemoryTransport(Transport):
+    """An in-process world of listeners and connections; share one instance between both ends.
+
+    ``high_water`` is the most bytes one direction buffers before ``send`` waits.
+    """
+
+    name = "memory"
+
+    def __init__(self, high_water: int = 2**16) -> None:
+        if high_water < 0:
+            raise ValueError(f"high_water must be 0 or more, not {high_water}")
+        self.high_water = high_water
+        self._listeners: dict[tuple[str, int], MemoryListener] = {}
+        self._next_port = 1
+        self._connections = 0
+
+    async def listen(
+        self, handler: ConnectionHandler, host: str, port: int, options: Options
+    ) -> MemoryListener:
+        if port == 0:
+            while (host.lower(), self._next_port) in self._listeners:
+                self._next_port += 1
+            port = self._next_port
+            self._next_port += 1
+        address = (host.lower(), port)
+        if address in self._listeners:
+            raise OSError(errno.EADDRINUSE, f"memory://{_netloc(host, port)} is already in use")
+        listener = MemoryListener(self, handler, host, port, options)
+        self._listeners[address] = listener
+        return listener
+
+    async def connect(self, url: str, options: Options) -> MemoryConnection:
+        try:
+            host, port = _parse(url)
+        except ValueError as exc:
+            raise TransportError(str(exc)) from exc
+        listener = self._listeners.get((host.lower(), port))
+        if listener is None:
+            raise TransportError(f"nothing listens at memory://{_netloc(host, port)}")
+        self._connections += 1
+        client = MemoryConnection(
+            (listener.host, listener.port), options.max_message_size, self.high_water
+        )
+        server = MemoryConnection(
+            ("memory", self._connections), listener._options.max_message_size, self.high_water
+        )
+        client._peer = server
+        server._peer = client
+        listener._accept(server)
+        return client
+
+    def check_url(self, url: str) -> None:
+        _parse(url)

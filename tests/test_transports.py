@@ -1,0 +1,652 @@
+"""Every transport keeps the rules of srvwire.transports.base: one suite, run on each of them.
+
+The WebSocket transport runs on real sockets on 127.0.0.1; the memory one in process. What only
+one of them has (abort, binary frames) is tested after the shared suite.
+"""
+
+from __future__ import annotations
+
+import ast
+import asyncio
+import contextlib
+import errno
+import logging
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from websockets.asyncio.client import connect as websockets_connect
+
+import srvwire
+import srvwire.transports
+from srvwire.transports import get_transport
+from srvwire.transports.base import (
+    Connection,
+    Listener,
+    Options,
+    Transport,
+    TransportClosed,
+    TransportError,
+)
+from srvwire.transports.memory import MemoryConnection, MemoryTransport
+from srvwire.transports.websockets import WebSocketsTransport, _url
+from support import scaled
+
+SCHEMES = {"websockets": "ws", "memory": "memory"}
+
+# Enough turns of the event loop for anything that can happen without the peer to happen.
+TURNS = 1000
+
+
+@pytest.fixture(params=["websockets", "memory"])
+def transport(request: pytest.FixtureRequest) -> Transport:
+    if request.param == "websockets":
+        return WebSocketsTransport()
+    return MemoryTransport()
+
+
+@pytest.fixture
+def memory() -> MemoryTransport:
+    return MemoryTransport()
+
+
+async def turns(count: int = TURNS) -> None:
+    """Let the event loop run ``count`` times: what can run without a peer has run by then."""
+    for _ in range(count):
+        await asyncio.sleep(0)
+
+
+async def hold(connection: Connection) -> None:
+    """A handler that keeps its connection open and never reads."""
+    await asyncio.Event().wait()
+
+
+@dataclass
+class Pair:
+    client: Connection
+    server: Connection
+    listener: Listener
+
+
+@contextlib.asynccontextmanager
+async def connected(
+    transport: Transport, options: Options | None = None, server_options: Options | None = None
+) -> AsyncIterator[Pair]:
+    """Listen on 127.0.0.1, connect, and yield both ends; the server end stays open until exit."""
+    options = options or Options()
+    accepted: asyncio.Queue[Connection] = asyncio.Queue()
+    done = asyncio.Event()
+
+    async def handler(connection: Connection) -> None:
+        accepted.put_nowait(connection)
+        await done.wait()
+
+    listener = await transport.listen(handler, "127.0.0.1", 0, server_options or options)
+    try:
+        client = await transport.connect(listener.url, options)
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+            yield Pair(client, server, listener)
+        finally:
+            done.set()
+            async with asyncio.timeout(scaled(5)):
+                await client.close()
+    finally:
+        listener.close()
+        async with asyncio.timeout(scaled(5)):
+            await listener.wait_closed()
+
+
+async def closed_with(connection: Connection) -> TransportClosed:
+    """Receive until the connection ends; fail on any message; return how it ended.
+
+    The connection's ``close_code`` and ``close_reason`` must then say the same.
+    """
+    with pytest.raises(TransportClosed) as info:
+        async with asyncio.timeout(scaled(5)):
+            message = await connection.recv()
+            pytest.fail(f"received {message!r} where the connection should have ended")
+    closed = info.value
+    assert (connection.close_code, connection.close_reason) == (closed.code, closed.reason)
+    return closed
+
+
+# Messages
+
+
+async def test_text_travels_both_ways(transport: Transport) -> None:
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+        await pair.client.send("héllo ☃")
+        assert await pair.server.recv() == "héllo ☃"
+        await pair.server.send("wörld")
+        assert await pair.client.recv() == "wörld"
+
+
+async def test_utf8_bytes_are_received_as_text(transport: Transport) -> None:
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+        await pair.client.send("héllo ☃".encode())
+        assert await pair.server.recv() == "héllo ☃"
+        await pair.server.send(b'{"jsonrpc": "2.0"}')
+        assert await pair.client.recv() == '{"jsonrpc": "2.0"}'
+
+
+async def test_messages_arrive_in_order(transport: Transport) -> None:
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+        for i in range(500):
+            await pair.client.send(f"up {i}")
+            await pair.server.send(f"down {i}".encode())
+        assert [await pair.server.recv() for _ in range(500)] == [f"up {i}" for i in range(500)]
+        assert [await pair.client.recv() for _ in range(500)] == [f"down {i}" for i in range(500)]
+
+
+async def test_remote_address_names_the_peer(transport: Transport) -> None:
+    async with connected(transport) as pair:
+        assert pair.client.remote_address == ("127.0.0.1", pair.listener.port)
+        if transport.name == "memory":
+            assert pair.server.remote_address == ("memory", 1)
+        else:
+            host, port = pair.server.remote_address
+            assert host == "127.0.0.1"
+            assert port not in (0, pair.listener.port)
+
+
+# Closing
+
+
+async def test_open_connection_has_no_close_code(transport: Transport) -> None:
+    async with connected(transport) as pair:
+        for end in (pair.client, pair.server):
+            assert end.close_code is None
+            assert end.close_reason == ""
+
+
+async def test_peer_sees_the_close_code_and_reason(transport: Transport) -> None:
+    async with connected(transport) as pair:
+        await pair.client.close(4000, "done here")
+        assert pair.client.close_code == 4000
+        assert pair.client.close_reason == "done here"
+        closed = await closed_with(pair.server)
+        assert (closed.code, closed.reason) == (4000, "done here")
+        assert (pair.server.close_code, pair.server.close_reason) == (4000, "done here")
+        assert str(pair.server.closed()) == "the connection closed with code 4000 (done here)"
+
+
+async def test_recv_and_send_raise_once_closed(transport: Transport) -> None:
+    async with connected(transport) as pair:
+        await pair.server.close(1001, "going away")
+        for end in (pair.server, pair.client):
+            closed = await closed_with(end)
+            assert (closed.code, closed.reason) == (1001, "going away")
+            with pytest.raises(TransportClosed) as info:
+                await end.send("too late")
+            assert (info.value.code, info.value.reason) == (1001, "going away")
+
+
+async def test_close_is_idempotent(transport: Transport) -> None:
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+        await pair.client.close(4001, "first")
+        await pair.client.close(4002, "second")
+        assert (pair.client.close_code, pair.client.close_reason) == (4001, "first")
+        closed = await closed_with(pair.server)
+        assert (closed.code, closed.reason) == (4001, "first")
+
+
+async def test_messages_sent_before_close_arrive_first(transport: Transport) -> None:
+    async with connected(transport) as pair:
+        for text in ("one", "two", "three"):
+            await pair.client.send(text)
+        await pair.client.close(1000, "bye")
+        async with asyncio.timeout(scaled(5)):
+            assert [await pair.server.recv() for _ in range(3)] == ["one", "two", "three"]
+        closed = await closed_with(pair.server)
+        assert (closed.code, closed.reason, closed.clean) == (1000, "bye", True)
+
+
+async def test_handler_that_returns_closes_with_1000(transport: Transport) -> None:
+    async def handler(connection: Connection) -> None:
+        await connection.send("hello and goodbye")
+
+    listener = await transport.listen(handler, "127.0.0.1", 0, Options())
+    try:
+        client = await transport.connect(listener.url, Options())
+        async with asyncio.timeout(scaled(5)):
+            assert await client.recv() == "hello and goodbye"
+        closed = await closed_with(client)
+        assert (closed.code, closed.reason) == (1000, "")
+    finally:
+        listener.close()
+        async with asyncio.timeout(scaled(5)):
+            await listener.wait_closed()
+
+
+async def test_handler_that_raises_closes_with_1011(
+    transport: Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    async def handler(connection: Connection) -> None:
+        raise RuntimeError("the handler broke")
+
+    listener = await transport.listen(handler, "127.0.0.1", 0, Options())
+    try:
+        client = await transport.connect(listener.url, Options())
+        closed = await closed_with(client)
+        assert (closed.code, closed.reason) == (1011, "")
+    finally:
+        listener.close()
+        async with asyncio.timeout(scaled(5)):
+            await listener.wait_closed()
+    [record] = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert record.getMessage() == "connection handler failed"
+    assert record.exc_info is not None
+    assert str(record.exc_info[1]) == "the handler broke"
+
+
+# Limits
+
+
+async def test_message_at_the_size_limit_passes(transport: Transport) -> None:
+    limit = Options(max_message_size=1000)
+    async with connected(transport, limit) as pair, asyncio.timeout(scaled(5)):
+        await pair.client.send("é" * 500)  # 1000 bytes in UTF-8
+        assert await pair.server.recv() == "é" * 500
+        await pair.server.send(b"x" * 1000)
+        assert await pair.client.recv() == "x" * 1000
+
+
+async def test_message_over_the_size_limit_closes_with_1009(transport: Transport) -> None:
+    limit = Options(max_message_size=1000)
+    async with connected(transport, limit) as pair:
+        await pair.client.send("before")
+        await pair.client.send("é" * 500 + "x")  # 501 characters, 1001 bytes
+        async with asyncio.timeout(scaled(5)):
+            assert await pair.server.recv() == "before"
+        for end in (pair.server, pair.client):
+            closed = await closed_with(end)
+            assert closed.code == 1009
+            if transport.name == "memory":
+                assert closed.reason == "message of 1001 bytes is over the limit of 1000 bytes"
+
+
+async def test_the_receivers_size_limit_counts(transport: Transport) -> None:
+    small = Options(max_message_size=1000)
+    async with connected(transport, options=Options(), server_options=small) as pair:
+        async with asyncio.timeout(scaled(5)):
+            await pair.server.send("x" * 5000)
+            assert await pair.client.recv() == "x" * 5000
+        await pair.client.send("x" * 1001)
+        assert (await closed_with(pair.server)).code == 1009
+        assert (await closed_with(pair.client)).code == 1009
+
+
+async def test_bytes_that_are_not_utf8_close_with_1007(transport: Transport) -> None:
+    async with connected(transport) as pair:
+        await pair.client.send(b"\xff not text")
+        for end in (pair.server, pair.client):
+            closed = await closed_with(end)
+            assert (closed.code, closed.reason) == (1007, "invalid start byte at position 0")
+
+
+# Flow control
+
+
+async def test_send_waits_while_the_peer_does_not_read(transport: Transport) -> None:
+    # 96 MiB is more than any buffer between the two ends can hold (socket buffers, the
+    # receiver's queue of 16 messages, the memory transport's 64 KiB), so only reading it
+    # lets the sender finish.
+    size, count = 2**20, 96
+    filler = "x" * size
+    async with connected(transport) as pair:
+        sent = 0
+
+        async def send_all() -> None:
+            nonlocal sent
+            for i in range(count):
+                await pair.client.send(f"{i:04}" + filler[4:])
+                sent += 1
+
+        sender = asyncio.create_task(send_all())
+        try:
+            await turns()
+            assert not sender.done()
+            assert sent < count
+            async with asyncio.timeout(scaled(20)):
+                for i in range(count):
+                    message = await pair.server.recv()
+                    assert (message[:4], len(message)) == (f"{i:04}", size)
+                await sender
+            assert sent == count
+        finally:
+            sender.cancel()
+
+
+# Listening and connecting
+
+
+async def test_port_0_binds_a_real_port(transport: Transport) -> None:
+    listener = await transport.listen(hold, "127.0.0.1", 0, Options())
+    try:
+        assert listener.host == "127.0.0.1"
+        assert listener.port > 0
+        assert listener.url == f"{SCHEMES[transport.name]}://127.0.0.1:{listener.port}"
+    finally:
+        listener.close()
+        await listener.wait_closed()
+
+
+async def test_listen_on_a_taken_port_raises_oserror(transport: Transport) -> None:
+    first = await transport.listen(hold, "127.0.0.1", 0, Options())
+    try:
+        with pytest.raises(OSError) as info:
+            await transport.listen(hold, "127.0.0.1", first.port, Options())
+        assert info.value.errno == errno.EADDRINUSE
+    finally:
+        first.close()
+        await first.wait_closed()
+
+
+async def test_connect_where_nothing_listens_raises_transport_error(transport: Transport) -> None:
+    listener = await transport.listen(hold, "127.0.0.1", 0, Options())
+    listener.close()
+    async with asyncio.timeout(scaled(5)):
+        await listener.wait_closed()
+        with pytest.raises(TransportError) as info:
+            await transport.connect(listener.url, Options())
+    if transport.name == "memory":
+        assert str(info.value) == f"nothing listens at {listener.url}"
+    else:
+        # The library's text, as it is: users read it after "cannot connect to {url}: ".
+        assert isinstance(info.value.__cause__, ConnectionRefusedError)
+        assert str(info.value) == str(info.value.__cause__)
+
+
+async def test_connect_to_a_bad_url_raises_transport_error(transport: Transport) -> None:
+    with pytest.raises(TransportError) as info:
+        await transport.connect("http://127.0.0.1:1", Options())
+    assert (
+        str(info.value)
+        == {
+            "websockets": "http://127.0.0.1:1 isn't a valid URI: scheme isn't ws or wss",
+            "memory": "not a memory URL: 'http://127.0.0.1:1' (the scheme is not memory)",
+        }[transport.name]
+    )
+
+
+async def test_closed_listener_refuses_new_connections_but_keeps_open_ones(
+    transport: Transport,
+) -> None:
+    async with connected(transport) as pair:
+        pair.listener.close()
+        with pytest.raises(TransportError):
+            async with asyncio.timeout(scaled(5)):
+                await transport.connect(pair.listener.url, Options())
+        waiting = asyncio.create_task(pair.listener.wait_closed())
+        try:
+            async with asyncio.timeout(scaled(5)):
+                await pair.client.send("still there?")
+                assert await pair.server.recv() == "still there?"
+                await pair.server.send("yes")
+                assert await pair.client.recv() == "yes"
+            await turns()
+            assert not waiting.done(), "wait_closed returned while a handler still runs"
+        finally:
+            waiting.cancel()
+
+
+@pytest.mark.parametrize(
+    ("name", "url", "message"),
+    [
+        (
+            "websockets",
+            "http://localhost:1",
+            "not a WebSocket URL: 'http://localhost:1' "
+            "(http://localhost:1 isn't a valid URI: scheme isn't ws or wss)",
+        ),
+        (
+            "websockets",
+            "ws://:1",
+            "not a WebSocket URL: 'ws://:1' (ws://:1 isn't a valid URI: hostname isn't provided)",
+        ),
+        (
+            "memory",
+            "ws://localhost:1",
+            "not a memory URL: 'ws://localhost:1' (the scheme is not memory)",
+        ),
+        ("memory", "memory://localhost", "not a memory URL: 'memory://localhost' (no port)"),
+        ("memory", "memory://:1", "not a memory URL: 'memory://:1' (no host)"),
+    ],
+)
+def test_check_url_refuses_a_bad_url(name: str, url: str, message: str) -> None:
+    transport = WebSocketsTransport() if name == "websockets" else MemoryTransport()
+    with pytest.raises(ValueError) as info:
+        transport.check_url(url)
+    assert str(info.value) == message
+
+
+async def test_check_url_accepts_the_listeners_url(transport: Transport) -> None:
+    listener = await transport.listen(hold, "127.0.0.1", 0, Options())
+    listener.close()
+    await listener.wait_closed()
+    transport.check_url(listener.url)
+    transport.check_url(listener.url + "/")
+
+
+def test_websocket_url_brackets_an_ipv6_host() -> None:
+    assert _url("::1", 8765) == "ws://[::1]:8765"
+    assert _url("127.0.0.1", 8765) == "ws://127.0.0.1:8765"
+
+
+# How a connection ended, told in words
+
+
+@pytest.mark.parametrize(
+    ("code", "reason", "text", "clean"),
+    [
+        (None, "", "the connection dropped (no close frame)", False),
+        (1006, "", "the connection dropped (no close frame)", False),
+        (1000, "", "the connection closed with code 1000", True),
+        (1001, "going away", "the connection closed with code 1001 (going away)", True),
+        (1011, "", "the connection closed with code 1011", False),
+    ],
+)
+def test_transport_closed_says_how_the_connection_ended(
+    code: int | None, reason: str, text: str, clean: bool
+) -> None:
+    closed = TransportClosed(code, reason)
+    assert str(closed) == text
+    assert closed.clean is clean
+    assert (closed.code, closed.reason) == (code, reason)
+
+
+# Choosing a transport
+
+
+def test_get_transport_returns_an_instance_as_it_is() -> None:
+    memory = MemoryTransport()
+    assert get_transport(memory) is memory
+
+
+def test_get_transport_makes_the_websocket_transport() -> None:
+    transport = get_transport("websockets")
+    assert isinstance(transport, WebSocketsTransport)
+    assert transport.name == "websockets"
+
+
+def test_get_transport_wants_a_memory_transport_instance() -> None:
+    with pytest.raises(ValueError) as info:
+        get_transport("memory")
+    assert str(info.value) == (
+        "the memory transport is a world shared by a server and its clients: "
+        "pass a MemoryTransport() instance, the same one to both, not the name 'memory'"
+    )
+
+
+def test_get_transport_refuses_an_unknown_name() -> None:
+    with pytest.raises(ValueError) as info:
+        get_transport("pigeons")
+    assert str(info.value) == (
+        "unknown transport 'pigeons': use 'websockets' or a Transport instance, "
+        "such as MemoryTransport()"
+    )
+
+
+def imported_modules(node: ast.AST) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    if isinstance(node, ast.ImportFrom):
+        return ["." * node.level + (node.module or "")]
+    return []
+
+
+def test_the_seam_does_not_load_the_websocket_transport() -> None:
+    # get_transport imports it inside the function, when it is asked for.
+    for path in sorted(Path(srvwire.transports.__file__).parent.glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in tree.body:
+            for name in imported_modules(node):
+                assert name not in ("srvwire.transports.websockets", ".websockets"), path.name
+
+
+# The memory transport only
+
+
+async def test_abort_drops_the_connection_without_a_close_code(memory: MemoryTransport) -> None:
+    async with connected(memory) as pair:
+        assert isinstance(pair.client, MemoryConnection)
+        await pair.client.send("last words")
+        pair.client.abort()
+        pair.client.abort()
+        async with asyncio.timeout(scaled(5)):
+            assert await pair.server.recv() == "last words"
+        for end in (pair.server, pair.client):
+            closed = await closed_with(end)
+            assert (closed.code, closed.reason) == (None, "")
+            assert str(closed) == "the connection dropped (no close frame)"
+            assert end.close_code is None
+
+
+async def test_memory_send_waits_past_the_high_water_mark_until_the_low_one() -> None:
+    transport = MemoryTransport(high_water=1000)
+    async with connected(transport) as pair:
+        for _ in range(10):  # 1000 bytes: at the mark, not past it
+            await pair.client.send("x" * 100)
+        sender = asyncio.create_task(pair.client.send("x" * 100))
+        try:
+            await turns()
+            assert not sender.done()
+            for _ in range(8):  # 300 bytes left: above the low-water mark of 250
+                await pair.server.recv()
+            await turns()
+            assert not sender.done()
+            await pair.server.recv()  # 200 bytes left
+            async with asyncio.timeout(scaled(5)):
+                await sender
+        finally:
+            sender.cancel()
+
+
+async def test_memory_send_waiting_for_the_peer_raises_when_the_connection_ends() -> None:
+    transport = MemoryTransport(high_water=10)
+    async with connected(transport) as pair:
+        sender = asyncio.create_task(pair.client.send("x" * 100))
+        try:
+            await turns()
+            assert not sender.done()
+            await pair.server.close(1001, "going away")
+            with pytest.raises(TransportClosed) as info:
+                async with asyncio.timeout(scaled(5)):
+                    await sender
+            assert (info.value.code, info.value.reason) == (1001, "going away")
+        finally:
+            sender.cancel()
+
+
+async def test_memory_refuses_two_receivers_at_once(memory: MemoryTransport) -> None:
+    async with connected(memory) as pair:
+        first = asyncio.create_task(pair.client.recv())
+        try:
+            await turns(1)
+            with pytest.raises(RuntimeError) as info:
+                await pair.client.recv()
+            assert str(info.value) == "another coroutine is already waiting for the next message"
+            await pair.server.send("for the first")
+            async with asyncio.timeout(scaled(5)):
+                assert await first == "for the first"
+        finally:
+            first.cancel()
+
+
+async def test_memory_ports_count_from_1_and_a_taken_one_is_refused(
+    memory: MemoryTransport,
+) -> None:
+    first = await memory.listen(hold, "localhost", 0, Options())
+    second = await memory.listen(hold, "localhost", 0, Options())
+    ipv6 = await memory.listen(hold, "::1", 0, Options())
+    assert [first.url, second.url, ipv6.url] == [
+        "memory://localhost:1",
+        "memory://localhost:2",
+        "memory://[::1]:3",
+    ]
+    with pytest.raises(OSError) as info:
+        await memory.listen(hold, "localhost", 2, Options())
+    assert info.value.errno == errno.EADDRINUSE
+    assert str(info.value) == f"[Errno {errno.EADDRINUSE}] memory://localhost:2 is already in use"
+    for listener in (first, second, ipv6):
+        listener.close()
+        await listener.wait_closed()
+
+
+async def test_memory_transports_are_separate_worlds(memory: MemoryTransport) -> None:
+    listener = await memory.listen(hold, "localhost", 0, Options())
+    try:
+        with pytest.raises(TransportError) as info:
+            await MemoryTransport().connect(listener.url, Options())
+        assert str(info.value) == "nothing listens at memory://localhost:1"
+    finally:
+        listener.close()
+        await listener.wait_closed()
+
+
+async def test_memory_listener_waits_for_its_handlers(memory: MemoryTransport) -> None:
+    release = asyncio.Event()
+
+    async def handler(connection: Connection) -> None:
+        await release.wait()
+
+    listener = await memory.listen(handler, "localhost", 0, Options())
+    client = await memory.connect(listener.url, Options())
+    listener.close()
+    waiting = asyncio.create_task(listener.wait_closed())
+    try:
+        await turns()
+        assert not waiting.done()
+        release.set()
+        async with asyncio.timeout(scaled(5)):
+            await waiting
+        assert (await closed_with(client)).code == 1000
+    finally:
+        waiting.cancel()
+
+
+# The WebSocket transport only
+
+
+async def test_a_binary_frame_is_received_as_bytes() -> None:
+    transport = WebSocketsTransport()
+    received: asyncio.Queue[str | bytes] = asyncio.Queue()
+
+    async def handler(connection: Connection) -> None:
+        received.put_nowait(await connection.recv())
+
+    listener = await transport.listen(handler, "127.0.0.1", 0, Options())
+    try:
+        async with (
+            asyncio.timeout(scaled(5)),
+            websockets_connect(listener.url, open_timeout=None) as ws,
+        ):
+            await ws.send(b"\x00\xff binary")
+            assert await received.get() == b"\x00\xff binary"
+    finally:
+        listener.close()
+        async with asyncio.timeout(scaled(5)):
+            await listener.wait_closed()
