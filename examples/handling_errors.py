@@ -53,7 +53,7 @@ async def enable_motors(request: Any, response: Any) -> Any:
 # --8<-- [start:catch]
 async def add(client: srvwire.Client, service: str, **fields: Any) -> None:
     try:
-        response = await client.call(service, timeout=0.5, **fields)
+        response = await client.call(service, fields, timeout=0.5)
     except srvwire.InvalidParams as error:
         for problem in error.errors:
             print(f"invalid request: {problem['path']}: {problem['message']}")
@@ -73,7 +73,7 @@ async def add(client: srvwire.Client, service: str, **fields: Any) -> None:
 # --8<-- [start:application]
 async def enable(client: srvwire.Client) -> None:
     try:
-        await client.call("/robot1/enable_motors", data=True)
+        await client.call("/robot1/enable_motors", {"data": True})
     except srvwire.ServiceError as error:
         if error.code != BATTERY_LOW:
             raise
@@ -89,7 +89,7 @@ async def call_when_ready(url: str) -> srvwire.RunningServer:
     # dialling in the background, and wait_for_ready=True makes the call wait for the server.
     async with srvwire.connect(url, reconnect=True) as client:
         call = asyncio.create_task(
-            client.call("/add_two_ints", a=20, b=22, wait_for_ready=True, timeout=10)
+            client.call("/add_two_ints", {"a": 20, "b": 22}, wait_for_ready=True, timeout=10)
         )
         running = await srvwire.serve(server, "127.0.0.1", port_of(url))  # the server is back
         response = await call

@@ -18,7 +18,7 @@ async def add_two_ints(request: Any, response: Any) -> Any:
 async def main() -> None:
     async with srvwire.serve(server, "127.0.0.1", 0) as running:  # port 0: any free port
         async with srvwire.connect(running.url) as client:
-            response = await client.call("/add_two_ints", a=2, b=3, timeout=1.0)
+            response = await client.call("/add_two_ints", {"a": 2, "b": 3}, timeout=1.0)
             print("2 + 3 =", response.sum)
 
 

@@ -76,7 +76,7 @@ async def client(server: srvwire.Server) -> AsyncIterator[srvwire.Client]:
 
 # --8<-- [start:end_to_end]
 async def test_query_over_the_wire(client: srvwire.Client) -> None:
-    response = await client.call("/get_robot_state", query_type="position")
+    response = await client.call("/get_robot_state", {"query_type": "position"})
 
     assert response.success
     assert response.names == JOINTS
@@ -84,14 +84,14 @@ async def test_query_over_the_wire(client: srvwire.Client) -> None:
 
 async def test_a_misspelt_service_name(client: srvwire.Client) -> None:
     with pytest.raises(srvwire.ServiceNotFound) as caught:
-        await client.call("/get_robot_status", query_type="status")
+        await client.call("/get_robot_status", {"query_type": "status"})
 
     assert caught.value.data["candidates"] == ["/get_robot_state"]
 
 
 async def test_a_request_that_does_not_validate(client: srvwire.Client) -> None:
     with pytest.raises(srvwire.InvalidParams) as caught:
-        await client.call("/execute_robot_command", command_type="move", parameters="fast")
+        await client.call("/execute_robot_command", {"command_type": "move", "parameters": "fast"})
 
     assert [problem["path"] for problem in caught.value.errors] == ["parameters"]
 

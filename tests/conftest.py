@@ -1,7 +1,7 @@
-"""Shared runtime fixtures: small test service types, a server on a free port, a raw connection.
+"""Shared runtime fixtures: small test service types, a server on each transport, a raw wire.
 
-The raw connection (:class:`Wire`) speaks plain WebSocket JSON, not srvwire's client, so the
-server's tests see exactly what a client in another language would.
+The raw connection (:class:`Wire`) speaks plain JSON over the server's own transport, not
+srvwire's client, so the server's tests see exactly what a client in another language would.
 """
 
 from __future__ import annotations
@@ -12,12 +12,14 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
-from websockets.asyncio.client import ClientConnection, connect
 
 from srvwire.loader import InterfaceLoader
 from srvwire.models import Service, build_service
 from srvwire.parser import parse_service
 from srvwire.server import RunningServer, Server, serve
+from srvwire.transports import get_transport
+from srvwire.transports.base import Connection, Options, Transport
+from srvwire.transports.memory import MemoryTransport
 from support import ros_test_interfaces, scaled
 
 SUBTRACT_SRV = """\
@@ -79,14 +81,18 @@ class Hang:
 
 
 class Wire:
-    """A raw WebSocket connection to a server, with JSON helpers and scaled timeouts."""
+    """A raw connection to a server, with JSON helpers and scaled timeouts.
 
-    def __init__(self, ws: ClientConnection, services: list[dict[str, str]]) -> None:
+    ``ws`` is the transport's connection: text goes out as it is, with no srvwire client
+    between, so the server's tests see exactly what a client in another language would.
+    """
+
+    def __init__(self, ws: Connection, services: list[dict[str, str]]) -> None:
         self.ws = ws
         self.services = services  # the first $/services the server sent
 
     async def send(self, message: Any) -> None:
-        """Send ``message``: text or bytes as they are, anything else as JSON."""
+        """Send ``message``: text or bytes as they are (as text), anything else as JSON."""
         if isinstance(message, str | bytes):
             await self.ws.send(message)
         else:
@@ -119,13 +125,37 @@ class Wire:
         return await self.call(message)
 
 
-async def open_wire(url: str, **kwargs: Any) -> Wire:
-    """Connect to ``url`` and read the ``$/services`` notification that opens the session."""
-    ws = await connect(url, compression=None, open_timeout=scaled(5), **kwargs)
+async def open_wire(running: RunningServer | str, **options: Any) -> Wire:
+    """Connect to ``running`` on its own transport (a URL: over WebSockets) and read the
+    ``$/services`` that opens the session."""
+    transport, url = (
+        (get_transport("websockets"), running)
+        if isinstance(running, str)
+        else (running.transport, running.url)
+    )
+    conn = await transport.connect(url, Options(compression=None, **options))
     async with asyncio.timeout(scaled(5)):
-        first = json.loads(await ws.recv())
+        first = json.loads(await conn.recv())
     assert first["method"] == "$/services", first
-    return Wire(ws, first["params"]["services"])
+    return Wire(conn, first["params"]["services"])
+
+
+TRANSPORTS = ["websockets", "memory"]
+
+
+def make_transport(name: str) -> Transport:
+    """A fresh transport by name: the memory one is a world of its own per test."""
+    return MemoryTransport() if name == "memory" else get_transport(name)
+
+
+@pytest.fixture(params=TRANSPORTS)
+def transport(request: pytest.FixtureRequest) -> Transport:
+    """Each transport in turn, for behaviour that does not depend on the transport."""
+    return make_transport(request.param)
+
+
+websockets_only = pytest.mark.parametrize("transport", ["websockets"], indirect=True)
+"""For a test of what only a real WebSocket has: binary frames, keepalive, raw frames."""
 
 
 @pytest.fixture
@@ -142,14 +172,14 @@ def server() -> Server:
 
 
 @pytest.fixture
-async def running(server: Server) -> AsyncIterator[RunningServer]:
-    async with serve(server, "127.0.0.1", 0) as running:
+async def running(server: Server, transport: Transport) -> AsyncIterator[RunningServer]:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         yield running
 
 
 @pytest.fixture
 async def wire(running: RunningServer) -> AsyncIterator[Wire]:
-    w = await open_wire(running.url)
+    w = await open_wire(running)
     try:
         yield w
     finally:

@@ -19,7 +19,7 @@ import pytest
 from websockets.asyncio.server import Server as WsServer, ServerConnection, serve as ws_serve
 from websockets.exceptions import ConnectionClosed
 
-import srvwire.client
+import srvwire.session
 from srvwire.client import Client, ServiceInfo, connect
 from srvwire.errors import (
     Cancelled,
@@ -39,7 +39,9 @@ from srvwire.errors import (
 )
 from srvwire.loader import load_service
 from srvwire.models import Service
+from srvwire.protocol import RawReply
 from srvwire.server import RunningServer, Server, serve
+from srvwire.transports.base import Transport
 from support import record_calls, scaled
 
 ADD = "/add_two_ints"
@@ -141,11 +143,11 @@ async def test_connect_works_as_await_and_as_async_with(peer: FakePeer) -> None:
     peer.reply = answer_add
     client = await connect(peer.url)
     assert client.connected
-    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
     await client.close()
     assert not client.connected
     async with connect(peer.url) as other:
-        assert (await other.call(ADD, a=2, b=2)).sum == 4
+        assert (await other.call(ADD, {"a": 2, "b": 2})).sum == 4
     assert not other.connected
 
 
@@ -186,20 +188,22 @@ async def test_a_server_whose_first_message_is_not_the_services_list_is_refused(
 
 def test_bad_arguments_are_refused_at_once() -> None:
     with pytest.raises(ValueError, match="not a WebSocket URL"):
-        Client("http://localhost:8765")
+        connect("http://localhost:8765")
     with pytest.raises(ValueError, match="finite number of seconds > 0, not Infinity"):
-        Client(timeout=float("inf"))
+        connect(timeout=float("inf"))
     with pytest.raises(ValueError, match="finite number of seconds > 0, not NaN"):
-        Client(timeout=float("nan"))
+        connect(timeout=float("nan"))
     with pytest.raises(ValueError, match="finite number of seconds > 0, not -1"):
-        Client(timeout=-1)
+        connect(timeout=-1)
     with pytest.raises(ValueError, match="finite number of seconds"):
-        Client(timeout=0)
+        connect(timeout=0)
     with pytest.raises(ValueError, match="not an integer too large for a float"):
-        Client(timeout=10**400)
-    assert Client(timeout=3).timeout == 3.0
+        connect(timeout=10**400)
+    assert connect(timeout=3).timeout == 3.0
     with pytest.raises(TypeError, match="number of seconds"):
-        Client(timeout="5")  # type: ignore[arg-type]
+        connect(timeout="5")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown transport 'carrier pigeon'"):
+        connect(transport="carrier pigeon")
 
 
 @pytest.mark.parametrize("reconnect", [False, True])
@@ -207,7 +211,7 @@ async def test_close_closes_the_socket(peer: FakePeer, reconnect: bool) -> None:
     peer.reply = answer_add
     client = await connect(peer.url, reconnect=reconnect)
     # A round trip lets the reconnect supervisor start watching the connection's reader.
-    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
     await client.close()
     (ws,) = peer.connections
     await asyncio.wait_for(ws.wait_closed(), scaled(5))
@@ -245,7 +249,7 @@ async def test_a_closed_client_fails_calls_at_once(peer: FakePeer) -> None:
     await client.close()
     await client.close()  # idempotent
     with pytest.raises(ConnectionLost, match="the client is closed") as caught:
-        await client.call(ADD, a=1, b=2)
+        await client.call(ADD, {"a": 1, "b": 2})
     assert caught.value.service == ADD
 
 
@@ -258,7 +262,7 @@ async def test_requests_as_model_dict_or_fields(
     peer.reply = answer_add
     by_model = await client.call(ADD, add_two_ints.Request.model_validate({"a": 1, "b": 2}))
     by_dict = await client.call("add_two_ints", {"a": 3, "b": 4})
-    by_fields = await client.call(ADD, a=5, b=6)
+    by_fields = await client.call(ADD, {"a": 5, "b": 6})
     defaults = await client.call(ADD)
     assert [r.sum for r in (by_model, by_dict, by_fields, defaults)] == [3, 7, 11, 0]
     assert all(isinstance(r, add_two_ints.Response) for r in (by_model, by_dict, by_fields))
@@ -266,7 +270,7 @@ async def test_requests_as_model_dict_or_fields(
 
 async def test_the_request_on_the_wire(peer: FakePeer, client: Client) -> None:
     peer.reply = answer_add
-    await client.call("add_two_ints", a=1, b=2, timeout=scaled(3))
+    await client.call("add_two_ints", {"a": 1, "b": 2}, timeout=scaled(3))
     await client.call(ADD, {"a": 7})
     first, second = await peer.next(), await peer.next()
     assert first["jsonrpc"] == "2.0"
@@ -291,7 +295,7 @@ async def test_an_invalid_request_is_refused_locally(peer: FakePeer, client: Cli
     ]
     assert "checked by the client; nothing was sent" in error.message
     # Nothing was sent: the first message the peer sees is the next, valid call.
-    assert (await client.call(ADD, a=1, b=1)).sum == 2
+    assert (await client.call(ADD, {"a": 1, "b": 1})).sum == 2
     assert (await peer.next())["params"]["a"] == 1
 
 
@@ -300,7 +304,7 @@ async def test_a_request_of_the_wrong_type_is_a_type_error(client: Client) -> No
     with pytest.raises(TypeError, match="takes example_interfaces/srv/AddTwoInts requests"):
         await client.call(ADD, trigger.Request())
     with pytest.raises(TypeError, match="not both"):
-        await client.call(ADD, {"a": 1}, b=2)
+        await client.proxy(ADD)({"a": 1}, b=2)
 
 
 async def test_a_type_that_cannot_be_loaded_means_plain_dicts() -> None:
@@ -315,7 +319,7 @@ async def test_a_type_that_cannot_be_loaded_means_plain_dicts() -> None:
     try:
         async with connect(unknown.url) as client:
             assert await client.call("/echo", {"x": [1, 2]}) == {"x": [1, 2]}
-            assert await client.call("/echo", word="hi") == {"word": "hi"}
+            assert await client.call("/echo", {"word": "hi"}) == {"word": "hi"}
             with pytest.raises(InterfaceNotFoundError):
                 await client.call("/echo", srv_type="nowhere_msgs/srv/Echo")
     finally:
@@ -387,18 +391,18 @@ async def test_a_response_that_does_not_match_the_type_is_an_internal_error(
 
     peer.reply = wrong
     with pytest.raises(InternalError, match="does not match example_interfaces") as caught:
-        await client.call(ADD, a=1, b=2)
+        await client.call(ADD, {"a": 1, "b": 2})
     assert caught.value.data["errors"][0]["path"] == "sum"
 
 
 async def test_proxies(peer: FakePeer, client: Client, add_two_ints: type[Service]) -> None:
     peer.reply = answer_add
-    add = client.service("add_two_ints", add_two_ints)
+    add = client.proxy("add_two_ints", add_two_ints, timeout=scaled(2))
     assert add.name == ADD
     assert (await add(a=2, b=3)).sum == 5
-    assert (await add({"a": 4}, timeout=scaled(2))).sum == 4
+    assert (await add({"a": 4})).sum == 4
     assert (await add(add_two_ints.Request.model_validate({"a": 1, "b": 1}))).sum == 2
-    untyped = client.service(ADD)  # the type comes from the server's advertisement
+    untyped = client.proxy(ADD)  # the type comes from the server's advertisement
     assert (await untyped(a=10, b=1)).sum == 11
     assert await untyped.wait_for_service() == ServiceInfo(ADD, ADD_TYPE)
 
@@ -484,7 +488,7 @@ async def test_every_error_code_raises_its_class(
 
     peer.reply = fail
     with pytest.raises(RPCError) as caught:
-        await client.call(ADD, a=1, b=2)
+        await client.call(ADD, {"a": 1, "b": 2})
     error = caught.value
     assert type(error) is cls
     assert (error.code, error.message, error.data, error.service) == (
@@ -496,7 +500,7 @@ async def test_every_error_code_raises_its_class(
     assert client.in_flight == 0
     # The connection is still good after any error reply.
     peer.reply = answer_add
-    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
 
 
 async def test_invalid_params_from_the_server_point_into_the_request(
@@ -513,7 +517,7 @@ async def test_invalid_params_from_the_server_point_into_the_request(
 
     peer.reply = refuse
     with pytest.raises(InvalidParams) as caught:
-        await client.call(ADD, a=1, b=2)
+        await client.call(ADD, {"a": 1, "b": 2})
     assert caught.value.errors == [{"path": "b", "message": "too big", "type": "less_than_equal"}]
 
 
@@ -522,7 +526,7 @@ async def test_invalid_params_from_the_server_point_into_the_request(
 
 async def test_a_deadline_against_a_peer_that_never_answers(peer: FakePeer, client: Client) -> None:
     with pytest.raises(DeadlineExceeded) as caught:
-        await client.call(ADD, a=1, b=2, timeout=scaled(0.2))
+        await client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(0.2))
     error = caught.value
     assert isinstance(error, TimeoutError)
     assert (error.code, error.service) == (-32001, ADD)
@@ -534,7 +538,7 @@ async def test_a_deadline_against_a_peer_that_never_answers(peer: FakePeer, clie
 
 
 async def test_a_thousand_timeouts_leave_nothing_pending(peer: FakePeer, client: Client) -> None:
-    calls = [client.call(ADD, a=i, b=0, timeout=scaled(0.3)) for i in range(1000)]
+    calls = [client.call(ADD, {"a": i, "b": 0}, timeout=scaled(0.3)) for i in range(1000)]
     results = await asyncio.gather(*calls, return_exceptions=True)
     assert all(isinstance(r, DeadlineExceeded) for r in results)
     assert client.in_flight == 0
@@ -552,7 +556,7 @@ async def test_a_thousand_timeouts_leave_nothing_pending(peer: FakePeer, client:
 async def test_cancelling_the_caller_cancels_the_call_on_the_server(
     peer: FakePeer, client: Client
 ) -> None:
-    task = asyncio.create_task(client.call(ADD, a=1, b=2))
+    task = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
     request = await peer.next(ADD)
     assert client.in_flight == 1
     task.cancel()
@@ -568,16 +572,18 @@ def call_cancelled_as_answered(client: Client, monkeypatch: pytest.MonkeyPatch) 
 
     The reader resolves the call, then at once (before the call resumes) its task is cancelled.
     """
-    receive = client._receive
+    session = client._link.session  # type: ignore[union-attr]
+    receive = session.receive
     call: asyncio.Task[Any] | None = None
 
-    def receive_then_cancel(data: str | bytes) -> None:
-        receive(data)
+    def receive_then_cancel(data: str | bytes) -> Any:
+        events = receive(data)
         if call is not None and client.in_flight == 0:
             call.cancel()
+        return events
 
-    monkeypatch.setattr(client, "_receive", receive_then_cancel)
-    call = asyncio.create_task(client.call(ADD, a=1, b=2))
+    monkeypatch.setattr(session, "receive", receive_then_cancel)
+    call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
     return call
 
 
@@ -587,13 +593,12 @@ async def test_a_cancellation_that_races_the_reply_still_cancels(
     # The reply resolves the call, and in the same step the caller is cancelled, before the
     # call resumes: Python 3.11's wait_for would return the reply and lose the cancellation.
     peer.reply = answer_add
-    receive = client._receive
     call = call_cancelled_as_answered(client, monkeypatch)
     with pytest.raises(asyncio.CancelledError):
         await call
     assert client.in_flight == 0
-    monkeypatch.setattr(client, "_receive", receive)
-    assert (await client.call(ADD, a=2, b=2)).sum == 4  # answered: no $/cancel was needed
+    monkeypatch.undo()
+    assert (await client.call(ADD, {"a": 2, "b": 2})).sum == 4  # answered: no $/cancel was needed
     assert [(await peer.next())["method"] for _ in range(2)] == [ADD, ADD]
 
 
@@ -601,14 +606,14 @@ async def test_a_late_reply_is_ignored(
     peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
 ) -> None:
     with pytest.raises(DeadlineExceeded):
-        await client.call(ADD, a=1, b=2, timeout=scaled(0.1))
+        await client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(0.1))
     late = await peer.next(ADD)
     caplog.set_level(logging.DEBUG, logger="srvwire.client")
     ws = peer.connections[0]
     await ws.send(json.dumps({"jsonrpc": "2.0", "id": late["id"], "result": {"sum": 3}}))
     await ws.send(json.dumps({"jsonrpc": "2.0", "id": "nobody", "result": {}}))
     peer.reply = answer_add
-    assert (await client.call(ADD, a=2, b=2)).sum == 4
+    assert (await client.call(ADD, {"a": 2, "b": 2})).sum == 4
     dropped = [r.getMessage() for r in caplog.records if "no call waits" in r.getMessage()]
     assert dropped == [
         f"dropping a reply for id {late['id']}: no call waits for it",
@@ -625,7 +630,7 @@ async def test_a_peer_that_closes_mid_call_fails_every_pending_call(
 ) -> None:
     # The deadline is long: a call that waited for it would fail DeadlineExceeded, not
     # ConnectionLost, so the exception type proves the calls failed when the connection did.
-    calls = [asyncio.create_task(client.call(ADD, a=i, timeout=scaled(30))) for i in range(20)]
+    calls = [asyncio.create_task(client.call(ADD, {"a": i}, timeout=scaled(30))) for i in range(20)]
     for _ in calls:
         await peer.next(ADD)
     ws = peer.connections[0]
@@ -650,7 +655,7 @@ async def test_a_peer_that_closes_mid_call_fails_every_pending_call(
     assert not client.connected
     # Without reconnect=True the connection stays down: calls and waits fail fast.
     with pytest.raises(ConnectionLost, match="not connected"):
-        await client.call(ADD, a=1)
+        await client.call(ADD, {"a": 1})
     with pytest.raises(ConnectionLost, match="not connected"):
         await client.wait_for_service(ADD)
 
@@ -672,7 +677,7 @@ async def test_garbage_from_the_server_fails_the_connection(
     reason: str,
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    task = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+    task = asyncio.create_task(client.call(ADD, {"a": 1}, timeout=scaled(30)))
     await peer.next(ADD)
     ws = peer.connections[0]
     await ws.send(garbage)
@@ -690,7 +695,7 @@ async def test_garbage_from_the_server_fails_the_connection(
 async def test_unknown_notifications_are_ignored(peer: FakePeer, client: Client) -> None:
     peer.reply = answer_add
     await peer.connections[0].send('{"jsonrpc":"2.0","method":"$/progress","params":{"n":1}}')
-    assert (await client.call(ADD, a=1, b=1)).sum == 2
+    assert (await client.call(ADD, {"a": 1, "b": 1})).sum == 2
 
 
 async def test_a_reply_larger_than_max_message_size_drops_the_connection(
@@ -729,21 +734,20 @@ class Parses:
     """Records every message the client parses in full: in its reader, or in a caller."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        module = srvwire.client
         self.by_reader: list[str | bytes] = []
         self.by_callers: list[str] = []
-        reader_parse, caller_parse = module.parse_replies, module.parse_raw_reply
+        reader_parse, caller_parse = srvwire.session.parse_replies, RawReply.parse
 
         def by_reader(data: str | bytes) -> Any:
             self.by_reader.append(data)
             return reader_parse(data)
 
-        def by_caller(raw: Any) -> Any:
+        def by_caller(raw: RawReply) -> Any:
             self.by_callers.append(raw.message)
             return caller_parse(raw)
 
-        monkeypatch.setattr(module, "parse_replies", by_reader)
-        monkeypatch.setattr(module, "parse_raw_reply", by_caller)
+        monkeypatch.setattr(srvwire.session, "parse_replies", by_reader)
+        monkeypatch.setattr(RawReply, "parse", by_caller)
 
 
 async def next_call_id(peer: FakePeer) -> int:
@@ -756,7 +760,7 @@ async def test_a_reply_as_srvwire_servers_write_it_is_never_parsed_apart_from_it
 ) -> None:
     parses = Parses(monkeypatch)
     peer.reply = answer_add_compactly
-    response = await client.call(ADD, a=1, b=2)
+    response = await client.call(ADD, {"a": 1, "b": 2})
     assert type(response) is add_two_ints.Response and response.sum == 3
     assert (parses.by_reader, parses.by_callers) == ([], [])
     assert client.in_flight == 0
@@ -793,7 +797,7 @@ async def test_a_reply_with_more_members_after_its_result_still_works(
     peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     parses = Parses(monkeypatch)
-    typed = asyncio.create_task(client.call(ADD, a=1, b=2))
+    typed = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
     untyped = asyncio.create_task(client.call("/unadvertised", {}))  # no type: plain data
     ws = peer.connections[0]
     first, second = await peer.next(), await peer.next()
@@ -812,7 +816,7 @@ async def test_a_reply_with_more_members_after_its_result_still_works(
 async def test_a_raw_reply_that_is_not_json_rpc_fails_every_pending_call(
     peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
 ) -> None:
-    calls = [asyncio.create_task(client.call(ADD, a=i, timeout=scaled(30))) for i in range(3)]
+    calls = [asyncio.create_task(client.call(ADD, {"a": i}, timeout=scaled(30))) for i in range(3)]
     ids = [await next_call_id(peer) for _ in calls]
     ws = peer.connections[0]
     error = '{"code":1,"message":"m"}'
@@ -844,7 +848,7 @@ async def test_a_raw_reply_that_is_not_json_rpc_fails_every_pending_call(
 async def test_a_raw_reply_that_is_not_the_response_it_opens_as_fails_the_connection(
     peer: FakePeer, client: Client, tail: str, reason: str
 ) -> None:
-    calls = [asyncio.create_task(client.call(ADD, a=i, timeout=scaled(30))) for i in range(2)]
+    calls = [asyncio.create_task(client.call(ADD, {"a": i}, timeout=scaled(30))) for i in range(2)]
     ids = [await next_call_id(peer) for _ in calls]
     text = compact(ids[0], "{}" + tail.format(other=ids[1]))
     await peer.connections[0].send(text)
@@ -878,7 +882,7 @@ async def test_a_reply_in_a_binary_frame_is_parsed_by_the_reader(
     peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     parses = Parses(monkeypatch)
-    task = asyncio.create_task(client.call(ADD, a=1, b=2))
+    task = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
     text = compact(await next_call_id(peer), '{"sum":3}')
     await peer.connections[0].send(text.encode())  # bytes: a binary frame
     assert (await task).sum == 3
@@ -890,16 +894,16 @@ async def test_a_reply_nobody_waits_for_is_parsed_and_dropped_or_fails_the_conne
 ) -> None:
     caplog.set_level(logging.DEBUG, logger="srvwire.client")
     with pytest.raises(DeadlineExceeded):
-        await client.call(ADD, a=1, b=2, timeout=scaled(0.1))
+        await client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(0.1))
     late = await next_call_id(peer)
     ws = peer.connections[0]
     await ws.send(compact(late, '{"sum":3}'))  # well-formed: dropped
     peer.reply = answer_add_compactly
-    assert (await client.call(ADD, a=2, b=2)).sum == 4
+    assert (await client.call(ADD, {"a": 2, "b": 2})).sum == 4
     assert f"dropping a reply for id {late}: no call waits for it" in caplog.messages
     # The same reply with a tail that is not JSON is checked as before, and fails the connection.
     peer.reply = None
-    task = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+    task = asyncio.create_task(client.call(ADD, {"a": 1}, timeout=scaled(30)))
     await peer.next(ADD)
     await ws.send(compact(late, '{"sum":3},"error":{}'))
     with pytest.raises(ConnectionLost) as caught:
@@ -919,7 +923,7 @@ async def test_a_raw_reply_that_does_not_match_the_type_is_an_internal_error(
 
     peer.reply = wrong
     with pytest.raises(InternalError) as caught:
-        await client.call(ADD, a=1, b=2)
+        await client.call(ADD, {"a": 1, "b": 2})
     # The errors and their wording are those of validating the decoded data, as before.
     assert caught.value.message == (
         "the response does not match example_interfaces/srv/AddTwoInts: "
@@ -1015,9 +1019,9 @@ async def test_wait_for_ready_waits_for_a_server_that_comes_up_later() -> None:
     async with connect(f"ws://127.0.0.1:{port}", reconnect=True) as client:
         assert not client.connected
         with pytest.raises(ConnectionLost, match="not connected"):
-            await client.call(ADD, a=1, b=2)  # without wait_for_ready: fail fast
+            await client.call(ADD, {"a": 1, "b": 2})  # without wait_for_ready: fail fast
         call = asyncio.create_task(
-            client.call(ADD, a=1, b=2, wait_for_ready=True, timeout=scaled(10))
+            client.call(ADD, {"a": 1, "b": 2}, wait_for_ready=True, timeout=scaled(10))
         )
         await late.start(port)
         try:
@@ -1031,20 +1035,20 @@ async def test_wait_for_ready_gives_up_within_the_deadline() -> None:
     url = f"ws://127.0.0.1:{free_port()}"
     async with connect(url, reconnect=True) as client:
         with pytest.raises(ServiceUnavailable) as caught:
-            await client.call(ADD, a=1, wait_for_ready=True, timeout=scaled(0.3))
+            await client.call(ADD, {"a": 1}, wait_for_ready=True, timeout=scaled(0.3))
     assert type(caught.value) is ServiceUnavailable
     assert caught.value.message == f"the service was not reachable within {scaled(0.3):g} s"
 
 
 async def test_reconnect_after_the_connection_drops(peer: FakePeer) -> None:
     async with connect(peer.url, reconnect=True) as client:
-        pending = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+        pending = asyncio.create_task(client.call(ADD, {"a": 1}, timeout=scaled(30)))
         await peer.next(ADD)
         await peer.connections[0].close(1012, "restarting")
         with pytest.raises(ConnectionLost):
             await pending  # a call in flight is never retried: it may have run
         peer.reply = answer_add
-        response = await client.call(ADD, a=2, b=3, wait_for_ready=True, timeout=scaled(5))
+        response = await client.call(ADD, {"a": 2, "b": 3}, wait_for_ready=True, timeout=scaled(5))
         assert response.sum == 5
         assert len(peer.connections) == 2
 
@@ -1062,7 +1066,8 @@ async def query_state(request: Any) -> dict[str, Any]:
 
 
 @pytest.fixture
-async def server() -> AsyncIterator[RunningServer]:
+async def server(transport: Transport) -> AsyncIterator[RunningServer]:
+    """The real server, on each transport in turn."""
     srv = Server(max_in_flight=2000)
     srv.add_service(ADD, load_service(ADD_TYPE), add)
     srv.add_service(
@@ -1070,30 +1075,30 @@ async def server() -> AsyncIterator[RunningServer]:
         load_service("advanced_communication_tutorials/srv/RobotStateQuery"),
         query_state,
     )
-    async with serve(srv, "127.0.0.1", 0) as running:
+    async with serve(srv, "127.0.0.1", 0, transport=transport) as running:
         yield running
 
 
 async def test_round_trips_with_the_real_server(server: RunningServer) -> None:
-    async with connect(server.url, timeout=scaled(5)) as client:
-        assert (await client.call(ADD, a=2**40, b=-(2**62))).sum == 2**40 - 2**62
+    async with connect(server.url, transport=server.transport, timeout=scaled(5)) as client:
+        assert (await client.call(ADD, {"a": 2**40, "b": -(2**62)})).sum == 2**40 - 2**62
         assert (await client.call("add_two_ints", {"a": 1})).sum == 1
-        state = await client.call("/robot1/get_robot_state", query_type="pose")
+        state = await client.call("/robot1/get_robot_state", {"query_type": "pose"})
         assert (state.success, state.values, state.names) == (True, [1.5, -2.0], ["x", "y"])
         assert state.message == ""  # every field is present in the result
-        add_proxy = client.service(ADD)
+        add_proxy = client.proxy(ADD)
         assert (await add_proxy(a=20, b=22)).sum == 42
 
 
 async def test_the_real_servers_replies_are_routed_unparsed(
     server: RunningServer, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    async with connect(server.url, timeout=scaled(5)) as client:
+    async with connect(server.url, transport=server.transport, timeout=scaled(5)) as client:
         parses = Parses(monkeypatch)
-        state = await client.call("/robot1/get_robot_state", query_type="pose")
+        state = await client.call("/robot1/get_robot_state", {"query_type": "pose"})
         assert type(state) is load_service(STATE_TYPE).Response
         assert (state.success, state.values, state.names) == (True, [1.5, -2.0], ["x", "y"])
-        assert (await client.call(ADD, a=1, b=2)).sum == 3
+        assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
         assert (parses.by_reader, parses.by_callers) == ([], [])
         # rpc.discover has no type: its caller parses the whole reply, once.
         assert len(await client.list_services()) == 2
@@ -1104,21 +1109,21 @@ async def test_the_real_servers_replies_are_routed_unparsed(
 
 
 async def test_errors_from_the_real_server(server: RunningServer) -> None:
-    async with connect(server.url, timeout=scaled(5)) as client:
+    async with connect(server.url, transport=server.transport, timeout=scaled(5)) as client:
         with pytest.raises(ServiceNotFound) as not_found:
-            await client.call("/add_two_int", a=1)
+            await client.call("/add_two_int", {"a": 1})
         assert not_found.value.service == "/add_two_int"
         assert ADD in not_found.value.data["candidates"]
         # A type that validates here but not on the server: the server's InvalidParams.
         set_bool = load_service("std_srvs/srv/SetBool")
         with pytest.raises(InvalidParams) as invalid:
-            await client.call(ADD, srv_type=set_bool, data=True)
+            await client.call(ADD, {"data": True}, srv_type=set_bool)
         assert [e["path"] for e in invalid.value.errors] == ["data"]
-        assert (await client.call(ADD, a=1, b=1)).sum == 2
+        assert (await client.call(ADD, {"a": 1, "b": 1})).sum == 2
 
 
 async def test_list_services_on_the_real_server(server: RunningServer) -> None:
-    async with connect(server.url) as client:
+    async with connect(server.url, transport=server.transport) as client:
         assert await client.list_services() == [
             ServiceInfo(ADD, ADD_TYPE),
             ServiceInfo(
@@ -1128,16 +1133,18 @@ async def test_list_services_on_the_real_server(server: RunningServer) -> None:
 
 
 async def test_a_thousand_concurrent_calls_on_one_connection(server: RunningServer) -> None:
-    async with connect(server.url, timeout=scaled(20)) as client:
-        responses = await asyncio.gather(*(client.call(ADD, a=i, b=i) for i in range(1000)))
+    async with connect(server.url, transport=server.transport, timeout=scaled(20)) as client:
+        responses = await asyncio.gather(*(client.call(ADD, {"a": i, "b": i}) for i in range(1000)))
         assert [r.sum for r in responses] == [2 * i for i in range(1000)]
         assert client.in_flight == 0
 
 
 async def test_a_hundred_connections_at_once(server: RunningServer) -> None:
     async def one(i: int) -> int:
-        async with connect(server.url, timeout=scaled(20), open_timeout=scaled(20)) as client:
-            response = await client.call(ADD, a=i, b=1)
+        async with connect(
+            server.url, transport=server.transport, timeout=scaled(20), open_timeout=scaled(20)
+        ) as client:
+            response = await client.call(ADD, {"a": i, "b": 1})
             return int(response.sum)
 
     assert await asyncio.gather(*(one(i) for i in range(100))) == [i + 1 for i in range(100)]
@@ -1147,7 +1154,7 @@ async def test_wait_for_service_wakes_when_the_real_server_adds_it(
     server: RunningServer,
 ) -> None:
     trigger = load_service("std_srvs/srv/Trigger")
-    async with connect(server.url) as client:
+    async with connect(server.url, transport=server.transport) as client:
         waiter = asyncio.create_task(client.wait_for_service("/late", timeout=scaled(5)))
         await asyncio.sleep(0)  # the waiter is waiting now; nothing has added /late yet
         assert not waiter.done()
@@ -1165,7 +1172,7 @@ async def test_wait_for_ready_waits_for_the_real_server_to_come_up() -> None:
     srv.add_service(ADD, load_service(ADD_TYPE), add)
     async with connect(f"ws://127.0.0.1:{port}", reconnect=True) as client:
         call = asyncio.create_task(
-            client.call(ADD, a=3, b=4, wait_for_ready=True, timeout=scaled(10))
+            client.call(ADD, {"a": 3, "b": 4}, wait_for_ready=True, timeout=scaled(10))
         )
         assert not client.connected
         async with serve(srv, "127.0.0.1", port):
@@ -1228,7 +1235,7 @@ async def test_an_error_without_an_id_is_logged(
     error = {"code": -32700, "message": "Parse error", "data": {"status": "PARSE_ERROR"}}
     await peer.connections[0].send(json.dumps({"jsonrpc": "2.0", "id": None, "error": error}))
     peer.reply = answer_add
-    assert (await client.call(ADD, a=1, b=1)).sum == 2
+    assert (await client.call(ADD, {"a": 1, "b": 1})).sum == 2
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
         "the server could not read a message: PARSE_ERROR (-32700): Parse error"
     ]
@@ -1240,8 +1247,8 @@ async def test_a_failing_reader_fails_the_calls_instead_of_leaving_them_waiting(
     def broken(data: str | bytes) -> None:
         raise RuntimeError("a bug in the reader")
 
-    monkeypatch.setattr(client, "_receive", broken)
-    task = asyncio.create_task(client.call(ADD, a=1, timeout=scaled(30)))
+    monkeypatch.setattr(client._link.session, "receive", broken)  # type: ignore[union-attr]
+    task = asyncio.create_task(client.call(ADD, {"a": 1}, timeout=scaled(30)))
     await peer.next(ADD)
     await peer.connections[0].send('{"jsonrpc":"2.0","method":"$/progress"}')
     with pytest.raises(ConnectionLost) as caught:
@@ -1250,17 +1257,21 @@ async def test_a_failing_reader_fails_the_calls_instead_of_leaving_them_waiting(
     assert client.in_flight == 0
 
 
-def hold_sends_of(client: Client, method: str) -> tuple[asyncio.Event, list[BaseException]]:
+def hold_sends_of(
+    client: Client, method: str, monkeypatch: pytest.MonkeyPatch
+) -> tuple[asyncio.Event, list[BaseException]]:
     """Make the client's sends of calls to ``method`` wait forever, as backpressure would."""
-    ws = client._ws
-    assert ws is not None
-    send = ws.send
+    link = client._link
+    assert link is not None
+    conn = link.conn
+    send = type(conn).send
     held = asyncio.Event()
     ended: list[BaseException] = []
 
-    async def held_send(message: Any, text: bool | None = None) -> None:
-        if f'"method":"{method}"' not in message:
-            return await send(message, text=text)
+    async def held_send(self: Any, message: str | bytes) -> None:
+        data = message.encode() if isinstance(message, str) else message
+        if self is not conn or f'"method":"{method}"'.encode() not in data:
+            return await send(self, message)
         held.set()
         try:
             await asyncio.Event().wait()  # the peer does not read: the send cannot finish
@@ -1268,16 +1279,16 @@ def hold_sends_of(client: Client, method: str) -> tuple[asyncio.Event, list[Base
             ended.append(exc)
             raise
 
-    ws.send = held_send  # type: ignore[method-assign]
+    monkeypatch.setattr(type(conn), "send", held_send)
     return held, ended
 
 
 async def test_a_send_held_by_backpressure_meets_the_deadline(
-    peer: FakePeer, client: Client
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    held, ended = hold_sends_of(client, ADD)
+    held, ended = hold_sends_of(client, ADD, monkeypatch)
     with pytest.raises(DeadlineExceeded, match="no response within"):
-        await client.call(ADD, a=1, b=2, timeout=scaled(0.2))
+        await client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(0.2))
     assert held.is_set() and len(ended) == 1 and isinstance(ended[0], asyncio.CancelledError)
     task = asyncio.current_task()
     assert task is not None and task.cancelling() == 0  # the deadline's request was taken back
@@ -1286,10 +1297,10 @@ async def test_a_send_held_by_backpressure_meets_the_deadline(
 
 
 async def test_cancelling_a_caller_held_in_its_send_stays_a_cancellation(
-    peer: FakePeer, client: Client
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    held, ended = hold_sends_of(client, ADD)
-    call = asyncio.create_task(client.call(ADD, a=1, b=2, timeout=scaled(10)))
+    held, ended = hold_sends_of(client, ADD, monkeypatch)
+    call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(10)))
     await held.wait()
     call.cancel()
     with pytest.raises(asyncio.CancelledError):
@@ -1322,11 +1333,71 @@ async def test_only_a_send_that_waits_is_bounded_by_a_timer(
     peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # A send that fits in the socket's buffer finishes in its first step: nothing to bound.
-    armed = record_calls(monkeypatch, srvwire.client, "finish_within")
+    armed = record_calls(monkeypatch, srvwire.link, "finish_within")
     peer.reply = answer_add
-    assert (await client.call(ADD, a=1, b=2)).sum == 3
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
     assert armed == []
-    hold_sends_of(client, ADD)
+    hold_sends_of(client, ADD, monkeypatch)
     with pytest.raises(DeadlineExceeded):
-        await client.call(ADD, a=1, b=2, timeout=scaled(0.2))
+        await client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(0.2))
     assert len(armed) == 1
+
+
+# --- options and payload never share a namespace --------------------------------------------
+
+OPTIONS_AS_FIELDS = """\
+# A request whose fields are called like the options of a call.
+float64 timeout
+string srv_type
+bool wait_for_ready
+---
+string seen
+"""
+
+
+async def test_fields_named_like_options_are_payload(transport: Transport) -> None:
+    from conftest import build
+
+    options_srv = build(OPTIONS_AS_FIELDS, "OptionsAsFields")
+
+    def seen(request: Any) -> dict[str, str]:
+        return {"seen": f"{request.timeout} {request.srv_type} {request.wait_for_ready}"}
+
+    srv = Server()
+    srv.add_service("/options", options_srv, seen)
+    async with (
+        serve(srv, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        fields = {"timeout": 2.5, "srv_type": "x/srv/Y", "wait_for_ready": True}
+        expected = "2.5 x/srv/Y True"
+        assert (await client.call("/options", fields, srv_type=options_srv)).seen == expected
+        proxy = client.proxy("/options", options_srv, timeout=scaled(5))
+        assert (await proxy(timeout=2.5, srv_type="x/srv/Y", wait_for_ready=True)).seen == (
+            expected
+        )
+        with pytest.raises(TypeError, match="unexpected keyword argument 'a'"):
+            await client.call("/options", a=1)  # type: ignore[call-arg]
+
+
+# --- connect: awaitable, async with, and async for ------------------------------------------
+
+
+async def test_async_for_gives_a_new_client_each_round(transport: Transport) -> None:
+    srv = Server()
+    srv.add_service(ADD, load_service(ADD_TYPE), add)
+    clients: list[Client] = []
+    async with serve(srv, "127.0.0.1", 0, transport=transport) as running:
+        async for client in connect(running.url, transport=transport, timeout=scaled(5)):
+            clients.append(client)
+            assert (await client.call(ADD, {"a": len(clients), "b": 1})).sum == len(clients) + 1
+            if len(clients) == 1:
+                await running._connections.copy().pop().conn.close(1001, "going away")
+                with pytest.raises(ConnectionLost):
+                    await client.call(ADD, {"a": 1})
+                continue  # as a loop that reconnects does
+            assert not clients[0].connected  # closed as the loop came round
+            break
+        await clients[1].close()  # the last one is the loop's to close when it leaves early
+    first, second = clients
+    assert first is not second

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from conftest import Bounded, Echo, Hang, Subtract, subtract
+from conftest import Bounded, Echo, Subtract, subtract
 from srvwire.dispatch import Context, ServiceRegistry, dispatch, normalize_name
 from srvwire.errors import (
     DeadlineExceeded,
@@ -360,16 +360,6 @@ async def test_an_invalid_return_is_internal_with_the_reason_logged(
     )
 
 
-async def test_a_deadline_cancels_the_handler() -> None:
-    hangs = Hang()
-    ctx = context(time.monotonic() + scaled(0.05))
-    with pytest.raises(DeadlineExceeded) as caught:
-        await run(hangs, {}, ctx=ctx)
-    assert hangs.entered.is_set() and hangs.cancelled.is_set() and ctx.cancelled
-    assert ctx.time_remaining() == 0.0
-    assert caught.value.message == "the deadline for /t passed before the handler finished"
-
-
 async def test_an_expired_deadline_does_not_run_the_handler() -> None:
     ran: list[bool] = []
 
@@ -379,68 +369,6 @@ async def test_an_expired_deadline_does_not_run_the_handler() -> None:
     with pytest.raises(DeadlineExceeded):
         await run(handler, {}, ctx=context(time.monotonic()))
     assert not ran
-
-
-async def test_a_sync_handler_past_its_deadline_sees_cancelled() -> None:
-    release = threading.Event()
-    observed = threading.Event()
-
-    def handler(request: Any, context: Context) -> Any:
-        release.wait(scaled(10))
-        if context.cancelled:
-            observed.set()
-        return {"difference": 0}
-
-    ctx = context(time.monotonic() + scaled(0.05))
-    with pytest.raises(DeadlineExceeded):
-        await run(handler, {}, ctx=ctx)
-    release.set()
-    assert await asyncio.to_thread(observed.wait, scaled(5))
-
-
-async def test_a_handler_that_swallows_its_deadline_still_answers_deadline_exceeded() -> None:
-    async def swallows(request: Any) -> Any:
-        try:
-            await asyncio.Event().wait()
-        except asyncio.CancelledError:
-            pass
-        return {"difference": 0}
-
-    ctx = context(time.monotonic() + scaled(0.05))
-    with pytest.raises(DeadlineExceeded):
-        await run(swallows, {}, ctx=ctx)
-    assert ctx.cancelled
-    task = asyncio.current_task()
-    assert task is not None and task.cancelling() == 0  # the deadline's request was taken back
-
-
-async def test_a_deadline_that_did_not_pass_leaves_the_task_alone() -> None:
-    ctx = context(time.monotonic() + scaled(0.05))
-    assert await run(subtract, {"minuend": 3, "subtrahend": 1}, ctx=ctx) == '{"difference":2}'
-    # The timer was disarmed: waiting past the deadline is not cancelled.
-    await asyncio.sleep(scaled(0.1))
-    task = asyncio.current_task()
-    assert task is not None and task.cancelling() == 0 and not ctx.cancelled
-
-
-async def test_a_cancellation_at_the_deadline_stays_a_cancellation() -> None:
-    started = asyncio.Event()
-
-    async def hangs(request: Any) -> Any:
-        started.set()
-        try:
-            await asyncio.Event().wait()
-        except asyncio.CancelledError:
-            await asyncio.sleep(scaled(10))  # the deadline passes meanwhile, and cancels this
-            raise
-
-    ctx = context(time.monotonic() + scaled(0.05))
-    task = asyncio.create_task(run(hangs, {}, ctx=ctx))
-    await started.wait()
-    task.cancel()
-    with pytest.raises(asyncio.CancelledError):
-        await task
-    assert ctx.cancelled
 
 
 async def test_cancelling_the_task_marks_the_context() -> None:

@@ -1,4 +1,4 @@
-"""Modules import only from layers below them (DESIGN §2); nothing imports cli or __init__."""
+"""Modules import only from layers below them (docs/design.md); nothing imports cli or __init__."""
 
 from __future__ import annotations
 
@@ -9,56 +9,119 @@ import srvwire
 
 PACKAGE = Path(srvwire.__file__).parent
 
-# module -> the srvwire modules it may import
-ALLOWED: dict[str, set[str]] = {
-    "version": set(),
-    "inline": set(),
-    "errors": set(),
-    "idl": {"errors"},
-    "protocol": {"errors"},
-    "parser": {"idl", "errors"},
-    "models": {"idl", "errors"},
-    "loader": {"parser", "models", "idl", "errors"},
-    "codegen": {"loader", "parser", "models", "idl", "errors"},
-    "dispatch": {"protocol", "models", "idl", "errors", "version", "inline"},
-    "server": {"dispatch", "protocol", "models", "idl", "errors", "inline"},
-    "client": {"protocol", "models", "loader", "idl", "errors", "inline"},
+# module -> its layer; a module may import only modules of lower layers
+LAYERS: dict[str, int] = {
+    "errors": 0,
+    "version": 0,
+    "inline": 0,
+    "idl": 1,
+    "protocol": 1,
+    "transports.base": 1,
+    "parser": 2,
+    "models": 2,
+    "session": 2,
+    "transports.memory": 2,
+    "transports.websockets": 2,
+    "loader": 3,
+    "codegen": 3,
+    "dispatch": 3,
+    "calls": 3,
+    "link": 3,
+    "transports": 3,
+    "serving": 4,
+    "client": 4,
+    "server": 5,
+    "cli": 6,
+    "__init__": 6,
+    "__main__": 6,
 }
 TOP = {"cli", "__init__", "__main__"}
 
 
+def module_name(path: Path) -> str:
+    """``transports/base.py`` -> ``transports.base``; a package's ``__init__`` -> the package."""
+    parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+    if parts[-1] == "__init__" and len(parts) > 1:
+        parts.pop()
+    return ".".join(parts)
+
+
+def layer_key(module: str) -> str:
+    """The key of ``module`` in LAYERS: every module of the cli package is ``cli``."""
+    return "cli" if module == "cli" or module.startswith("cli.") else module
+
+
 def srvwire_imports(path: Path) -> set[str]:
+    """The srvwire modules ``path`` imports, as LAYERS names them."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     found: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             parts = node.module.split(".")
-            if parts[0] == "srvwire":
-                if len(parts) > 1:
-                    found.add(parts[1])
-                else:
-                    found.update(alias.name for alias in node.names)
+            if parts[0] != "srvwire":
+                continue
+            if len(parts) > 1:
+                found.add(".".join(parts[1:]))
+            else:  # from srvwire import version
+                found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level > 0:
-            found.add((node.module or "__init__").split(".")[0])
+            raise AssertionError(f"{path}: relative import; srvwire imports absolutely")
         elif isinstance(node, ast.Import):
             for alias in node.names:
                 parts = alias.name.split(".")
                 if parts[0] == "srvwire":
-                    found.add(parts[1] if len(parts) > 1 else "__init__")
+                    found.add(".".join(parts[1:]) if len(parts) > 1 else "__init__")
     return found
 
 
+MODULES = {module_name(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+
+
 def test_every_module_has_a_layer() -> None:
-    modules = {p.stem for p in PACKAGE.glob("*.py")}
-    assert modules - TOP <= set(ALLOWED), "add the new module to ALLOWED with its layer"
+    missing = {m for m in MODULES if layer_key(m) not in LAYERS}
+    assert not missing, f"give {sorted(missing)} a layer in LAYERS (and in docs/design.md)"
 
 
 def test_imports_point_down() -> None:
-    for path in sorted(PACKAGE.glob("*.py")):
-        module = path.stem
-        imported = srvwire_imports(path)
-        if module in TOP:
-            assert "cli" not in imported or module == "__main__", module
+    for module, path in MODULES.items():
+        if module == "__main__":
+            assert srvwire_imports(path) == {"cli"}
             continue
-        unexpected = imported - ALLOWED[module]
-        assert not unexpected, f"{module} imports {sorted(unexpected)} from a layer above it"
+        own = LAYERS[layer_key(module)]
+        for imported in srvwire_imports(path):
+            key = layer_key(imported)
+            if module.startswith("cli") and key == "cli":
+                continue  # the command line's own modules
+            assert key not in TOP, f"{module} imports {imported}"
+            assert LAYERS[key] < own, f"{module} (layer {own}) imports {imported} ({LAYERS[key]})"
+
+
+def test_the_asyncio_shells_never_import_each_other() -> None:
+    assert "client" not in srvwire_imports(MODULES["server"])
+    assert "server" not in srvwire_imports(MODULES["client"])
+
+
+def test_the_layer_table_in_the_design_page_agrees() -> None:
+    design = (PACKAGE.parents[1] / "docs" / "design.md").read_text(encoding="utf-8")
+    for module, layer in LAYERS.items():
+        if module in {"__main__"}:
+            continue
+        shown = f"`{module.replace('.', '/')}`"
+        rows = [line for line in design.splitlines() if line.startswith(f"| {layer} |")]
+        assert any(shown in row for row in rows), f"docs/design.md: {module} in layer {layer}"
+
+
+def test_only_the_websocket_transport_imports_websockets() -> None:
+    for module, path in MODULES.items():
+        if module == "transports.websockets":
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            names = (
+                [alias.name for alias in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom)
+                else []
+            )
+            assert all(name.split(".")[0] != "websockets" for name in names), module

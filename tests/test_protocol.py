@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 
 from srvwire.errors import (
     DeadlineExceeded,
@@ -27,12 +28,9 @@ from srvwire.protocol import (
     cancel_notification,
     canonical_name,
     decode_json,
-    encode_call,
     encode_json,
-    encode_result,
     parse_incoming,
     parse_replies,
-    serialize,
     serialize_batch,
     services_notification,
 )
@@ -312,16 +310,19 @@ def test_a_non_finite_id_is_invalid_with_a_null_id(id: str, what: str) -> None:
 def test_a_fractional_id_is_accepted_and_echoed() -> None:
     # The specification says numbers SHOULD NOT have fractions; a server still answers them.
     assert parse_incoming('{"jsonrpc":"2.0","method":"m","id":2.5}').items == (Request(2.5, "m"),)
-    assert encode_result(2.5, b"0") == b'{"jsonrpc":"2.0","id":2.5,"result":0}'
+    assert Response(2.5, RawJSON(b"0")).serialize() == b'{"jsonrpc":"2.0","id":2.5,"result":0}'
 
 
 def test_ids_come_back_exactly() -> None:
     big = 2**64 - 1
     request = parse_incoming(f'{{"jsonrpc":"2.0","id":{big},"method":"m"}}').items[0]
     assert isinstance(request, Request) and request.id == big
-    assert encode_result(big, b"0") == f'{{"jsonrpc":"2.0","id":{big},"result":0}}'.encode()
-    assert encode_result(1.5, b"0") == b'{"jsonrpc":"2.0","id":1.5,"result":0}'
-    assert encode_result('a"b', b"0") == b'{"jsonrpc":"2.0","id":"a\\"b","result":0}'
+    expected = f'{{"jsonrpc":"2.0","id":{big},"result":0}}'.encode()
+    assert Response(big, RawJSON(b"0")).serialize() == expected
+    assert Response(1.5, RawJSON(b"0")).serialize() == b'{"jsonrpc":"2.0","id":1.5,"result":0}'
+    assert Response('a"b', RawJSON(b"0")).serialize() == (
+        b'{"jsonrpc":"2.0","id":"a\\"b","result":0}'
+    )
 
 
 # --- building what servers and clients send ----------------------------------------------------
@@ -330,18 +331,18 @@ def test_ids_come_back_exactly() -> None:
 def test_responses_embed_raw_json_as_it_is() -> None:
     raw = '{"sum": 3, "spacing" : [ ]}'
     assert Response(5, RawJSON(raw)).serialize() == (
-        '{"jsonrpc":"2.0","id":5,"result":{"sum": 3, "spacing" : [ ]}}'
+        b'{"jsonrpc":"2.0","id":5,"result":{"sum": 3, "spacing" : [ ]}}'
     )
     assert Response("x", {"a": [1, None]}).serialize() == (
-        '{"jsonrpc":"2.0","id":"x","result":{"a":[1,null]}}'
+        b'{"jsonrpc":"2.0","id":"x","result":{"a":[1,null]}}'
     )
-    assert encode_result(5, raw.encode()) == Response(5, RawJSON(raw)).serialize().encode()
+    assert Response(5, RawJSON(raw.encode())).serialize() == Response(5, RawJSON(raw)).serialize()
 
 
 def test_error_responses_carry_status_and_data() -> None:
     reply = ErrorResponse(9, ServiceError(42, "out of paper", {"tray": 2})).serialize()
     assert reply == (
-        '{"jsonrpc":"2.0","id":9,"error":{"code":42,"message":"out of paper","data":{"tray":2}}}'
+        b'{"jsonrpc":"2.0","id":9,"error":{"code":42,"message":"out of paper","data":{"tray":2}}}'
     )
     missing = ErrorResponse(None, ServiceNotFound("no service named /x", {"candidates": []}))
     assert json.loads(missing.serialize())["error"] == {
@@ -359,26 +360,35 @@ def test_serializing_never_fails_on_odd_data() -> None:
     assert data["obj"].startswith("<class")
 
 
-def error_response_text(error: Any) -> str:
+def error_response_text(error: Any) -> bytes:
     return ErrorResponse(1, error).serialize()
 
 
-def test_encode_result_is_the_response_as_utf8() -> None:
-    for id in (1, "é", None, 2.5):
-        result = '{"text":"ünï","values":[1.0,2.5]}'
-        expected = Response(id, RawJSON(result)).serialize().encode()
-        assert encode_result(id, result.encode()) == expected
+@pytest.mark.parametrize(
+    ("id", "id_json"), [(1, b"1"), ("é", '"é"'.encode()), (None, b"null"), (2.5, b"2.5")]
+)
+def test_a_raw_result_is_spliced_in_as_utf8_from_text_or_bytes_alike(
+    id: Any, id_json: bytes
+) -> None:
+    result = '{"text":"ünï","values":[1.0,2.5]}'
+    expected = b'{"jsonrpc":"2.0","id":' + id_json + b',"result":' + result.encode() + b"}"
+    assert Response(id, RawJSON(result)).serialize() == expected
+    assert Response(id, RawJSON(result.encode())).serialize() == expected
 
 
-def test_encode_call_is_the_request_text_of_the_client_hot_path() -> None:
-    assert encode_call(7, '"/m"', '{"a":1,"b":"x"}', 2.5) == (
-        '{"jsonrpc":"2.0","id":7,"method":"/m","params":{"_meta":{"timeout":2.5},"a":1,"b":"x"}}'
+def test_the_clients_calls_are_written_in_one_go() -> None:
+    # An int id, params as pydantic writes them (a compact object), a finite float timeout.
+    assert Request(7, "/m", RawJSON('{"a":1,"b":"x"}'), 2.5).serialize() == (
+        b'{"jsonrpc":"2.0","id":7,"method":"/m","params":{"_meta":{"timeout":2.5},"a":1,"b":"x"}}'
     )
-    assert encode_call(8, '"/m"', "{}", 0.5) == (
-        '{"jsonrpc":"2.0","id":8,"method":"/m","params":{"_meta":{"timeout":0.5}}}'
+    assert Request(8, "/m", RawJSON("{}"), 0.5).serialize() == (
+        b'{"jsonrpc":"2.0","id":8,"method":"/m","params":{"_meta":{"timeout":0.5}}}'
     )
-    assert encode_call(9, encode_json('/a"b'), "{}", 1e-05) == (
-        '{"jsonrpc":"2.0","id":9,"method":"/a\\"b","params":{"_meta":{"timeout":1e-05}}}'
+    assert Request(9, '/a"b', RawJSON("{}"), 1e-05).serialize() == (
+        b'{"jsonrpc":"2.0","id":9,"method":"/a\\"b","params":{"_meta":{"timeout":1e-05}}}'
+    )
+    assert Request(10, "/m", RawJSON("{}"), 1e16).serialize() == (
+        b'{"jsonrpc":"2.0","id":10,"method":"/m","params":{"_meta":{"timeout":1e+16}}}'
     )
 
 
@@ -386,42 +396,106 @@ def test_encode_call_is_the_request_text_of_the_client_hot_path() -> None:
     timeout=st.floats(min_value=0, allow_nan=False, allow_infinity=False),
     params=st.dictionaries(st.from_regex(r"[a-z][a-z0-9_]{0,8}", fullmatch=True), st.integers()),
 )
-def test_encode_call_writes_every_finite_timeout_as_json(
+def test_a_call_written_in_one_go_is_the_request_the_general_path_writes(
     timeout: float, params: dict[str, int]
 ) -> None:
-    text = encode_call(3, '"/m"', encode_json(params), timeout)
-    assert json.loads(text) == json.loads(
-        Request(3, "/m", RawJSON(encode_json(params)), timeout).serialize()
-    )
-    (item,) = parse_incoming(text).items
+    text = encode_json(params)
+    written = Request(3, "/m", RawJSON(text), timeout).serialize()
+    # Params as bytes, or as a dict (whose _meta goes last), take the general path.
+    assert written == Request(3, "/m", RawJSON(text.encode()), timeout).serialize()
+    assert json.loads(written) == json.loads(Request(3, "/m", params, timeout).serialize())
+    (item,) = parse_incoming(written).items
     assert item == Request(3, "/m", params, timeout)
 
 
+@settings(max_examples=200)
+@given(st.text())
+@example("/m")
+@example('/a"b')
+@example("/a\\b")
+@example("/é")
+@example("/ロボット")
+@example("/😀")
+@example("/a\nb")
+@example("/a\x00b")
+@example("/a\x7fb")
+@example("/a\u2028b")
+@example("/a/b<>&'")
+@example("")
+def test_a_method_name_is_written_as_json_writes_it(method: str) -> None:
+    # Most names skip the encoder; the ones that need escaping (or are not ASCII) must not.
+    name = encode_json(method).encode()
+    call = Request(1, method, RawJSON("{}"), 1.0).serialize()
+    assert (
+        call
+        == b'{"jsonrpc":"2.0","id":1,"method":' + name + b',"params":{"_meta":{"timeout":1.0}}}'
+    )
+    assert Request("x", method).serialize() == b'{"jsonrpc":"2.0","id":"x","method":' + name + b"}"
+    assert Notification(method).serialize() == b'{"jsonrpc":"2.0","method":' + name + b"}"
+    assert parse_incoming(call).items == (Request(1, method, {}, 1.0),)
+
+
 def test_requests_carry_the_timeout_in_meta() -> None:
-    assert Request(1, "/m").serialize() == '{"jsonrpc":"2.0","id":1,"method":"/m"}'
+    assert Request(1, "/m").serialize() == b'{"jsonrpc":"2.0","id":1,"method":"/m"}'
     assert Request(1, "/m", {"a": 1}, timeout=2).serialize() == (
-        '{"jsonrpc":"2.0","id":1,"method":"/m","params":{"a":1,"_meta":{"timeout":2}}}'
+        b'{"jsonrpc":"2.0","id":1,"method":"/m","params":{"a":1,"_meta":{"timeout":2}}}'
     )
     assert Request(2, "/m", RawJSON(' {"a": 1}'), timeout=0.5).serialize() == (
-        '{"jsonrpc":"2.0","id":2,"method":"/m","params":{"_meta":{"timeout":0.5},"a": 1}}'
+        b'{"jsonrpc":"2.0","id":2,"method":"/m","params":{"_meta":{"timeout":0.5},"a": 1}}'
     )
-    assert Request(3, "/m", RawJSON("{ }"), timeout=1.0).serialize() == (
-        '{"jsonrpc":"2.0","id":3,"method":"/m","params":{"_meta":{"timeout":1.0}}}'
-    )
+    # Beside raw params or none, an int timeout is written as the float it is read as.
     assert Request(3, "/m", RawJSON('\n{\t"a": {"b": []} }\n '), timeout=1).serialize() == (
-        '{"jsonrpc":"2.0","id":3,"method":"/m","params":{"_meta":{"timeout":1},"a": {"b": []} }}'
+        b'{"jsonrpc":"2.0","id":3,"method":"/m","params":{"_meta":{"timeout":1.0},"a": {"b": []} }}'
     )
     assert Notification("/n", RawJSON('{"a":1}'), timeout=2).serialize() == (
-        '{"jsonrpc":"2.0","method":"/n","params":{"_meta":{"timeout":2},"a":1}}'
+        b'{"jsonrpc":"2.0","method":"/n","params":{"_meta":{"timeout":2.0},"a":1}}'
     )
     assert Request(4, "/m", timeout=1.0).serialize() == (
-        '{"jsonrpc":"2.0","id":4,"method":"/m","params":{"_meta":{"timeout":1.0}}}'
+        b'{"jsonrpc":"2.0","id":4,"method":"/m","params":{"_meta":{"timeout":1.0}}}'
     )
-    assert Notification("/n", [1]).serialize() == '{"jsonrpc":"2.0","method":"/n","params":[1]}'
+    assert Notification("/n", [1]).serialize() == b'{"jsonrpc":"2.0","method":"/n","params":[1]}'
     with pytest.raises(ValueError, match="params by name"):
         Request(5, "/m", [1], timeout=1.0).serialize()
-    with pytest.raises(ValueError, match="JSON object"):
-        Request(5, "/m", RawJSON("[1]"), timeout=1.0).serialize()
+
+
+@pytest.mark.parametrize(
+    ("params", "spliced"),
+    [
+        ("{ }", b'{"_meta":{"timeout":1.0}}'),
+        ("{\n}", b'{"_meta":{"timeout":1.0}}'),
+        (" { } ", b'{"_meta":{"timeout":1.0}}'),
+        ('{ "a": 1}', b'{"_meta":{"timeout":1.0},"a": 1}'),
+        (' {"a": 1}', b'{"_meta":{"timeout":1.0},"a": 1}'),
+        ('{"a": 1}\n', b'{"_meta":{"timeout":1.0},"a": 1}'),
+    ],
+)
+def test_raw_params_with_blanks_take_the_timeout(params: str, spliced: bytes) -> None:
+    written = Request(3, "/m", RawJSON(params), timeout=1.0).serialize()
+    assert written == b'{"jsonrpc":"2.0","id":3,"method":"/m","params":' + spliced + b"}"
+    for text in (params, params.encode()):
+        message = Request(3, "/m", RawJSON(text), timeout=1.0).serialize()
+        assert parse_incoming(message).items == (Request(3, "/m", json.loads(params), 1.0),)
+
+
+@pytest.mark.parametrize("params", ["[1]", "[1,2]", "", '"x"', "1", "null", "{"])
+def test_a_timeout_refuses_raw_params_that_are_not_an_object(params: str) -> None:
+    # Spliced in, they would make invalid JSON (the server answers PARSE_ERROR with id null).
+    for text in (params, params.encode()):
+        with pytest.raises(ValueError, match="a timeout needs params that are a JSON object"):
+            Request(1, "/m", RawJSON(text), timeout=1.0).serialize()
+
+
+@pytest.mark.parametrize("params", [None, {}, RawJSON("{}"), RawJSON(b"{}")])
+@pytest.mark.parametrize(
+    ("timeout", "named"),
+    [(math.inf, "Infinity"), (-math.inf, "-Infinity"), (math.nan, "NaN"), (10**400, "an integer")],
+)
+def test_a_timeout_that_is_not_a_finite_number_is_refused(
+    params: Any, timeout: float, named: str
+) -> None:
+    # Python would write inf or nan, which is not JSON, and null would mean "no deadline".
+    with pytest.raises(ValueError, match=f"finite number of seconds, not {named}"):
+        Request(1, "/m", params, timeout).serialize()
 
 
 @pytest.mark.parametrize(
@@ -434,21 +508,22 @@ def test_requests_carry_the_timeout_in_meta() -> None:
     ],
 )
 def test_what_a_client_sends_the_server_reads_back(message: Request | Notification) -> None:
-    assert parse_incoming(serialize(message)).items == (message,)
+    assert parse_incoming(message.serialize()).items == (message,)
 
 
 def test_batches_and_protocol_notifications() -> None:
-    assert serialize_batch([Response(1, 2), '{"pre":"made"}']) == (
-        '[{"jsonrpc":"2.0","id":1,"result":2},{"pre":"made"}]'
+    assert serialize_batch([Response(1, 2), b'{"pre":"made"}']) == (
+        b'[{"jsonrpc":"2.0","id":1,"result":2},{"pre":"made"}]'
     )
     assert cancel_notification(7).serialize() == (
-        '{"jsonrpc":"2.0","method":"$/cancel","params":{"id":7}}'
+        b'{"jsonrpc":"2.0","method":"$/cancel","params":{"id":7}}'
     )
     assert services_notification([("/b", "p/srv/B"), ("/a", "p/srv/A")]).serialize() == (
-        '{"jsonrpc":"2.0","method":"$/services","params":{"services":'
-        '[{"name":"/a","type":"p/srv/A"},{"name":"/b","type":"p/srv/B"}]}}'
+        b'{"jsonrpc":"2.0","method":"$/services","params":{"services":'
+        b'[{"name":"/a","type":"p/srv/A"},{"name":"/b","type":"p/srv/B"}]}}'
     )
     assert encode_json(RawJSON("[1]")) == "[1]"
+    assert encode_json(RawJSON(b"[1]")) == "[1]"
 
 
 # --- parsing what servers send -------------------------------------------------------------------
@@ -542,19 +617,6 @@ def test_parse_incoming_never_raises_and_every_error_serializes(data: str | byte
             assert isinstance(reply["error"]["code"], int)
         else:
             assert isinstance(item, Request | Notification)
-
-
-@pytest.mark.parametrize("params", ["[1,2]", "", '"x"', "1", "null", "{"])
-def test_encode_call_refuses_params_that_are_not_an_object(params: str) -> None:
-    # Spliced in, they would make invalid JSON (the server answers PARSE_ERROR with id null).
-    with pytest.raises(ValueError, match="params must be a JSON object"):
-        encode_call(1, '"/m"', params, 1.0)
-
-
-@pytest.mark.parametrize("timeout", [float("inf"), float("-inf"), float("nan")])
-def test_encode_call_refuses_a_timeout_that_is_not_finite(timeout: float) -> None:
-    with pytest.raises(ValueError, match="finite"):
-        encode_call(1, '"/m"', "{}", timeout)
 
 
 def test_a_service_name_is_kept_with_one_leading_slash() -> None:

@@ -26,6 +26,7 @@ from srvwire.errors import (
 )
 from srvwire.loader import load_service
 from srvwire.server import RunningServer, Server, serve
+from srvwire.transports.base import Transport
 from support import scaled
 
 SERVERS = Path(__file__).parent / "servers"
@@ -88,7 +89,7 @@ class Hangs:
 
 
 @pytest.fixture
-async def hanging() -> AsyncIterator[tuple[RunningServer, Hangs]]:
+async def hanging(transport: Transport) -> AsyncIterator[tuple[RunningServer, Hangs]]:
     handler = Hangs()
     server = Server(grace_period=scaled(0.1))
     server.add_service("/hang", TRIGGER, handler)
@@ -103,7 +104,7 @@ async def hanging() -> AsyncIterator[tuple[RunningServer, Hangs]]:
         return {"sum": request.a + request.b}
 
     server.add_service("/flaky", ADD, flaky)
-    async with serve(server, "127.0.0.1", 0) as running:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         yield running, handler
 
 
@@ -111,7 +112,7 @@ async def test_a_hanging_handler_meets_the_deadline_and_is_cancelled(
     hanging: tuple[RunningServer, Hangs],
 ) -> None:
     running, handler = hanging
-    async with connect(running.url) as client:
+    async with connect(running.url, transport=running.transport) as client:
         loop = asyncio.get_running_loop()
         start = loop.time()
         with pytest.raises(DeadlineExceeded) as caught:
@@ -129,7 +130,7 @@ async def test_cancelling_the_caller_cancels_the_handler(
     hanging: tuple[RunningServer, Hangs],
 ) -> None:
     running, handler = hanging
-    async with connect(running.url) as client:
+    async with connect(running.url, transport=running.transport) as client:
         task = asyncio.create_task(client.call("/hang", timeout=scaled(30)))
         await asyncio.wait_for(handler.started.wait(), scaled(5))
         task.cancel()
@@ -144,20 +145,23 @@ async def test_a_handler_that_raises_is_an_internal_error_and_the_next_call_work
     hanging: tuple[RunningServer, Hangs], caplog: pytest.LogCaptureFixture
 ) -> None:
     running, _ = hanging
-    async with connect(running.url, timeout=scaled(5)) as client:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
         with pytest.raises(InternalError) as caught:
-            await client.call("/flaky", a=1, b=2)
+            await client.call("/flaky", {"a": 1, "b": 2})
         assert caught.value.service == "/flaky"
         assert "RuntimeError" not in caught.value.message  # no traceback leaves the server
-        assert (await client.call("/flaky", a=1, b=2)).sum == 3
+        assert (await client.call("/flaky", {"a": 1, "b": 2})).sum == 3
     assert any("first call always fails" in str(r.exc_info) for r in caplog.records)
 
 
-async def test_overload_is_resource_exhausted() -> None:
+async def test_overload_is_resource_exhausted(transport: Transport) -> None:
     handler = Hangs()
     server = Server(max_in_flight=1)
     server.add_service("/hang", TRIGGER, handler)
-    async with serve(server, "127.0.0.1", 0) as running, connect(running.url) as client:
+    async with (
+        serve(server, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=running.transport) as client,
+    ):
         first = asyncio.create_task(client.call("/hang", timeout=scaled(30)))
         await asyncio.wait_for(handler.started.wait(), scaled(5))
         with pytest.raises(ResourceExhausted) as caught:
@@ -172,7 +176,7 @@ async def test_shutdown_answers_unavailable_then_the_connection_is_lost(
     hanging: tuple[RunningServer, Hangs],
 ) -> None:
     running, handler = hanging
-    async with connect(running.url, timeout=scaled(30)) as client:
+    async with connect(running.url, transport=running.transport, timeout=scaled(30)) as client:
         call = asyncio.create_task(client.call("/hang"))
         await asyncio.wait_for(handler.started.wait(), scaled(5))
         await running.close()  # the grace period passes, the handler is cancelled
@@ -185,27 +189,36 @@ async def test_shutdown_answers_unavailable_then_the_connection_is_lost(
             await client.call("/hang")
 
 
-async def test_a_reconnecting_client_that_closes_leaves_no_connection_on_the_server() -> None:
+async def test_a_reconnecting_client_that_closes_leaves_no_connection_on_the_server(
+    transport: Transport,
+) -> None:
     # Closing a reconnect=True client once forgot its socket: the supervisor's cancellation
     # reached the reader, which dropped the connection from the client without closing it.
     server = Server()
     server.add_service("/add", ADD, lambda request: {"sum": request.a + request.b})
-    async with serve(server, "127.0.0.1", 0) as running:
-        client = await connect(running.url, reconnect=True, timeout=scaled(5))
-        assert (await client.call("/add", a=1, b=2)).sum == 3
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        client = await connect(
+            running.url, transport=running.transport, reconnect=True, timeout=scaled(5)
+        )
+        assert (await client.call("/add", {"a": 1, "b": 2})).sum == 3
         (connection,) = running._connections  # the server's record of its one connection
         await client.close()
-        await asyncio.wait_for(connection.ws.wait_closed(), scaled(5))
-        assert connection.ws.close_code == 1000  # closed by the client, not by the shutdown
+        await asyncio.wait_for(asyncio.wait({connection.reading}), scaled(5))  # reading ended
+        assert connection.conn.close_code == 1000  # closed by the client, not by the shutdown
 
 
-async def test_a_request_larger_than_the_server_accepts_loses_the_connection() -> None:
+async def test_a_request_larger_than_the_server_accepts_loses_the_connection(
+    transport: Transport,
+) -> None:
     server = Server(max_message_size=1000)
     robot = load_service("advanced_communication_tutorials/srv/RobotCommand")
     server.add_service("/command", robot, lambda request: {"success": True})
-    async with serve(server, "127.0.0.1", 0) as running, connect(running.url) as client:
-        assert (await client.call("/command", parameters=[0.5] * 10)).success
+    async with (
+        serve(server, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=running.transport) as client,
+    ):
+        assert (await client.call("/command", {"parameters": [0.5] * 10})).success
         with pytest.raises(ConnectionLost) as caught:
-            await client.call("/command", parameters=[0.5] * 500, timeout=scaled(10))
+            await client.call("/command", {"parameters": [0.5] * 500}, timeout=scaled(10))
         assert caught.value.data["close_code"] == 1009
         assert not client.connected

@@ -16,19 +16,19 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 from websockets.asyncio.client import connect as ws_connect
 from websockets.client import ClientProtocol
-from websockets.exceptions import ConnectionClosed
 from websockets.frames import Frame, Opcode
 from websockets.sync.client import connect as sync_connect
 from websockets.uri import parse_uri
 
 import srvwire
-from conftest import Echo, Hang, Subtract, Wire, build, open_wire, subtract
+from conftest import Echo, Hang, Subtract, Wire, build, open_wire, subtract, websockets_only
 from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
-from srvwire.protocol import Notification, Request
-from srvwire.server import RunningServer, Server, _Connection, serve
-from support import ROOT, record_calls, scaled
+from srvwire.server import RunningServer, Server, serve
+from srvwire.serving import ServedConnection
+from srvwire.transports.base import Transport, TransportClosed
+from support import ROOT, scaled
 
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
 Notify = build("int64[] values\n---\n", "Notify")
@@ -51,7 +51,7 @@ def error(reply: Any) -> tuple[Any, int, str]:
 
 async def closed_code(wire: Wire) -> int | None:
     """Read until the connection closes; return its close code."""
-    with pytest.raises(ConnectionClosed):
+    with pytest.raises(TransportClosed):
         async with asyncio.timeout(scaled(5)):
             while True:
                 await wire.ws.recv()
@@ -73,7 +73,7 @@ def spec_server(server: Server) -> Server:
 @pytest.fixture
 async def spec_wire(spec_server: Server) -> Any:
     async with serve(spec_server, "127.0.0.1", 0) as running:
-        wire = await open_wire(running.url)
+        wire = await open_wire(running)
         yield wire
         await wire.ws.close()
 
@@ -191,13 +191,13 @@ EXTREMES = {
 
 
 @pytest.fixture
-async def ros_wire(ros_interfaces: InterfaceLoader) -> Any:
+async def ros_wire(ros_interfaces: InterfaceLoader, transport: Transport) -> Any:
     server = Server()
     for name in ("BasicTypes", "Arrays", "Empty"):
         srv = ros_interfaces.load_service(f"ros_test_interfaces/srv/{name}")
         server.add_service(name.lower(), srv, mirror(srv))
-    async with serve(server, "127.0.0.1", 0) as running:
-        wire = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
         yield wire
         await wire.ws.close()
 
@@ -272,11 +272,11 @@ async def test_bad_values_name_their_fields(
 # --- handlers that fail, hang, refuse ------------------------------------------------------------
 
 
-async def test_a_hanging_handler_meets_the_deadline(server: Server) -> None:
+async def test_a_hanging_handler_meets_the_deadline(server: Server, transport: Transport) -> None:
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         reply = await w.call(request("hangs", {"_meta": {"timeout": scaled(0.05)}}, id=8))
         assert error(reply) == (8, -32001, "DEADLINE_EXCEEDED")
         assert reply["error"]["message"] == (
@@ -287,14 +287,14 @@ async def test_a_hanging_handler_meets_the_deadline(server: Server) -> None:
 
 
 async def test_a_raising_handler_is_internal_without_a_traceback(
-    server: Server, caplog: pytest.LogCaptureFixture
+    server: Server, caplog: pytest.LogCaptureFixture, transport: Transport
 ) -> None:
     def broken(request: Any) -> Any:
         raise RuntimeError("the password is hunter2")
 
     server.add_service("/broken", Echo, broken)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("broken", id=1))
         raw = await asyncio.wait_for(w.ws.recv(), scaled(5))
         assert json.loads(raw) == {
@@ -311,7 +311,9 @@ async def test_a_raising_handler_is_internal_without_a_traceback(
     assert any("hunter2" in str(r.exc_info[1]) for r in caplog.records if r.exc_info)
 
 
-async def test_a_cancellation_nobody_asked_for_is_still_answered(server: Server) -> None:
+async def test_a_cancellation_nobody_asked_for_is_still_answered(
+    server: Server, transport: Transport
+) -> None:
     # Awaiting a future that something else cancelled raises CancelledError in the handler
     # while its task is not being cancelled: the call must still get its one reply.
     async def awaits_a_cancelled_future(request: Any) -> Any:
@@ -320,8 +322,8 @@ async def test_a_cancellation_nobody_asked_for_is_still_answered(server: Server)
         await future
 
     server.add_service("/stray", Echo, awaits_a_cancelled_future)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         reply = await w.call(request("stray", {"_meta": {"timeout": scaled(30)}}, id="s"))
         assert error(reply) == ("s", -32603, "INTERNAL")
         batch = await w.call([request("stray", id="b1"), request("subtract", [3, 1], id="b2")])
@@ -331,13 +333,15 @@ async def test_a_cancellation_nobody_asked_for_is_still_answered(server: Server)
         assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
 
 
-async def test_a_service_error_reaches_the_caller_as_it_was_raised(server: Server) -> None:
+async def test_a_service_error_reaches_the_caller_as_it_was_raised(
+    server: Server, transport: Transport
+) -> None:
     async def refuses(request: Any) -> Any:
         raise ServiceError(4001, "the robot is e-stopped", {"since": "12:00", "ids": [1, 2]})
 
     server.add_service("/refuses", Echo, refuses)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         assert await w.call(request("refuses", id="r")) == {
             "jsonrpc": "2.0",
             "id": "r",
@@ -349,7 +353,9 @@ async def test_a_service_error_reaches_the_caller_as_it_was_raised(server: Serve
         }
 
 
-async def test_cancel_stops_the_handler_and_answers_cancelled(server: Server) -> None:
+async def test_cancel_stops_the_handler_and_answers_cancelled(
+    server: Server, transport: Transport
+) -> None:
     entered = asyncio.Event()
     cancelled = asyncio.Event()
 
@@ -362,8 +368,8 @@ async def test_cancel_stops_the_handler_and_answers_cancelled(server: Server) ->
             raise
 
     server.add_service("/hangs", Echo, hangs)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("hangs", id="c1"))
         await entered.wait()
         await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": "c1"}})
@@ -376,7 +382,7 @@ async def test_cancel_stops_the_handler_and_answers_cancelled(server: Server) ->
         assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
 
 
-async def test_cancel_reaches_a_call_that_has_not_started_yet() -> None:
+async def test_cancel_reaches_a_call_that_has_not_started_yet(transport: Transport) -> None:
     server = Server(max_in_flight=1)
     ran: list[bool] = []
 
@@ -385,8 +391,8 @@ async def test_cancel_reaches_a_call_that_has_not_started_yet() -> None:
         return {"text": "ran"}
 
     server.add_service("/once", Echo, handler)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         # In one batch the call's task is created, then cancelled before its first step.
         replies = await w.call(
             [request("once", id=1), {"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}}]
@@ -404,49 +410,70 @@ async def test_results_are_sent_in_text_frames(wire: Wire) -> None:
     assert frame == '{"jsonrpc":"2.0","id":1,"result":{"text":"hé"}}'
 
 
+def served(server: Server, socket: Any) -> ServedConnection:
+    """A connection of ``server`` over a stand-in for the transport's connection."""
+    return ServedConnection(
+        socket,
+        server.registry,
+        max_in_flight=server.max_in_flight,
+        executor=server.executor,
+        logger=server.logger,
+    )
+
+
+def batch_of_two_calls_and_a_notification(conn: ServedConnection) -> list[Any]:
+    """Hand the connection's session a batch and start its work as the reader would."""
+    events = conn.session.receive(
+        json.dumps(
+            [
+                request("echo", {"text": "a"}, id=1),
+                request("echo", {"text": "b"}, id=2),
+                {"jsonrpc": "2.0", "method": "echo", "params": {"text": "c"}},
+            ]
+        )
+    )
+    for work in events:
+        conn.start_in_task(work)
+    return events
+
+
 async def test_calls_cancelled_before_their_first_step_are_settled(server: Server) -> None:
     # The connection goes away between the creation of call tasks and their first step: their
     # coroutines never run, so the teardown itself must uncount them and forget the calls.
     class Socket:
         remote_address = ("127.0.0.1", 1)
 
-    conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
-    first = conn.start(Request(1, "/echo", {"text": "a"}))
-    second = conn.start(Request(2, "/echo", {"text": "b"}))
-    notification = conn.notify(Notification("/echo", {"text": "c"}))
-    assert notification is not None
-    conn.spawn_counted(notification)
+    conn = served(server, Socket())
+    first, second, _ = batch_of_two_calls_and_a_notification(conn)
     tasks = set(conn.counted)
-    assert conn.in_flight == 3 and len(tasks) == 3 and set(conn.calls) == {1, 2}
-    assert not any(call.started for call in conn.calls.values())
+    session = conn.session
+    assert session.in_flight == 3 and len(tasks) == 3 and set(session.calls) == {1, 2}
+    assert not any(call.started for call in session.calls.values())
     conn.cancel_all(None)
     await asyncio.wait(tasks)
-    assert all(task.cancelled() for task in tasks) and {first, second} <= tasks
-    assert conn.in_flight == 0 and not conn.counted and not conn.calls
+    assert all(task.cancelled() for task in tasks) and {first.task, second.task} <= tasks
+    assert not conn.counted and not session.calls
 
 
 async def test_finished_calls_and_notifications_settle_themselves(server: Server) -> None:
     class Socket:
         remote_address = ("127.0.0.1", 1)
 
-        async def send(self, message: str | bytes, text: bool | None = None) -> None:
+        async def send(self, message: str | bytes) -> None:
             sent.append(message)
 
     sent: list[str | bytes] = []
-    conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
-    batched = conn.start(Request(2, "/echo", {"text": "b"}))
-    notification = conn.notify(Notification("/echo", {"text": "c"}))
-    assert notification is not None
-    conn.spawn_counted(notification)
+    conn = served(server, Socket())
+    batch_of_two_calls_and_a_notification(conn)
     tasks = set(conn.counted)
-    assert len(tasks) == 2
+    assert len(tasks) == 3
     await asyncio.wait(tasks)
-    assert isinstance(batched, asyncio.Task) and batched.result() is not None
-    assert not sent  # a batch's call returns its reply to the batch, which sends them all
-    assert conn.in_flight == 0 and not conn.counted and not conn.calls
+    (batch,) = sent  # the last call of the batch to reply sends the batch's replies
+    assert [reply["id"] for reply in json.loads(batch)] == [1, 2]
+    assert conn.session.in_flight == 0 and not conn.counted and not conn.session.calls
 
 
-async def test_sync_handlers_do_not_block_the_loop(server: Server) -> None:
+async def test_sync_handlers_do_not_block_the_loop(server: Server, transport: Transport) -> None:
     release = threading.Event()
     entered = threading.Event()
 
@@ -456,8 +483,8 @@ async def test_sync_handlers_do_not_block_the_loop(server: Server) -> None:
         return {"text": "released"}
 
     server.add_service("/blocks", Echo, blocks)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("blocks", id="slow"))
         assert await asyncio.to_thread(entered.wait, scaled(5))
         assert await w.call(request("echo", {"text": "fast"}, id="fast")) == {
@@ -469,7 +496,7 @@ async def test_sync_handlers_do_not_block_the_loop(server: Server) -> None:
         assert (await w.recv_reply())["result"] == {"text": "released"}
 
 
-async def test_a_handler_may_ask_for_its_context(server: Server) -> None:
+async def test_a_handler_may_ask_for_its_context(server: Server, transport: Transport) -> None:
     seen: list[Context] = []
 
     async def handler(request: Any, response: Any, context: Context) -> Any:
@@ -478,17 +505,19 @@ async def test_a_handler_may_ask_for_its_context(server: Server) -> None:
         return response
 
     server.add_service("/ctx", Echo, handler)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         reply = await w.call(request("ctx", {"_meta": {"timeout": scaled(30)}}, id=77))
         assert reply["result"] == {"text": "/ctx 77"}
         (context,) = seen
-        assert context.peer[0] == "127.0.0.1"
+        assert context.peer[0] == ("memory" if transport.name == "memory" else "127.0.0.1")
         remaining = context.time_remaining()
         assert remaining is not None and 0 < remaining <= scaled(30)
 
 
-async def test_a_notification_runs_its_handler_without_a_reply(server: Server) -> None:
+async def test_a_notification_runs_its_handler_without_a_reply(
+    server: Server, transport: Transport
+) -> None:
     ran = asyncio.Event()
 
     async def handler(request: Any) -> Any:
@@ -496,15 +525,15 @@ async def test_a_notification_runs_its_handler_without_a_reply(server: Server) -
         raise RuntimeError("not reported to anyone but the log")
 
     server.add_service("/fire", Echo, handler)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send({"jsonrpc": "2.0", "method": "fire", "params": {"text": "x"}})
         await ran.wait()
         assert (await w.call(request("subtract", [1, 1], id="n")))["id"] == "n"
 
 
 async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
-    server: Server, caplog: pytest.LogCaptureFixture
+    server: Server, caplog: pytest.LogCaptureFixture, transport: Transport
 ) -> None:
     ran: list[Any] = []
 
@@ -513,8 +542,8 @@ async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
         return {"text": request.text}
 
     server.add_service("/note", Echo, handler)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         with caplog.at_level(logging.INFO, "srvwire.server"):
             await w.send('{"jsonrpc":"2.0","method":"note","params":{"_meta":5}}')
             await w.send('{"jsonrpc":"2.0","method":"note","params":{"_meta":{"timeout":-1}}}')
@@ -525,11 +554,12 @@ async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
         assert ran == []
     dropped = [r.getMessage() for r in caplog.records if "dropped a notification" in r.message]
     assert len(dropped) == 3
-    assert dropped[0].startswith("dropped a notification to /note from ('127.0.0.1', ")
+    host = "memory" if transport.name == "memory" else "127.0.0.1"
+    assert dropped[0].startswith(f"dropped a notification to /note from ('{host}', ")
     assert dropped[0].endswith("invalid _meta: must be an object, not a number")
 
 
-async def test_an_id_in_flight_cannot_be_reused(server: Server) -> None:
+async def test_an_id_in_flight_cannot_be_reused(server: Server, transport: Transport) -> None:
     release = asyncio.Event()
 
     async def waits(request: Any) -> Any:
@@ -537,8 +567,8 @@ async def test_an_id_in_flight_cannot_be_reused(server: Server) -> None:
         return {"text": "ok"}
 
     server.add_service("/waits", Echo, waits)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("waits", id=1))
         reply = await w.call(request("waits", id=1))
         assert error(reply) == (1, -32600, "INVALID_REQUEST")
@@ -552,7 +582,9 @@ async def test_an_id_in_flight_cannot_be_reused(server: Server) -> None:
 # --- limits --------------------------------------------------------------------------------------
 
 
-async def test_a_flood_past_the_in_flight_limit_is_refused_and_the_connection_lives() -> None:
+async def test_a_flood_past_the_in_flight_limit_is_refused_and_the_connection_lives(
+    transport: Transport,
+) -> None:
     server = Server(max_in_flight=4)
     release = asyncio.Event()
     entered = 0
@@ -567,8 +599,8 @@ async def test_a_flood_past_the_in_flight_limit_is_refused_and_the_connection_li
         return {"text": request.text}
 
     server.add_service("/waits", Echo, waits)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         for i in range(10):
             await w.send(request("waits", {"text": str(i)}, id=i))
         refused = [await w.recv_reply() for _ in range(6)]
@@ -587,7 +619,7 @@ async def test_a_flood_past_the_in_flight_limit_is_refused_and_the_connection_li
         }
 
 
-async def test_a_thousand_concurrent_calls_on_one_connection() -> None:
+async def test_a_thousand_concurrent_calls_on_one_connection(transport: Transport) -> None:
     server = Server(max_in_flight=1000)
 
     async def add(request: Any) -> Any:
@@ -595,8 +627,8 @@ async def test_a_thousand_concurrent_calls_on_one_connection() -> None:
         return {"difference": request.minuend - request.subtrahend}
 
     server.add_service("/subtract", Subtract, add)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         for i in range(1000):
             await w.send(request("subtract", [i, -i], id=i))
         replies = [await w.recv_reply() for _ in range(1000)]
@@ -607,7 +639,7 @@ async def test_a_thousand_concurrent_calls_on_one_connection() -> None:
 
 async def test_a_hundred_connections_at_once(running: RunningServer) -> None:
     async def one(i: int) -> Any:
-        w = await open_wire(running.url)
+        w = await open_wire(running)
         try:
             return await w.call(request("subtract", [i, 1], id=i))
         finally:
@@ -617,12 +649,12 @@ async def test_a_hundred_connections_at_once(running: RunningServer) -> None:
     assert [r["result"]["difference"] for r in replies] == [i - 1 for i in range(100)]
 
 
-async def test_an_oversized_message_closes_only_that_connection() -> None:
+async def test_an_oversized_message_closes_only_that_connection(transport: Transport) -> None:
     server = Server(max_message_size=1024)
     server.add_service("/subtract", Subtract, subtract)
-    async with serve(server, "127.0.0.1", 0) as running:
-        big = await open_wire(running.url)
-        other = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        big = await open_wire(running)
+        other = await open_wire(running)
         await big.send(request("subtract", {"minuend": 1, "pad": "x" * 2000}))
         assert await closed_code(big) == 1009
         assert (await other.call(request("subtract", [5, 3])))["result"] == {"difference": 2}
@@ -638,12 +670,12 @@ def echo_request_of_size(size: int) -> tuple[str, str]:
     return message, echoed
 
 
-async def test_by_default_a_message_may_be_one_mebibyte_and_no_more() -> None:
+async def test_by_default_a_message_may_be_one_mebibyte_and_no_more(transport: Transport) -> None:
     server = Server()
     assert server.max_message_size == 2**20
     server.add_service("/echo", Echo, lambda r: {"text": r.text})
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url, max_size=None)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running, max_message_size=None)
         message, echoed = echo_request_of_size(2**20)
         assert (await w.call(message))["result"] == {"text": echoed}
         message, _ = echo_request_of_size(2**20 + 1)
@@ -695,14 +727,20 @@ async def test_keepalive_pings_are_on_by_default() -> None:
     assert ping.opcode is Opcode.PING
 
 
-async def test_invalid_utf8_closes_a_text_frame_but_answers_a_binary_one(wire: Wire) -> None:
-    await wire.ws.send(b'{"jsonrpc":"2.0","id":1,"method":"subtract","params":[2,1]}')
-    assert (await wire.recv_reply())["result"] == {"difference": 1}  # binary JSON is fine
-    await wire.ws.send(b"\xff\xfe{}")
-    reply = await wire.recv_reply()
-    assert error(reply) == (None, -32700, "PARSE_ERROR")
-    assert reply["error"]["message"] == "Parse error: invalid UTF-8 at byte 0"
-    await wire.ws.send(b'"\xff"', text=True)
+@websockets_only
+async def test_binary_frames_are_read_as_utf8(running: RunningServer) -> None:
+    async with ws_connect(running.url, compression=None) as ws:
+        await ws.recv()  # $/services
+        await ws.send(b'{"jsonrpc":"2.0","id":1,"method":"subtract","params":[2,1]}')
+        assert json.loads(await ws.recv())["result"] == {"difference": 1}  # binary JSON is fine
+        await ws.send(b"\xff\xfe{}")
+        reply = json.loads(await ws.recv())
+        assert error(reply) == (None, -32700, "PARSE_ERROR")
+        assert reply["error"]["message"] == "Parse error: invalid UTF-8 at byte 0"
+
+
+async def test_invalid_utf8_in_a_text_message_closes_the_connection(wire: Wire) -> None:
+    await wire.ws.send(b'"\xff"')  # bytes go out as a text message, as they are
     assert await closed_code(wire) == 1007
 
 
@@ -756,7 +794,7 @@ async def test_a_lone_surrogate_in_a_request_is_a_parse_error_and_the_connection
 
 @pytest.mark.parametrize("shape", ["dict", "model"])
 async def test_a_response_with_a_lone_surrogate_is_internal_and_the_reason_is_logged(
-    server: Server, caplog: pytest.LogCaptureFixture, shape: str
+    server: Server, caplog: pytest.LogCaptureFixture, shape: str, transport: Transport
 ) -> None:
     # A str can hold a lone surrogate (os.fsdecode(b"\x80") gives "\udc80") and still
     # validate as a ROS string; it fails only when the response is written as JSON.
@@ -765,8 +803,8 @@ async def test_a_response_with_a_lone_surrogate_is_internal_and_the_reason_is_lo
         return {"text": text} if shape == "dict" else Echo.Response(text=text)
 
     server.add_service("/unencodable", Echo, unencodable)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         with caplog.at_level(logging.ERROR, "srvwire.server"):
             reply = await w.call(request("unencodable", {"text": "file"}, id=1))
         assert reply == {
@@ -788,14 +826,17 @@ async def test_a_response_with_a_lone_surrogate_is_internal_and_the_reason_is_lo
 
 
 async def test_a_failure_inside_srvwire_is_still_answered(
-    server: Server, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+    server: Server,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+    transport: Transport,
 ) -> None:
     async def broken_dispatch(*args: Any, **kwargs: Any) -> bytes:
         raise RuntimeError("a bug in srvwire")
 
-    monkeypatch.setattr("srvwire.server.dispatch", broken_dispatch)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    monkeypatch.setattr("srvwire.serving.dispatch", broken_dispatch)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         reply = await w.call(request("echo", {"text": "hi"}, id=7))
         assert error(reply) == (7, -32603, "INTERNAL")
         assert reply["error"]["message"] == "the server failed to answer /echo"
@@ -810,7 +851,7 @@ async def test_a_failure_inside_srvwire_is_still_answered(
 async def test_services_are_announced_on_connect_and_on_change(
     server: Server, running: RunningServer
 ) -> None:
-    w = await open_wire(running.url)
+    w = await open_wire(running)
     assert w.services == [
         {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
         {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
@@ -855,7 +896,7 @@ async def test_services_change_on_the_loop_thread_whatever_thread_asks(
 
     monkeypatch.setattr(registry, "add", recording_add)
     monkeypatch.setattr(registry, "remove", recording_remove)
-    w = await open_wire(running.url)
+    w = await open_wire(running)
 
     def from_a_thread() -> int:
         server.add_service("/threaded", Sum, lambda r: {"sum": 1})
@@ -926,20 +967,23 @@ async def test_rpc_discover(wire: Wire) -> None:
 # --- running and shutting down -------------------------------------------------------------------
 
 
-async def test_serve_works_as_await_and_as_async_with(server: Server) -> None:
-    running = await serve(server, "127.0.0.1", 0)
-    assert running.port > 0 and running.url == f"ws://127.0.0.1:{running.port}"
-    w = await open_wire(running.url)
+async def test_serve_works_as_await_and_as_async_with(server: Server, transport: Transport) -> None:
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    scheme = "memory" if transport.name == "memory" else "ws"
+    assert running.port > 0 and running.url == f"{scheme}://127.0.0.1:{running.port}"
+    w = await open_wire(running)
     await running.close()
     await running.close()  # idempotent
     assert await closed_code(w) == 1001
     with pytest.raises(OSError):
-        await open_wire(running.url)
-    async with serve(server, "127.0.0.1", 0) as again:
-        assert (await (await open_wire(again.url)).call(request("subtract", [1, 1])))["result"]
+        await open_wire(running)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as again:
+        assert (await (await open_wire(again)).call(request("subtract", [1, 1])))["result"]
 
 
-async def test_shutdown_lets_calls_finish_and_refuses_new_ones(server: Server) -> None:
+async def test_shutdown_lets_calls_finish_and_refuses_new_ones(
+    server: Server, transport: Transport
+) -> None:
     entered = asyncio.Event()
     release = asyncio.Event()
 
@@ -949,11 +993,13 @@ async def test_shutdown_lets_calls_finish_and_refuses_new_ones(server: Server) -
         return {"text": "finished"}
 
     server.add_service("/slow", Echo, slow)
-    running = await serve(server, "127.0.0.1", 0)
-    w = await open_wire(running.url)
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    w = await open_wire(running)
     await w.send(request("slow", id="old"))
     await entered.wait()
     closing = asyncio.create_task(running.close())
+    await asyncio.sleep(0)  # one loop turn: the shutdown's first step refuses new calls at once
+    assert running.closing
     reply = await w.call(request("subtract", [1, 1], id="new"))
     assert error(reply) == ("new", -32003, "UNAVAILABLE")
     assert reply["error"]["message"] == "the server is shutting down"
@@ -963,12 +1009,12 @@ async def test_shutdown_lets_calls_finish_and_refuses_new_ones(server: Server) -
     assert await closed_code(w) == 1001
 
 
-async def test_shutdown_cancels_calls_past_the_grace_period() -> None:
+async def test_shutdown_cancels_calls_past_the_grace_period(transport: Transport) -> None:
     server = Server(grace_period=scaled(0.05))
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
-    running = await serve(server, "127.0.0.1", 0)
-    w = await open_wire(running.url)
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    w = await open_wire(running)
     await w.send(request("hangs", id="h"))
     await hangs.entered.wait()
     await running.close()
@@ -979,11 +1025,11 @@ async def test_shutdown_cancels_calls_past_the_grace_period() -> None:
     assert await closed_code(w) == 1001
 
 
-async def test_a_client_leaving_cancels_its_calls(server: Server) -> None:
+async def test_a_client_leaving_cancels_its_calls(server: Server, transport: Transport) -> None:
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("hangs"))
         await hangs.entered.wait()
         await w.ws.close()
@@ -1061,7 +1107,7 @@ async def test_serve_forever_stops_when_cancelled_and_restores_signal_handlers(
     running = await bound
     assert f"serving 2 services on {running.url}" in caplog.messages
     assert running.url == f"ws://127.0.0.1:{running.port}" and running.port > 0
-    w = await open_wire(running.url)
+    w = await open_wire(running)
     assert (await w.call(request("subtract", [4, 1])))["result"] == {"difference": 3}
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
@@ -1249,44 +1295,41 @@ async def test_calls_that_finish_inside_create_task_leak_neither_count_nor_id(
     class Socket:
         remote_address = ("127.0.0.1", 1)
 
-        async def send(self, message: str | bytes, text: bool | None = None) -> None:
+        async def send(self, message: str | bytes) -> None:
             sent.append(message)  # never suspends: the whole call runs in its first step
 
     sent: list[str | bytes] = []
-    conn = _Connection(RunningServer(server), Socket())  # type: ignore[arg-type]
+    conn = served(server, Socket())
     loop = asyncio.get_running_loop()
     loop.set_task_factory(_imitate_eager_task_factory())
     try:
-        for _ in range(3):  # the same id each time: it is free again once the call answered
-            batched = conn.start(Request(2, "/echo", {"text": "b"}))
-            assert not isinstance(batched, str) and batched.done()
-            assert batched.result() == '{"jsonrpc":"2.0","id":2,"result":{"text":"b"}}'
-            notification = conn.notify(Notification("/echo", {"text": "c"}))
-            assert notification is not None
-            conn.spawn_counted(notification)
-            assert conn.in_flight == 0 and not conn.counted and not conn.calls
+        for _ in range(3):  # the same ids each time: they are free again once answered
+            for work in batch_of_two_calls_and_a_notification(conn):
+                assert work.task.done()
+            session = conn.session
+            assert session.in_flight == 0 and not conn.counted and not session.calls
     finally:
         loop.set_task_factory(None)
-    assert not sent
+    assert [[reply["id"] for reply in json.loads(batch)] for batch in sent] == [[1, 2]] * 3
 
 
 async def test_a_call_cancelled_twice_has_its_task_cancelled_once(
-    server: Server, monkeypatch: pytest.MonkeyPatch
+    server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
 ) -> None:
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
     cancelling: list[int] = []
-    send = _Connection.send
+    send = ServedConnection.send
 
-    async def recording_send(self: _Connection, text: str | bytes) -> None:
+    async def recording_send(self: ServedConnection, text: str | bytes) -> None:
         task = asyncio.current_task()
         assert task is not None
         cancelling.append(task.cancelling())
         await send(self, text)
 
-    monkeypatch.setattr(_Connection, "send", recording_send)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    monkeypatch.setattr(ServedConnection, "send", recording_send)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("hangs", id=1))
         await hangs.entered.wait()
         cancel = {"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}}
@@ -1297,28 +1340,31 @@ async def test_a_call_cancelled_twice_has_its_task_cancelled_once(
 
 
 async def test_a_second_cancel_reason_neither_wins_nor_cancels_again(server: Server) -> None:
-    from srvwire.dispatch import Context as Ctx
     from srvwire.errors import Cancelled, ServiceUnavailable
-    from srvwire.server import _Call
 
-    call = _Call(Ctx(service="/hangs", request_id=1))
+    class Socket:
+        remote_address = ("127.0.0.1", 1)
+
+    conn = served(server, Socket())
+    (call,) = conn.session.receive(json.dumps(request("echo", id=1)))
+    conn.begin(call)
     call.task = asyncio.create_task(asyncio.Event().wait())
     call.started = True
-    call.cancel(Cancelled("first"))
-    call.cancel(ServiceUnavailable("second"))
-    call.cancel(None)  # the connection went away too
+    conn.cancel(call, Cancelled("first"))
+    conn.cancel(call, ServiceUnavailable("second"))
+    conn.cancel(call, None)  # the connection went away too
     assert call.task.cancelling() == 1
     assert str(call.context._cancel_error) == str(Cancelled("first"))
     with pytest.raises(asyncio.CancelledError):
         await call.task
 
 
-async def test_shutdown_answers_calls_with_a_null_id_too() -> None:
+async def test_shutdown_answers_calls_with_a_null_id_too(transport: Transport) -> None:
     server = Server(grace_period=scaled(0.05))
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
-    running = await serve(server, "127.0.0.1", 0)
-    w = await open_wire(running.url)
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    w = await open_wire(running)
     await w.send(request("hangs", id=None))
     await hangs.entered.wait()
     await running.close()
@@ -1334,6 +1380,7 @@ async def test_shutdown_answers_calls_with_a_null_id_too() -> None:
 
 async def test_calls_that_do_not_wait_run_on_the_reader_without_a_task_of_their_own(
     server: Server,
+    transport: Transport,
 ) -> None:
     # Each answer is built before the next message is read, on the task that reads: two calls
     # in a row see the same task, and no call leaves a task behind.
@@ -1344,19 +1391,20 @@ async def test_calls_that_do_not_wait_run_on_the_reader_without_a_task_of_their_
         return {"text": request.text}
 
     server.add_service("/which_task", Echo, which_task)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         for id in (1, 2, 3):
             reply = await w.request("/which_task", {"text": str(id)}, id=id)
             assert reply["result"] == {"text": str(id)}
         (conn,) = running._connections
         assert tasks[0] is not None and tasks[0] is tasks[1] is tasks[2]
-        assert tasks[0] is conn.reader and not conn.counted and not conn.calls
+        assert tasks[0] is conn.reader and not conn.counted and not conn.session.calls
         await w.ws.close()
 
 
 async def test_a_call_that_waits_keeps_its_task_and_a_new_reader_takes_over(
     server: Server,
+    transport: Transport,
 ) -> None:
     # A handler sees one task from its first line to its last, even though it started on the
     # reader; meanwhile the connection goes on reading and answering.
@@ -1375,8 +1423,8 @@ async def test_a_call_that_waits_keeps_its_task_and_a_new_reader_takes_over(
 
     server.add_service("/waits", Echo, waits)
     server.add_service("/which_task", Echo, which_task)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send(request("/waits", {"text": ""}, id="slow"))
         reply = await w.request("/which_task", {"text": "fast"}, id="fast")
         assert reply["result"] == {"text": "fast"}
@@ -1386,11 +1434,11 @@ async def test_a_call_that_waits_keeps_its_task_and_a_new_reader_takes_over(
         release.set()
         assert (await w.recv_reply())["result"] == {"text": "done"}
         assert seen["after"] is seen["before"]
-        assert not conn.counted and not conn.calls
+        assert not conn.counted and not conn.session.calls
         await w.ws.close()
 
 
-async def test_each_call_runs_in_a_context_of_its_own(server: Server) -> None:
+async def test_each_call_runs_in_a_context_of_its_own(server: Server, transport: Transport) -> None:
     # What a handler sets in a context variable is not seen by the next call on the same
     # connection, as if each call had a task of its own; it is seen by the rest of its own call.
     import contextvars
@@ -1412,8 +1460,8 @@ async def test_each_call_runs_in_a_context_of_its_own(server: Server) -> None:
 
     server.add_service("/tags", Echo, tags)
     server.add_service("/tags_now", Echo, tags_without_waiting)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.request("/tags_now", {"text": "a"}, id=1)
         await w.request("/tags_now", {"text": "b"}, id=2)
         await w.request("/tags", {"text": "c"}, id=3)
@@ -1424,6 +1472,7 @@ async def test_each_call_runs_in_a_context_of_its_own(server: Server) -> None:
 
 async def test_a_timeout_a_handler_enters_before_waiting_cancels_only_that_handler(
     server: Server,
+    transport: Transport,
 ) -> None:
     # asyncio.timeout() binds to the current task when it is entered, which for a call that
     # has not waited yet is the reader's: that task must then stay the call's.
@@ -1436,8 +1485,8 @@ async def test_a_timeout_a_handler_enters_before_waiting_cancels_only_that_handl
         return {"text": "never"}
 
     server.add_service("/times_out", Echo, times_out)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         assert (await w.request("/times_out", {"text": ""}, id=1))["result"] == {
             "text": "timed out"
         }
@@ -1447,7 +1496,9 @@ async def test_a_timeout_a_handler_enters_before_waiting_cancels_only_that_handl
         await w.ws.close()
 
 
-async def test_messages_start_in_the_order_they_arrive(server: Server) -> None:
+async def test_messages_start_in_the_order_they_arrive(
+    server: Server, transport: Transport
+) -> None:
     # A notification followed by a call in the same burst: the notification's handler runs
     # first, as the wscat guide's "stop, then status" shows.
     events: list[str] = []
@@ -1457,8 +1508,8 @@ async def test_messages_start_in_the_order_they_arrive(server: Server) -> None:
         return {"text": ",".join(events)}
 
     server.add_service("/record", Echo, record)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send({"jsonrpc": "2.0", "method": "/record", "params": {"text": "note"}})
         await w.send(request("/record", {"text": "call"}, id=1))
         assert (await w.recv_reply())["result"] == {"text": "note,call"}
@@ -1466,12 +1517,19 @@ async def test_messages_start_in_the_order_they_arrive(server: Server) -> None:
 
 
 async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
-    server: Server, monkeypatch: pytest.MonkeyPatch
+    server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
 ) -> None:
     # A handler that answers without waiting cannot be interrupted: its deadline needs no timer.
-    import srvwire.dispatch
+    armed: list[asyncio.TimerHandle] = []
+    arm = ServedConnection.arm
 
-    armed = record_calls(monkeypatch, srvwire.dispatch, "finish_within")
+    def recording_arm(self: ServedConnection, work: Any) -> asyncio.TimerHandle | None:
+        timer = arm(self, work)
+        if timer is not None:
+            armed.append(timer)
+        return timer
+
+    monkeypatch.setattr(ServedConnection, "arm", recording_arm)
 
     async def waits(request: Any) -> Any:
         await asyncio.sleep(0)
@@ -1479,12 +1537,140 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
 
     server.add_service("/waits", Echo, waits)
     meta = {"_meta": {"timeout": 30}}
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         assert (await w.request("/echo", {"text": "a", **meta}))["result"] == {"text": "a"}
         assert armed == []
         assert (await w.request("/waits", {"text": "b", **meta}))["result"] == {"text": "b"}
         assert len(armed) == 1
+        await w.ws.close()
+
+
+# --- deadlines: a cancellation with a reason, armed only for a call that waits -----------------
+
+
+def deadline(seconds: float) -> dict[str, Any]:
+    return {"_meta": {"timeout": scaled(seconds)}}
+
+
+async def test_a_deadline_cancels_the_handler_and_marks_its_context(
+    server: Server, transport: Transport
+) -> None:
+    hangs = Hang()
+    contexts: list[Context] = []
+
+    async def handler(request: Any, context: Context) -> Any:
+        contexts.append(context)
+        return await hangs(request)
+
+    server.add_service("/hangs", Echo, handler)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.request("/hangs", deadline(0.05), id=1)
+        assert error(reply) == (1, -32001, "DEADLINE_EXCEEDED")
+        assert reply["error"]["message"] == (
+            "the deadline for /hangs passed before the handler finished"
+        )
+        assert hangs.cancelled.is_set()
+        (context,) = contexts
+        assert context.cancelled and context.time_remaining() == 0.0
+        assert (await w.request("/echo", {"text": "after"}, id=2))["result"] == {"text": "after"}
+        await w.ws.close()
+
+
+async def test_a_sync_handler_past_its_deadline_sees_cancelled(
+    server: Server, transport: Transport
+) -> None:
+    release = threading.Event()
+    observed = threading.Event()
+
+    def handler(request: Any, context: Context) -> Any:
+        release.wait(scaled(10))
+        if context.cancelled:
+            observed.set()
+        return {"text": "late"}
+
+    server.add_service("/blocks", Echo, handler)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.request("/blocks", deadline(0.05), id=1)
+        assert error(reply) == (1, -32001, "DEADLINE_EXCEEDED")
+        release.set()
+        assert await asyncio.to_thread(observed.wait, scaled(5))
+        await w.ws.close()
+
+
+async def test_a_handler_that_swallows_its_deadline_still_answers_deadline_exceeded(
+    server: Server,
+    transport: Transport,
+) -> None:
+    async def swallows(request: Any) -> Any:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            pass
+        return {"text": "swallowed"}
+
+    server.add_service("/swallows", Echo, swallows)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.request("/swallows", deadline(0.05), id=1)
+        assert error(reply) == (1, -32001, "DEADLINE_EXCEEDED")
+        assert (await w.request("/echo", {"text": "after"}, id=2))["result"] == {"text": "after"}
+        await w.ws.close()
+
+
+async def test_the_first_reason_wins_over_a_deadline_that_passes_later(
+    server: Server, transport: Transport
+) -> None:
+    # Cancelled by the caller, the handler takes a while to clean up, and its deadline passes
+    # meanwhile: the answer is still CANCELLED, and the cleanup is not interrupted a second time.
+    started = asyncio.Event()
+    finished_cleanup: list[bool] = []
+
+    async def slow_cleanup(request: Any) -> Any:
+        started.set()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await asyncio.sleep(scaled(0.2))  # longer than the deadline below
+            finished_cleanup.append(True)
+
+    server.add_service("/slow_cleanup", Echo, slow_cleanup)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send(request("/slow_cleanup", deadline(0.1), id=1))
+        await started.wait()
+        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}})
+        assert error(await w.recv_reply()) == (1, -32002, "CANCELLED")
+        assert finished_cleanup == [True]
+        await w.ws.close()
+
+
+async def test_a_deadline_timer_is_disarmed_once_the_call_is_answered(
+    server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
+) -> None:
+    armed: list[asyncio.TimerHandle] = []
+    arm = ServedConnection.arm
+
+    def recording_arm(self: ServedConnection, work: Any) -> asyncio.TimerHandle | None:
+        timer = arm(self, work)
+        if timer is not None:
+            armed.append(timer)
+        return timer
+
+    async def waits(request: Any) -> Any:
+        await asyncio.sleep(0)
+        return {"text": request.text}
+
+    monkeypatch.setattr(ServedConnection, "arm", recording_arm)
+    server.add_service("/waits", Echo, waits)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.request("/waits", {"text": "in time", **deadline(30)}, id=1)
+        assert reply["result"] == {"text": "in time"}
+        (timer,) = armed
+        assert timer.cancelled()
         await w.ws.close()
 
 
@@ -1497,7 +1683,7 @@ def cancel_own_task(times: int = 1) -> None:
 
 
 async def test_a_handler_that_cancels_its_task_and_returns_does_not_stop_the_reading(
-    server: Server, caplog: pytest.LogCaptureFixture
+    server: Server, caplog: pytest.LogCaptureFixture, transport: Transport
 ) -> None:
     # Running inline, the handler's task is the reader's: the cancellation it asks for is taken
     # back, its answer is sent, and the connection reads on.
@@ -1506,8 +1692,8 @@ async def test_a_handler_that_cancels_its_task_and_returns_does_not_stop_the_rea
         return {"text": "returned"}
 
     server.add_service("/cancels_itself", Echo, cancels_itself)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         with caplog.at_level(logging.WARNING, logger="srvwire.server"):
             reply = await w.request("/cancels_itself", {"text": ""}, id=1)
         assert reply["result"] == {"text": "returned"}
@@ -1524,6 +1710,7 @@ async def test_a_handler_that_cancels_its_task_and_returns_does_not_stop_the_rea
 
 async def test_a_handler_that_cancels_its_task_and_waits_is_answered_internal(
     server: Server,
+    transport: Transport,
 ) -> None:
     # Nothing in srvwire asked for that cancellation: the call still gets its one reply.
     async def cancels_then_waits(request: Any) -> Any:
@@ -1532,8 +1719,8 @@ async def test_a_handler_that_cancels_its_task_and_waits_is_answered_internal(
         return {"text": "never"}
 
     server.add_service("/cancels_then_waits", Echo, cancels_then_waits)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         reply = await w.request("/cancels_then_waits", {"text": ""}, id=1)
         assert error(reply) == (1, -32603, "INTERNAL")
         assert "cancelled by its own code" in reply["error"]["message"]
@@ -1543,6 +1730,7 @@ async def test_a_handler_that_cancels_its_task_and_waits_is_answered_internal(
 
 async def test_a_handler_that_cancels_its_task_and_raises_is_answered_internal(
     server: Server,
+    transport: Transport,
 ) -> None:
     # The handler asks for its own cancellation and raises CancelledError at once, before the
     # request was delivered: alone or in a batch, the call is answered and the connection lives.
@@ -1551,8 +1739,8 @@ async def test_a_handler_that_cancels_its_task_and_raises_is_answered_internal(
         raise asyncio.CancelledError
 
     server.add_service("/cancels_and_raises", Echo, cancels_and_raises)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         reply = await w.request("/cancels_and_raises", {"text": ""}, id=1)
         assert error(reply) == (1, -32603, "INTERNAL")
         assert (await w.request("/echo", {"text": "next"}, id=2))["result"] == {"text": "next"}
@@ -1570,14 +1758,15 @@ async def test_a_handler_that_cancels_its_task_and_raises_is_answered_internal(
 
 async def test_a_notification_handler_that_cancels_its_task_does_not_stop_the_reading(
     server: Server,
+    transport: Transport,
 ) -> None:
     async def cancels_and_raises(request: Any) -> Any:
         cancel_own_task(times=2)  # both requests are taken back
         raise asyncio.CancelledError
 
     server.add_service("/cancels_and_raises", Echo, cancels_and_raises)
-    async with serve(server, "127.0.0.1", 0) as running:
-        w = await open_wire(running.url)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
         await w.send({"jsonrpc": "2.0", "method": "/cancels_and_raises", "params": {"text": ""}})
         assert (await w.request("/echo", {"text": "next"}, id=1))["result"] == {"text": "next"}
         (conn,) = running._connections
@@ -1586,7 +1775,9 @@ async def test_a_notification_handler_that_cancels_its_task_does_not_stop_the_re
         await w.ws.close()
 
 
-async def test_readers_stay_readers_under_an_eager_task_factory(server: Server) -> None:
+async def test_readers_stay_readers_under_an_eager_task_factory(
+    server: Server, transport: Transport
+) -> None:
     # A waiting call hands the reading to a new task; under an eager task factory that task
     # must not run (and hand over again) inside the hand-over, nesting readers in one stack.
     release = asyncio.Event()
@@ -1599,8 +1790,8 @@ async def test_readers_stay_readers_under_an_eager_task_factory(server: Server) 
     loop = asyncio.get_running_loop()
     loop.set_task_factory(_imitate_eager_task_factory())
     try:
-        async with serve(server, "127.0.0.1", 0) as running:
-            w = await open_wire(running.url)
+        async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+            w = await open_wire(running)
             count = 50
             for id in range(count):
                 await w.send(request("/waits", {"text": str(id)}, id=id))

@@ -32,6 +32,8 @@ from srvwire.loader import (
 )
 from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
+from srvwire.transports.base import Transport
+from srvwire.transports.memory import MemoryTransport
 from srvwire.version import __version__
 
 __all__ = [
@@ -49,6 +51,7 @@ __all__ = [
     "InternalError",
     "InvalidParams",
     "InvalidRequest",
+    "MemoryTransport",
     "Message",
     "ParseError",
     "RPCError",
@@ -63,6 +66,7 @@ __all__ = [
     "ServiceProxy",
     "ServiceUnavailable",
     "SrvwireError",
+    "Transport",
     "Unauthenticated",
     "__version__",
     "connect",

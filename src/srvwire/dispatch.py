@@ -33,13 +33,11 @@ Invariants:
   server was given, or in asyncio's default one. It cannot be interrupted: when its call is
   cancelled or its deadline passes, the caller is answered at once and
   :attr:`Context.cancelled` turns true so the handler can stop early.
-* **A deadline is the caller's.** ``_meta.timeout`` is measured from the moment the request was
-  read; an already-expired deadline answers ``DEADLINE_EXCEEDED`` without running the handler.
-  It is enforced by :func:`srvwire.inline.finish_within`, one timer that cancels the call's
-  task, armed only when the request carries a deadline and the handler has to wait (a handler
-  that answers without awaiting anything cannot be interrupted, so it needs no timer), and
-  cancelled as soon as the handler returns; the cancellation it causes, and only that one,
-  becomes ``DEADLINE_EXCEEDED``.
+* **A deadline is the caller's, enforced by whoever runs the call.** ``_meta.timeout`` is
+  measured from the moment the request was read; an already-expired deadline answers
+  ``DEADLINE_EXCEEDED`` without running the handler. Past that, :func:`dispatch` is a plain
+  coroutine: the server cancels its task when the deadline passes, with the reason recorded
+  in the :class:`Context` (see :mod:`srvwire.server`).
 """
 
 from __future__ import annotations
@@ -70,8 +68,14 @@ from srvwire.errors import (
     RPCError,
     ServiceNotFound,
 )
-from srvwire.inline import Expired, Pending, finish_within, first_step
-from srvwire.models import Service, summarize_errors, unencodable_strings, validation_errors
+from srvwire.models import (
+    Service,
+    dump_json,
+    summarize_errors,
+    unencodable_strings,
+    validate_python,
+    validation_errors,
+)
 from srvwire.protocol import Id, canonical_name, encode_json
 from srvwire.version import __version__
 
@@ -264,9 +268,7 @@ class ServiceEntry:
                 )
             params = dict(zip(self.field_names, params, strict=False))
         try:
-            # model_validate without its Python wrapper
-            request: BaseModel = self.request_model.__pydantic_validator__.validate_python(params)
-            return request
+            return validate_python(self.request_model, params)
         except ValidationError as exc:
             errors = validation_errors(exc)
             raise InvalidParams(
@@ -444,7 +446,7 @@ class ServiceRegistry:
 def _invalid_return(
     entry: ServiceEntry, result: object, reason: str, logger: logging.Logger | None
 ) -> InternalError:
-    (logger or logging.getLogger("srvwire.server")).error(
+    (logger or logging.getLogger(__name__)).error(
         "handler for %s returned %s, which is not a valid %s response: %s",
         entry.name,
         type(result).__name__,
@@ -473,10 +475,7 @@ def _encode_response(
             raise _invalid_return(entry, result, _reasons(validation_errors(exc)), logger) from None
     if isinstance(response, model):  # a model the handler built is not validated again
         try:
-            # model_dump_json(by_alias=True, warnings="error"), without decoding the bytes; by
-            # the instance's own class, so that a subclass keeps the fields it adds
-            serializer = type(response).__pydantic_serializer__
-            return serializer.to_json(response, by_alias=True, warnings="error")
+            return dump_json(response, strict=True)
         except PydanticSerializationError as exc:
             # A lone surrogate in a string passes validation and fails here; say where it is.
             reason = _reasons(unencodable_strings(response)) or str(exc)
@@ -554,19 +553,11 @@ async def dispatch(
         if deadline is not None and deadline <= time.monotonic():
             raise _deadline_exceeded(entry, context)
         handler, prebuilt = _invoke(entry, request, context, executor)
-        if deadline is None:
-            result = await handler
-        else:
-            # The deadline can pass only while the handler waits: arm its timer only then.
-            result = first_step(handler)
-            if isinstance(result, Pending):
-                result = await finish_within(result, deadline - time.monotonic())
+        result = await handler
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name
         raise
-    except Expired:
-        raise _deadline_exceeded(entry, context) from None
     except asyncio.CancelledError as exc:
         if _being_cancelled():
             context._mark_cancelled()
@@ -600,7 +591,7 @@ def _handler_raised(
     doing: str = "",
 ) -> InternalError:
     what = f"{doing} for {entry.name}" if doing else f"handler for {entry.name}"
-    (logger or logging.getLogger("srvwire.server")).error(
+    (logger or logging.getLogger(__name__)).error(
         "%s raised an exception (request id %r)", what, context.request_id, exc_info=exc
     )
     return InternalError(f"{what} raised an exception", service=entry.name)

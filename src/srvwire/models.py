@@ -45,7 +45,7 @@ import binascii
 import keyword
 import types
 from collections.abc import Callable, Mapping, Sequence
-from typing import Annotated, Any, ClassVar, TypeAlias, cast
+from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
 from pydantic import ConfigDict, Field, GetCoreSchemaHandler, GetJsonSchemaHandler, Strict
@@ -81,6 +81,7 @@ __all__ = [
     "Int32",
     "Int64",
     "Message",
+    "ModelDecoder",
     "Resolver",
     "Service",
     "String",
@@ -92,9 +93,11 @@ __all__ = [
     "build_action",
     "build_message",
     "build_service",
+    "dump_json",
     "python_name",
     "summarize_errors",
     "unencodable_strings",
+    "validate_python",
     "validation_errors",
     "zero_value",
 ]
@@ -598,3 +601,51 @@ def _find_unencodable(
     elif isinstance(value, list | tuple):
         for index, item in enumerate(value):
             _find_unencodable(item, (*location, index), found)
+
+
+# --- the per-call codecs: the only code that reaches into pydantic's compiled validators ----
+# Each skips the Python wrapper of model_validate / model_validate_json / model_dump_json, which
+# costs as much as the work itself on a small message.
+
+M = TypeVar("M", bound=pydantic.BaseModel)
+
+
+def validate_python(model: type[M], data: Any) -> M:
+    """``model.model_validate(data)``; raise pydantic's ``ValidationError``."""
+    validated: M = model.__pydantic_validator__.validate_python(data)
+    return validated
+
+
+def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
+    """``value.model_dump_json(by_alias=True)`` as UTF-8 bytes, by the instance's own class.
+
+    By its own class, so that a subclass keeps the fields it adds. With ``strict`` a value that
+    does not fit its field (a handler put a ``str`` in an ``int`` list) is an error
+    (``PydanticSerializationError``) rather than a warning.
+    """
+    serializer = type(value).__pydantic_serializer__
+    if strict:
+        return serializer.to_json(value, by_alias=True, warnings="error")
+    return serializer.to_json(value, by_alias=True)
+
+
+class ModelDecoder(Generic[M]):
+    """Turns a result into ``model``: from JSON text in one pass, or from parsed data.
+
+    What :meth:`srvwire.protocol.RawReply.decode` needs; both methods raise pydantic's
+    ``ValidationError`` (a ``ValueError``) when the result does not fit.
+    """
+
+    __slots__ = ("_validator", "model")
+
+    def __init__(self, model: type[M]) -> None:
+        self.model = model
+        self._validator = model.__pydantic_validator__
+
+    def from_json(self, text: str) -> M:
+        validated: M = self._validator.validate_json(text)
+        return validated
+
+    def from_data(self, data: Any) -> M:
+        validated: M = self._validator.validate_python(data)
+        return validated

@@ -1,45 +1,40 @@
-"""JSON-RPC 2.0 without I/O: text in, messages out; messages in, text out.
+"""JSON-RPC 2.0 without I/O: text in, messages out; messages in, UTF-8 JSON out.
 
-Nothing here awaits, touches a socket or knows about WebSockets. The server and the client move
-text between the network and the functions below, which makes every rule of the protocol testable
-without an event loop.
+Nothing here awaits, touches a socket or knows about transports; the sessions
+(:mod:`srvwire.session`) keep the rules of a conversation, this module the rules of one message.
 
 Invariants:
 
-* **Parsing never raises on input from a peer** (server side). :func:`parse_incoming` turns any
-  text or bytes into an :class:`Incoming`: every item is a :class:`Request`, a
-  :class:`Notification` or an :class:`ErrorResponse` ready to be sent back. Input that is not JSON,
-  not UTF-8, or nested deeper than :data:`MAX_DEPTH` is one ``PARSE_ERROR``; an empty batch is one
-  ``INVALID_REQUEST`` (not a batch, as the specification says); an invalid item of a batch is an
-  ``INVALID_REQUEST`` in its place.
-* **An id is echoed exactly as it came** (string, number or null). An invalid item whose id can be
-  read gets its id back; otherwise ``null``. A number id must be finite: ``NaN``, ``Infinity`` and
-  numbers too large for a double (``1e400``) cannot be echoed, so they make the item an
-  ``INVALID_REQUEST`` with a ``null`` id. A fractional id is accepted (the specification only
-  advises against it). A message without an ``id`` member is a notification and is never
-  answered, unless it is so malformed that it is not a notification at all.
-* **``params._meta`` belongs to the protocol, not to the service.** It is taken out of ``params``
-  while parsing: ``{"timeout": seconds}`` becomes :attr:`Request.timeout`; other members of
-  ``_meta`` are ignored so that later versions can add some. A bad ``_meta`` is an
-  ``INVALID_PARAMS`` error with the path ``_meta`` or ``_meta.timeout``: a request gets it as its
-  reply; a notification carries it in :attr:`Notification.error`, so the server drops it (and logs
-  why) without running it or answering.
-* **Serializing is total.** Every message serializes to compact JSON text; data that is not JSON
-  (a set, an object) is written with ``str()`` and a non-finite float as ``null`` rather than
-  failing, because an error reply must always be sendable.
-* **Pre-encoded JSON is embedded, never decoded again.** :class:`RawJSON` wraps text that already
-  is JSON (a pydantic ``model_dump_json``); as a result or as params it is spliced into the
-  envelope as it is. The hot paths do the same without the objects: :func:`encode_result`
-  (the server's replies, as UTF-8 bytes, so a large result is never decoded) and
-  :func:`encode_call` (the client's requests: compact params that are a JSON object and a
-  finite timeout, which it checks, raising ``ValueError`` otherwise).
+* **One writer per message.** Every message has one ``serialize()``, which returns compact
+  UTF-8 JSON bytes, the form every transport sends as a text message. It is total: data that
+  is not JSON (a set, an object) is written with ``str()`` and a non-finite float as ``null``
+  rather than failing, because an error reply must always be sendable. :class:`RawJSON` is
+  JSON already written (text or UTF-8 bytes, as pydantic writes it); as a result or as params
+  it is spliced in as it is, never decoded again, so a large result is copied once.
+* **One reader per side.** :func:`parse_incoming` reads what a client sends and never raises:
+  every item is a :class:`Request`, a :class:`Notification` or an :class:`ErrorResponse` ready
+  to be sent back. Input that is not JSON, not UTF-8, or nested deeper than :data:`MAX_DEPTH`
+  is one ``PARSE_ERROR``; an empty batch is one ``INVALID_REQUEST``; an invalid item of a batch
+  is an ``INVALID_REQUEST`` in its place. :func:`parse_replies` reads what a server sends and
+  raises :class:`~srvwire.errors.ParseError` or :class:`~srvwire.errors.InvalidRequest` when it
+  is not JSON-RPC: a server that breaks the protocol is a bug to report, not a peer to answer.
+* **A reply is decoded in one place.** Each reply has one ``decode(decoder)``: the result, or
+  the error it carries raised. A :class:`RawReply` (a response recognised by its opening alone,
+  :func:`peek_reply`) validates its result text in one pass and falls back to the full parse
+  when that is refused; a message that turns out not to be JSON-RPC raises
+  :class:`ProtocolViolation`, never an error a server could have sent.
+* **An id is echoed exactly as it came** (string, number or null). An invalid item whose id
+  can be read gets its id back; otherwise ``null``. A number id must be finite; a boolean is
+  never an id. A message without an ``id`` member is a notification and is never answered,
+  unless it is so malformed that it is not a notification at all.
+* **``params._meta`` belongs to the protocol, not to the service.** It is taken out of
+  ``params`` while parsing: ``{"timeout": seconds}`` becomes :attr:`Request.timeout`; other
+  members are ignored so that later versions can add some. A bad ``_meta`` is an
+  ``INVALID_PARAMS`` error with the path ``_meta`` or ``_meta.timeout``: a request gets it as
+  its reply; a notification carries it in :attr:`Notification.error` and is dropped.
 
-:func:`parse_replies` is the client's side: it parses what a server sends and raises
-:class:`~srvwire.errors.ParseError` or :class:`~srvwire.errors.InvalidRequest` when that is not
-JSON-RPC, since a server that breaks the protocol is a bug to report, not a peer to answer.
-:func:`peek_reply` recognises a response as :func:`encode_result` writes it by its opening alone,
-so that the client can route it by id and decode its result in one pass; :func:`parse_raw_reply`
-checks such a reply in full when the one pass is not enough.
+The message classes are plain (not frozen) slotted dataclasses: one is made per message on the
+hot path, and a frozen one costs about 2.5 times as much to create. Treat them as values.
 """
 
 from __future__ import annotations
@@ -48,7 +43,7 @@ import math
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, TypeAlias
+from typing import Any, Protocol, TypeAlias, TypeVar
 
 from pydantic_core import from_json, to_json
 
@@ -65,11 +60,13 @@ __all__ = [
     "DISCOVER_METHOD",
     "MAX_DEPTH",
     "SERVICES_METHOD",
+    "Decoder",
     "ErrorResponse",
     "Id",
     "Incoming",
     "Notification",
     "Params",
+    "ProtocolViolation",
     "RawJSON",
     "RawReply",
     "Reply",
@@ -79,17 +76,14 @@ __all__ = [
     "canonical_name",
     "decode_json",
     "describe_value",
-    "encode_call",
     "encode_json",
-    "encode_result",
     "parse_incoming",
-    "parse_raw_reply",
     "parse_replies",
     "peek_reply",
-    "serialize",
     "serialize_batch",
     "services_notification",
     "timeout_seconds",
+    "valid_id",
 ]
 
 CANCEL_METHOD = "$/cancel"
@@ -112,22 +106,46 @@ value itself, so it may sit one level deeper than this.
 Id: TypeAlias = str | int | float | None
 """A JSON-RPC id: a string, a number, or null."""
 
+T = TypeVar("T")
+T_co = TypeVar("T_co", covariant=True)
 
-@dataclass(frozen=True, slots=True)
+
+@dataclass(slots=True)
 class RawJSON:
-    """Text that already is one JSON value, embedded into a message without re-encoding."""
+    """One JSON value already written, as text or UTF-8 bytes; embedded without re-encoding."""
 
-    text: str
+    text: str | bytes
 
 
 Params: TypeAlias = dict[str, Any] | list[Any] | RawJSON | None
 """What ``params`` may hold: an object, an array, pre-encoded JSON, or nothing."""
 
 
+class ProtocolViolation(Exception):
+    """Raised when what a server sent is not JSON-RPC; ``error`` says what is wrong with it."""
+
+    def __init__(self, error: ParseError | InvalidRequest) -> None:
+        super().__init__(error.message)
+        self.error = error
+
+
+class Decoder(Protocol[T_co]):
+    """Turns a result into a typed value: from JSON text in one pass, or from parsed data.
+
+    Both raise ``ValueError`` (pydantic's ``ValidationError`` is one) when the result does not
+    fit; :mod:`srvwire.models` makes them.
+    """
+
+    def from_json(self, text: str) -> T_co: ...
+
+    def from_data(self, data: Any) -> T_co: ...
+
+
 def encode_json(value: Any) -> str:
     """Return ``value`` as compact JSON text; never fails (see the module's invariants)."""
     if isinstance(value, RawJSON):
-        return value.text
+        text = value.text
+        return text if isinstance(text, str) else text.decode()
     return to_json(value, fallback=str, inf_nan_mode="null").decode()
 
 
@@ -164,38 +182,55 @@ def _encode_id(id: Id) -> str:
     return encode_json(id)
 
 
+def _encode_method(method: str) -> str:
+    """Write a method name as a JSON string; most names need no escaping, so skip the encoder."""
+    if method.isascii() and method.isprintable() and '"' not in method and "\\" not in method:
+        return f'"{method}"'
+    return encode_json(method)
+
+
+def _encode_timeout(timeout: float) -> str:
+    """Write a timeout as a JSON number; raise ``ValueError`` when it is not a finite one."""
+    try:
+        seconds = float(timeout)
+    except OverflowError:
+        seconds = math.inf
+    if not math.isfinite(seconds):
+        raise ValueError(
+            f"the timeout must be a finite number of seconds, not {describe_value(timeout)}"
+        )
+    return repr(seconds)  # repr of a finite float is a JSON number (2.5, 1e-05, 1e+16)
+
+
 _OBJECT_OPENS = re.compile(r"\s*\{\s*")
 
 
-def _params_parts(params: Params, timeout: float | None) -> tuple[str, ...]:
-    """Return the pieces of ``,"params":...`` (nothing without params), ``_meta`` spliced in.
-
-    The caller joins them with the rest of the message in one go, so the text of a
-    :class:`RawJSON` body is copied once, not once per concatenation.
-    """
+def _params_text(params: Params, timeout: float | None) -> str:
+    """Return ``,"params":...`` (empty without params) with ``_meta`` spliced in."""
     if timeout is None:
-        return () if params is None else (',"params":', encode_json(params))
-    meta = ',"params":{"_meta":{"timeout":' + encode_json(timeout) + "}"
+        return "" if params is None else ',"params":' + encode_json(params)
+    meta = ',"params":{"_meta":{"timeout":' + _encode_timeout(timeout) + "}"
     if params is None:
-        return (meta, "}")
+        return meta + "}"
     if isinstance(params, RawJSON):
-        text = params.text
+        text = encode_json(params)
         opening = _OBJECT_OPENS.match(text)
         if opening is None:
             raise ValueError("a timeout needs params that are a JSON object")
         start = opening.end()
+        text = text.rstrip()
+        if not text.endswith("}") or len(text) <= start:
+            raise ValueError("a timeout needs params that are a JSON object")
         if text.startswith("}", start):
-            return (meta, "}")
-        end = len(text)
-        while end > start and text[end - 1].isspace():
-            end -= 1
-        return (meta, ",", text[start:end])
+            return meta + "}"
+        return meta + "," + text[start:]
     if isinstance(params, list):
         raise ValueError("a timeout needs params by name, not an array")
-    return (',"params":', encode_json({**params, "_meta": {"timeout": timeout}}))
+    _encode_timeout(timeout)  # refuses a timeout that is not a finite number
+    return ',"params":' + encode_json({**params, "_meta": {"timeout": timeout}})
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Request:
     """A call that expects a reply: ``method`` with ``params``, answered under ``id``.
 
@@ -207,21 +242,46 @@ class Request:
     params: Params = None
     timeout: float | None = None
 
-    def serialize(self) -> str:
-        """Return this request as JSON text."""
-        return "".join(
-            (
-                '{"jsonrpc":"2.0","id":',
-                _encode_id(self.id),
-                ',"method":',
-                encode_json(self.method),
-                *_params_parts(self.params, self.timeout),
-                "}",
-            )
-        )
+    def serialize(self) -> bytes:
+        """Return this request as UTF-8 JSON.
+
+        Raise ``ValueError`` for a timeout with params that are not an object. The client's
+        calls (an int id, params written by pydantic as a compact object, a float timeout) are
+        written in one go.
+        """
+        params = self.params
+        timeout = self.timeout
+        id = self.id
+        if type(params) is RawJSON and type(timeout) is float and type(id) is int:
+            text = params.text
+            # pydantic writes an object compactly: "{}", or '{"' and the members, then "}"
+            if (
+                type(text) is str
+                and text[-1:] == "}"
+                and (text == "{}" or text[:2] == '{"')
+                and math.isfinite(timeout)
+            ):
+                method = _encode_method(self.method)
+                if text == "{}":
+                    return (
+                        f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
+                        f'"params":{{"_meta":{{"timeout":{timeout!r}}}}}}}'
+                    ).encode()
+                return (
+                    f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
+                    f'"params":{{"_meta":{{"timeout":{timeout!r}}},{text[1:]}}}'
+                ).encode()
+        return (
+            '{"jsonrpc":"2.0","id":'
+            + _encode_id(id)
+            + ',"method":'
+            + _encode_method(self.method)
+            + _params_text(params, timeout)
+            + "}"
+        ).encode()
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Notification:
     """A message that expects no reply: ``method`` with ``params``.
 
@@ -234,53 +294,67 @@ class Notification:
     timeout: float | None = None
     error: RPCError | None = None
 
-    def serialize(self) -> str:
-        """Return this notification as JSON text."""
-        return "".join(
-            (
-                '{"jsonrpc":"2.0","method":',
-                encode_json(self.method),
-                *_params_parts(self.params, self.timeout),
-                "}",
-            )
-        )
+    def serialize(self) -> bytes:
+        """Return this notification as UTF-8 JSON."""
+        return (
+            '{"jsonrpc":"2.0","method":'
+            + _encode_method(self.method)
+            + _params_text(self.params, self.timeout)
+            + "}"
+        ).encode()
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Response:
     """A successful reply: the ``result`` of the request with this ``id``."""
 
     id: Id
     result: Any
 
-    def serialize(self) -> str:
-        """Return this response as JSON text; a :class:`RawJSON` result is embedded as is."""
-        return (
-            '{"jsonrpc":"2.0","id":' + _encode_id(self.id) + ',"result":'
-            f"{encode_json(self.result)}}}"
+    def serialize(self) -> bytes:
+        """Return this response as UTF-8 JSON; a :class:`RawJSON` result is spliced in as is."""
+        result = self.result
+        if type(result) is RawJSON:
+            text = result.text
+            written = text if isinstance(text, bytes) else text.encode()
+        else:
+            written = encode_json(result).encode()
+        return b"".join(
+            (b'{"jsonrpc":"2.0","id":', _encode_id(self.id).encode(), b',"result":', written, b"}")
         )
 
+    def decode(self, decoder: Decoder[T] | None = None) -> T | Any:
+        """Return the result, through ``decoder`` when given (raising its ``ValueError``)."""
+        return self.result if decoder is None else decoder.from_data(self.result)
 
-@dataclass(frozen=True, slots=True)
+
+@dataclass(slots=True)
 class ErrorResponse:
     """A failed reply: ``error`` for the request with this ``id`` (null if it was unreadable)."""
 
     id: Id
     error: RPCError
 
-    def serialize(self) -> str:
-        """Return this error response as JSON text."""
+    def serialize(self) -> bytes:
+        """Return this error response as UTF-8 JSON."""
         return (
-            '{"jsonrpc":"2.0","id":' + _encode_id(self.id) + ',"error":'
-            f"{encode_json(self.error.to_error_object())}}}"
-        )
+            '{"jsonrpc":"2.0","id":'
+            + _encode_id(self.id)
+            + ',"error":'
+            + encode_json(self.error.to_error_object())
+            + "}"
+        ).encode()
+
+    def decode(self, decoder: Decoder[Any] | None = None) -> Any:
+        """Raise the error this reply carries."""
+        raise self.error
 
 
 Reply: TypeAlias = Response | ErrorResponse
 Message: TypeAlias = Request | Notification | Response | ErrorResponse
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class Incoming:
     """What one WebSocket message from a client holds, as the server sees it.
 
@@ -292,57 +366,14 @@ class Incoming:
     is_batch: bool = False
 
 
-def encode_result(id: Id, result_json: bytes) -> bytes:
-    """Return a response whose result is ``result_json``, UTF-8 JSON bytes, spliced in as it is.
-
-    The same as ``Response(id, RawJSON(result)).serialize()`` encoded as UTF-8, without the
-    objects: the server's hot path. A large result is copied once, into the reply, and never
-    decoded.
-    """
-    return b"".join(
-        (b'{"jsonrpc":"2.0","id":', _encode_id(id).encode(), b',"result":', result_json, b"}")
-    )
-
-
-def encode_call(id: int, method_json: str, params_json: str, timeout: float) -> str:
-    """Return a request with ``_meta.timeout`` spliced into its params: the client's hot path.
-
-    The same text as ``Request(id, method, RawJSON(params_json), timeout).serialize()``, built
-    in one go: ``method_json`` is the method already written as JSON (:func:`encode_json`),
-    ``params_json`` a compact JSON object as pydantic writes it (``{`` first, no blanks), and
-    ``timeout`` a finite float >= 0, written by ``repr``, which is a JSON number for every
-    finite float (``2.5``, ``1e-05``, ``1e+16``). Raise ValueError for params that are not
-    a JSON object or a timeout that is not finite, rather than write invalid JSON.
-    """
-    if not (params_json[:1] == "{" and params_json[-1:] == "}"):
-        raise ValueError(f"params must be a JSON object, not {params_json[:20]!r}")
-    if not math.isfinite(timeout):
-        raise ValueError(f"the timeout must be a finite number of seconds, not {timeout!r}")
-    # One f-string: a little cheaper than joining the pieces.
-    if params_json == "{}":
-        return (
-            f'{{"jsonrpc":"2.0","id":{id},"method":{method_json},'
-            f'"params":{{"_meta":{{"timeout":{timeout!r}}}}}}}'
-        )
-    return (
-        f'{{"jsonrpc":"2.0","id":{id},"method":{method_json},'
-        f'"params":{{"_meta":{{"timeout":{timeout!r}}},{params_json[1:]}}}'
-    )
-
-
 def canonical_name(method: str) -> str:
     """Return a service name as srvwire keeps it: with its leading ``/`` (optional on the wire)."""
     return method if method.startswith("/") else "/" + method
 
 
-def serialize(message: Message) -> str:
-    """Return one message as JSON text."""
-    return message.serialize()
-
-
-def serialize_batch(messages: Iterable[Message | str]) -> str:
-    """Return a batch (a JSON array) of messages; a ``str`` item is already-serialized text."""
-    return "[" + ",".join(m if isinstance(m, str) else m.serialize() for m in messages) + "]"
+def serialize_batch(messages: Iterable[Message | bytes]) -> bytes:
+    """Return a batch (a JSON array) of messages; a ``bytes`` item is one already serialized."""
+    return b"[" + b",".join(m if isinstance(m, bytes) else m.serialize() for m in messages) + b"]"
 
 
 def cancel_notification(id: Id) -> Notification:
@@ -374,7 +405,8 @@ def _kind(value: Any) -> str:
     return _JSON_TYPES.get(type(value), type(value).__name__)
 
 
-def _valid_id(value: Any) -> bool:
+def valid_id(value: Any) -> bool:
+    """Whether ``value`` can be a JSON-RPC id: a string, a finite number (not a boolean), null."""
     kind = type(value)
     return value is None or kind is str or kind is int or (kind is float and math.isfinite(value))
 
@@ -429,7 +461,7 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
         return _invalid(None, f"expected an object, got {_kind(item)}")
     has_id = "id" in item
     id = item.get("id")
-    if not _valid_id(id):
+    if not valid_id(id):
         return _invalid(None, f"'id' must be a string, a number or null, not {_id_kind(id)}")
     if item.get("jsonrpc") != "2.0":
         return _invalid(id, "'jsonrpc' must be exactly \"2.0\"")
@@ -489,7 +521,7 @@ def _parse_reply(item: Any) -> Response | ErrorResponse | Notification:
         if type(method) is not str or not (params is None or type(params) in (dict, list)):
             raise InvalidRequest("Invalid reply: malformed notification")
         return Notification(method, params)
-    if "id" not in item or not _valid_id(item["id"]):
+    if "id" not in item or not valid_id(item["id"]):
         raise InvalidRequest("Invalid reply: 'id' missing or not a string, a number or null")
     id = item["id"]
     if "result" in item:
@@ -521,18 +553,18 @@ def parse_replies(data: str | bytes) -> list[Response | ErrorResponse | Notifica
 
 
 # The opening of the response a srvwire server writes for one of the client's calls (see
-# encode_result), up to its result: the id is one the client made, a positive integer.
+# Response.serialize), up to its result: the id is one the client made, a positive integer.
 _RESULT_OPENING = re.compile(r'\{"jsonrpc":"2\.0","id":([1-9][0-9]{0,17}),"result":')
 
 
-@dataclass(slots=True)  # not frozen: one is made per reply, and frozen ones cost 3x as much
+@dataclass(slots=True)
 class RawReply:
-    """A response recognised by its opening alone and not parsed: see :func:`peek_reply`.
+    """A response recognised by its opening alone and not parsed yet: see :func:`peek_reply`.
 
     ``message`` opens with ``{"jsonrpc":"2.0","id":<id>,"result":`` and ends with ``}``;
     ``start`` is where the result begins. Nothing else was checked: a srvwire server puts one
     JSON value between the two, but another server may have written more members after it,
-    which only :func:`parse_raw_reply` can tell.
+    which only the full parse in :meth:`decode` can tell.
     """
 
     id: int
@@ -544,32 +576,55 @@ class RawReply:
         """The text between the opening and the final ``}``: the result, if nothing follows it."""
         return self.message[self.start : -1]
 
+    def parse(self) -> Response:
+        """Parse the whole message, as :func:`parse_replies` would; return the response.
+
+        Raise :class:`ProtocolViolation` when it is not JSON-RPC, or when, for all that it opens
+        as the response to ``id``, it is another message: a later ``method`` member makes it a
+        notification, a later ``id`` member another reply.
+        """
+        try:
+            (message,) = parse_replies(self.message)  # it opens with "{": not a batch
+        except (ParseError, InvalidRequest) as exc:
+            raise ProtocolViolation(exc) from None
+        if isinstance(message, Notification):
+            raise ProtocolViolation(InvalidRequest("Invalid reply: both 'result' and 'method'"))
+        # A message with a 'result' is never an error reply; another id means 'id' came twice.
+        if (
+            not isinstance(message, Response)
+            or type(message.id) is not int
+            or message.id != self.id
+        ):
+            raise ProtocolViolation(
+                InvalidRequest(f"Invalid reply: 'id' given twice ({self.id} and {message.id!r})")
+            )
+        return message
+
+    def decode(self, decoder: Decoder[T] | None = None) -> T | Any:
+        """Return the result: validated in one pass when it can be, else parsed in full.
+
+        With a ``decoder``, the result text is validated straight into its type; when that is
+        refused, only the full parse can tell a result that does not fit (``decoder``'s
+        ``ValueError``, from the parsed data) from a message that is not JSON-RPC
+        (:class:`ProtocolViolation`).
+        """
+        if decoder is not None:
+            try:
+                return decoder.from_json(self.result)
+            except ValueError:
+                pass
+        return self.parse().decode(decoder)
+
 
 def peek_reply(message: str) -> RawReply | None:
     """Recognise a response by its opening, without parsing it; None for any other message.
 
     Only the opening ``{"jsonrpc":"2.0","id":<positive integer>,"result":`` (written exactly
     so, with no blanks) and a final ``}`` are checked, so the cost does not grow with the
-    result: the reader routes the reply by its id, and its caller decodes the result in one
-    pass. Whether the message really is that response, :func:`parse_raw_reply` finds out.
+    result: the client routes the reply by its id, and its caller decodes the result in one
+    pass.
     """
     opening = _RESULT_OPENING.match(message)
     if opening is None or not message.endswith("}"):
         return None
     return RawReply(int(opening[1]), message, opening.end())
-
-
-def parse_raw_reply(reply: RawReply) -> Response:
-    """Parse the whole message of ``reply``, as :func:`parse_replies` does, and return it.
-
-    Raise what :func:`parse_replies` raises, and :class:`~srvwire.errors.InvalidRequest` when
-    the message, for all that it opens as the response to ``reply.id``, is not that response:
-    a later ``method`` member makes it a notification, a later ``id`` member another reply.
-    """
-    (message,) = parse_replies(reply.message)  # it opens with "{": one message, not a batch
-    if isinstance(message, Notification):
-        raise InvalidRequest("Invalid reply: both 'result' and 'method'")
-    # A message with a 'result' is never an error reply; another id means 'id' came twice.
-    if not isinstance(message, Response) or type(message.id) is not int or message.id != reply.id:
-        raise InvalidRequest(f"Invalid reply: 'id' given twice ({reply.id} and {message.id!r})")
-    return message

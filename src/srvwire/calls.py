@@ -1,0 +1,172 @@
+"""What a call sends and gets back, on the client's side: types, requests, deadlines.
+
+A client resolves a service's type by name through a :data:`TypeResolver` (by default the
+interface loader), validates and writes a request with :func:`encode_request`, and decodes a
+reply with the :class:`~srvwire.models.ModelDecoder` of the type's ``Response``; the
+:class:`ServiceTypes` of a client keeps both, one per type, for the client's life.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, TypeAlias
+
+from pydantic import BaseModel, ValidationError
+from pydantic_core import PydanticSerializationError
+
+from srvwire.errors import InterfaceError, InvalidParams
+from srvwire.models import (
+    Message,
+    ModelDecoder,
+    Service,
+    dump_json,
+    summarize_errors,
+    unencodable_strings,
+    validate_python,
+    validation_errors,
+)
+from srvwire.protocol import describe_value, encode_json, timeout_seconds
+
+__all__ = [
+    "ServiceInfo",
+    "ServiceTypes",
+    "SrvType",
+    "TypeResolver",
+    "check_timeout",
+    "encode_request",
+]
+
+SrvType: TypeAlias = type[Service] | str
+"""A service type: the class, or its name (``pkg/srv/Name``) to resolve."""
+
+TypeResolver: TypeAlias = Callable[[str], type[Service]]
+"""Turns a service type name into its class, or raises InterfaceError; default: the loader."""
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceInfo:
+    """One service a server offers: its canonical name and its type (``pkg/srv/Name``)."""
+
+    name: str
+    type: str
+
+
+def check_timeout(timeout: float, what: str = "timeout") -> float:
+    """Return ``timeout`` as a deadline in seconds: finite and > 0, or raise saying why."""
+    if type(timeout) is float and 0.0 < timeout < math.inf:  # the common case, quickly
+        return timeout
+    if isinstance(timeout, bool) or not isinstance(timeout, int | float):
+        raise TypeError(f"{what} must be a number of seconds, not {type(timeout).__name__}")
+    seconds = timeout_seconds(timeout)
+    if not seconds:  # not a finite number >= 0, or zero
+        raise ValueError(
+            f"{what} must be a finite number of seconds > 0, not {describe_value(timeout)}"
+        )
+    return seconds
+
+
+def _refused(method: str, errors: list[dict[str, str]]) -> InvalidParams:
+    """The error for a request the client will not send: it does not validate or encode."""
+    return InvalidParams(
+        f"invalid params for {method}: {summarize_errors(errors)} "
+        "(checked by the client; nothing was sent)",
+        {"errors": errors},
+        service=method,
+    )
+
+
+def encode_request(
+    method: str, srv: type[Service] | None, request: BaseModel | Mapping[str, Any] | None
+) -> str:
+    """Validate ``request`` when its type is known and return its JSON text (an object).
+
+    Raise :class:`~srvwire.errors.InvalidParams` for a request that does not validate or
+    cannot be written (nothing is sent then), ``TypeError`` for a model of another type or
+    one that is not written as a JSON object.
+    """
+    value: BaseModel | Mapping[str, Any] = {} if request is None else request
+    if srv is not None and not isinstance(value, srv.Request):
+        if isinstance(value, BaseModel):
+            raise TypeError(
+                f"{method} takes {srv.type_name} requests, not {type(value).__qualname__}"
+            )
+        try:
+            value = validate_python(srv.Request, value)
+        except ValidationError as exc:
+            raise _refused(method, validation_errors(exc)) from None
+    if not isinstance(value, BaseModel | Mapping):
+        raise TypeError(
+            f"the request for {method} must be a model or a mapping, not {type(value).__qualname__}"
+        )
+    try:
+        if not isinstance(value, BaseModel):
+            return encode_json(dict(value))
+        text = dump_json(value).decode()
+    except PydanticSerializationError as exc:
+        # A string with a lone surrogate validates, but cannot be written as UTF-8.
+        errors = unencodable_strings(value) or [
+            {"path": "", "message": str(exc), "type": "serialization_error"}
+        ]
+        raise _refused(method, errors) from None
+    if not text.startswith("{"):  # a RootModel or a custom serializer: not params by name
+        raise TypeError(
+            f"the request for {method} must serialize to a JSON object (params by name); "
+            f"{type(value).__qualname__} serializes to {text[:40]!r}"
+        )
+    return text
+
+
+class ServiceTypes:
+    """Which class a call's types come from, given or advertised, and each one's decoder.
+
+    A type given by name that cannot be resolved is an error; one the server advertised is
+    logged once, and its calls send and return plain dicts.
+    """
+
+    def __init__(
+        self, resolve: TypeResolver, logger: logging.Logger | logging.LoggerAdapter[Any]
+    ) -> None:
+        self._resolve = resolve
+        self._logger = logger
+        self._classes: dict[str, type[Service] | None] = {}
+        self._decoders: dict[type[Service], ModelDecoder[Message]] = {}
+
+    def service(
+        self, method: str, srv_type: SrvType | None, advertised: str | None
+    ) -> type[Service] | None:
+        """Return the service class for ``method``, or None to send and return plain dicts."""
+        if srv_type is not None and not isinstance(srv_type, str):
+            return srv_type
+        named = srv_type is not None
+        type_name = srv_type if srv_type is not None else advertised
+        if type_name is None:
+            return None
+        if type_name in self._classes:
+            cached = self._classes[type_name]
+            if cached is not None or not named:
+                return cached
+        loaded: type[Service] | None
+        try:
+            loaded = self._resolve(type_name)
+        except InterfaceError as exc:
+            if named:
+                raise  # the caller named a type that cannot be resolved: say so
+            self._logger.info(
+                "cannot load %s for %s (%s); its calls send and return plain dicts",
+                type_name,
+                method,
+                exc,
+            )
+            loaded = None
+        self._classes[type_name] = loaded
+        return loaded
+
+    def decoder(self, srv: type[Service]) -> ModelDecoder[Message]:
+        """The decoder of ``srv``'s responses, made once per class."""
+        decoder = self._decoders.get(srv)
+        if decoder is None:
+            decoder = self._decoders[srv] = ModelDecoder(srv.Response)
+        return decoder

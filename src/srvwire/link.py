@@ -1,0 +1,243 @@
+"""One open connection of a client: the transport's, its session, and its one reader task.
+
+A :class:`Link` lives as long as its connection. The reader is the only code that receives: it
+hands each message to the :class:`~srvwire.session.ClientSession`, resolves the future of the
+call a reply belongs to (a srvwire-shaped response unparsed), and tells its :class:`Owner`
+(the client) when the services change or the connection ends. :meth:`Link.roundtrip` is one
+call's send and wait.
+
+Invariants:
+
+* **Every pending call ends** with its reply, its deadline, its caller's cancellation, or
+  ``ConnectionLost`` when the connection ends; the session forgets its id in every case.
+* **Something that is not JSON-RPC fails the connection** (close 1008), found by the reader
+  or by a caller decoding a reply the reader left unparsed.
+* **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
+  background, best effort.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Coroutine
+from typing import Any, Protocol, TypeAlias
+
+from srvwire.errors import ConnectionLost, DeadlineExceeded
+from srvwire.inline import Pending, finish_within, first_step
+from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Response
+from srvwire.session import ClientSession, ServicesChanged, Stray
+from srvwire.transports.base import Connection, TransportClosed
+
+__all__ = ["CLOSE_PROTOCOL_VIOLATION", "Link", "LoggerLike", "Owner", "Reply"]
+
+Reply: TypeAlias = Response | ErrorResponse | RawReply
+
+LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
+
+CLOSE_PROTOCOL_VIOLATION = 1008
+"""The close code sent when the server breaks the protocol (RFC 6455 "policy violation")."""
+
+
+class Owner(Protocol):
+    """What a link needs of its client."""
+
+    url: str
+    logger: LoggerLike
+
+    @property
+    def closed(self) -> bool:
+        """Whether the client was closed (then an ending connection is no news)."""
+        ...
+
+    def services_changed(self, services: dict[str, str]) -> None: ...
+
+    def forget(self, link: Link) -> bool:
+        """Drop ``link`` if it is the current one; return whether it was."""
+        ...
+
+    def spawn(self, coro: Coroutine[Any, Any, None]) -> None: ...
+
+
+class Link:
+    """One open connection of a client and the calls waiting on it."""
+
+    __slots__ = ("conn", "loop", "owner", "reader", "session")
+
+    def __init__(self, owner: Owner, conn: Connection) -> None:
+        self.owner = owner
+        self.conn = conn
+        self.loop = asyncio.get_running_loop()
+        self.session: ClientSession[asyncio.Future[Reply]] = ClientSession()
+        self.reader: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        """Start the reader."""
+        self.reader = self.loop.create_task(self.read())
+
+    async def read(self) -> None:
+        """Receive every message of this connection; on its end, fail what is pending."""
+        owner = self.owner
+        conn = self.conn
+        session = self.session
+        cause: TransportClosed | None = None
+        try:
+            while True:
+                data = await conn.recv()
+                try:
+                    events = session.receive(data)
+                except ProtocolViolation as exc:
+                    self.violation(exc)
+                    break
+                for event in events:
+                    if type(event) is tuple:
+                        future = event[0]
+                        if not future.done():
+                            future.set_result(event[1])
+                    elif type(event) is ServicesChanged:
+                        owner.services_changed(event.services)
+                    else:
+                        assert type(event) is Stray
+                        self.stray(event.reply)
+        except TransportClosed as exc:
+            cause = exc
+        except Exception:  # a bug here must not leave calls waiting for their deadlines
+            owner.logger.exception("the reader of %s failed; closing the connection", owner.url)
+            self.fail("the client failed to process a message from the server")
+        finally:
+            self.lost(None, cause)  # nothing to do when this side failed the connection
+
+    def stray(self, reply: Response | ErrorResponse) -> None:
+        if reply.id is None and isinstance(reply, ErrorResponse):
+            # The server could not read one of our messages; it cannot say which.
+            self.owner.logger.warning("the server could not read a message: %s", reply.error)
+        else:
+            self.owner.logger.debug("dropping a reply for id %r: no call waits for it", reply.id)
+
+    def lost(self, failure: str | None, cause: TransportClosed | None) -> None:
+        """Forget this connection, which ended, and fail every call still pending on it.
+
+        ``failure`` says why this side is closing it, when it is; else ``cause`` (or the
+        connection's own close code) says how it ended.
+        """
+        owner = self.owner
+        if not owner.forget(self):
+            return
+        waiters = self.session.lost()
+        data: dict[str, Any]
+        if failure is not None:
+            text = failure
+            data = {"close_code": CLOSE_PROTOCOL_VIOLATION}
+        elif owner.closed:
+            text, data = "the client was closed", {}
+        else:
+            how = cause if cause is not None else self.conn.closed()
+            text, data = str(how), {"close_code": how.code, "close_reason": how.reason}
+        data["url"] = owner.url
+        if waiters or not owner.closed:
+            owner.logger.warning(
+                "connection to %s lost: %s; failing %d pending calls", owner.url, text, len(waiters)
+            )
+        for future in waiters:
+            if not future.done():
+                error = ConnectionLost(text, dict(data))
+                error.__cause__ = cause
+                future.set_exception(error)
+
+    def fail(self, failure: str) -> ConnectionLost:
+        """End this connection from this side: fail every pending call, close with 1008.
+
+        The calls fail first and the close runs in the background, since it may wait for the
+        peer. Return the error the pending calls got.
+        """
+        self.lost(failure, None)
+        self.owner.spawn(self.conn.close(CLOSE_PROTOCOL_VIOLATION, "invalid JSON-RPC"))
+        return ConnectionLost(
+            failure, {"close_code": CLOSE_PROTOCOL_VIOLATION, "url": self.owner.url}
+        )
+
+    def violation(self, exc: ProtocolViolation) -> ConnectionLost:
+        """Fail this connection: its server sent something that is not JSON-RPC."""
+        message = exc.error.message
+        self.owner.logger.error(
+            "%s sent something that is not JSON-RPC: %s; closing the connection",
+            self.owner.url,
+            message,
+        )
+        return self.fail(f"the server broke the protocol: {message}")
+
+    async def roundtrip(
+        self, method: str, params: str | None, deadline: float, budget: float
+    ) -> Reply:
+        """Send one request and wait for its reply until ``deadline`` (loop time).
+
+        ``params`` is the request's JSON object text, sent with the time left as
+        ``_meta.timeout``; None sends no params (and no deadline).
+        """
+        loop = self.loop
+        remaining = deadline - loop.time()
+        if remaining <= 0:
+            raise DeadlineExceeded(
+                f"no time left to send the call ({budget:g} s deadline)",
+                {"timeout": budget},
+                service=method,
+            )
+        future: asyncio.Future[Reply] = loop.create_future()
+        session = self.session
+        id, data = session.request(
+            method, params, None if params is None else round(remaining, 6), future
+        )
+        task = asyncio.current_task(loop)
+        cancelling = task.cancelling() if task is not None else 0
+        try:
+            # The send waits only on backpressure, so it is bounded only if it does wait: by a
+            # bare timer (Expired is a TimeoutError), with no task of its own.
+            sending = first_step(self.conn.send(data))
+            if isinstance(sending, Pending):
+                await finish_within(sending, deadline - loop.time())
+            # On a future, wait_for creates no task: a timer and a done callback.
+            reply = await asyncio.wait_for(future, deadline - loop.time())
+            if task is not None and task.cancelling() > cancelling:
+                # Python 3.11's wait_for returns the result when a cancellation arrives after
+                # the reply did (gh-86296); the caller asked to stop, so stop.
+                raise asyncio.CancelledError
+            return reply
+        except TimeoutError:
+            self.give_up(method, id, future)
+            raise DeadlineExceeded(
+                f"no response within {budget:g} s", {"timeout": budget}, service=method
+            ) from None
+        except asyncio.CancelledError:
+            self.give_up(method, id, future)
+            raise
+        except TransportClosed as exc:
+            closed = {"close_code": exc.code, "close_reason": exc.reason, "url": self.owner.url}
+            raise ConnectionLost(str(exc), closed, service=method) from exc
+        except ConnectionLost as exc:  # set on the future when the connection dropped
+            exc.service = method
+            raise
+        finally:
+            session.forget(id)
+
+    def give_up(self, method: str, id: int, future: asyncio.Future[Reply]) -> None:
+        """Tell the server to cancel a call we gave up on, in the background."""
+        # Resolved as we gave up: mark an error seen so asyncio stays quiet, and check a reply
+        # the reader left unparsed as the reader would have checked it.
+        if future.done() and not future.cancelled() and future.exception() is None:
+            reply = future.result()
+            if isinstance(reply, RawReply):
+                try:
+                    reply.parse()
+                except ProtocolViolation as exc:
+                    self.violation(exc)
+        data = self.session.cancel(id)
+        if data is None:
+            return  # answered meanwhile, or the connection is gone
+        self.owner.logger.debug("cancelling %s (id %d) on the server", method, id)
+        self.owner.spawn(self.send_quietly(data))
+
+    async def send_quietly(self, data: bytes) -> None:
+        try:
+            await self.conn.send(data)
+        except TransportClosed:
+            pass  # best effort: a closed connection has cancelled everything anyway

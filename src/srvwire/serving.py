@@ -1,0 +1,435 @@
+"""One connection a server serves: its session, its reader, and the runner of its calls.
+
+A :class:`ServedConnection` runs what its :class:`~srvwire.session.ServerSession` asks for:
+send a reply, start a call, run a notification, cancel a call. The rules of the conversation
+are the session's; the rules of time and tasks are this module's.
+
+Invariants:
+
+* **The reader never waits for a handler.** One task at a time reads a connection. A call (or
+  notification) runs inline on it, in a copy of its context, up to the call's first suspension
+  (:func:`~srvwire.inline.first_step`): most handlers answer there, with no task, timer or loop
+  turn of their own, and their reply is sent before the next message is read. A call that has
+  to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
+  reader task takes over. A batch's calls run in tasks of their own, started once the whole
+  batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
+* **A deadline is a cancellation with a reason.** A call's ``_meta.timeout`` is armed as one
+  timer only when the call has to wait; when it fires, the call is cancelled with
+  ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
+  ``UNAVAILABLE``: the reason is recorded in the call's :class:`~srvwire.dispatch.Context`
+  first (the first one wins), then its task is cancelled, at most once; the call takes the
+  cancellation back and answers the reason. A task cancelled without a reason (its connection
+  went away) answers nothing. A handler that cancels its own task is answered ``INTERNAL``.
+* **In flight is counted twice, for two purposes.** The session counts calls for admission;
+  :attr:`ServedConnection.counted` holds the tasks that shutdown waits for: a reader task a
+  waiting call took over, until the call is done, and each batch item's task, from its creation
+  until its coroutine's ``finally`` (a task cancelled before its first step gets a
+  done-callback instead). A task an eager task factory already ran to its end inside
+  ``create_task`` is not counted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from concurrent.futures import Executor
+from contextvars import copy_context
+from typing import Any
+
+from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
+from srvwire.errors import DeadlineExceeded, InternalError, RPCError
+from srvwire.inline import Pending, finish, first_step
+from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
+from srvwire.transports.base import Connection, TransportClosed
+
+__all__ = ["ServedConnection"]
+
+
+class ServedConnection:
+    """One client connection: its session, its reader, and the tasks of its calls."""
+
+    __slots__ = (
+        "conn",
+        "counted",
+        "executor",
+        "log",
+        "loop",
+        "peer",
+        "reader",
+        "reading",
+        "session",
+        "tasks",
+    )
+
+    def __init__(
+        self,
+        conn: Connection,
+        registry: ServiceRegistry,
+        *,
+        max_in_flight: int,
+        executor: Executor | None,
+        logger: logging.Logger,
+    ) -> None:
+        self.conn = conn
+        self.executor = executor
+        self.log = logger
+        self.session: ServerSession[ServiceEntry] = ServerSession(
+            registry, max_in_flight=max_in_flight
+        )
+        self.loop = asyncio.get_running_loop()
+        self.peer: Any = conn.remote_address
+        self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
+        self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
+        self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
+        self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
+
+    # --- tasks --------------------------------------------------------------------------------
+
+    def spawn(self, coro: Any) -> asyncio.Task[Any]:
+        task: asyncio.Task[Any] = self.loop.create_task(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
+    def spawn_counted(self, coro: Any) -> asyncio.Task[Any]:
+        """Spawn a call or notification task; it counts until its coroutine :meth:`settle` s."""
+        task: asyncio.Task[Any] = self.loop.create_task(coro)
+        if not task.done():
+            self.counted.add(task)
+        return task
+
+    def settle(self) -> None:
+        """Uncount the running task, a call's or a notification's; its coroutine's last step."""
+        try:
+            task = asyncio.current_task()
+        except RuntimeError:  # closed by the garbage collector after its loop: nothing counts
+            return
+        if task is not None:
+            self.counted.discard(task)
+
+    async def send(self, data: bytes) -> None:
+        """Send one message; a connection that is gone is not an error here."""
+        try:
+            await self.conn.send(data)
+        except TransportClosed:
+            pass  # the caller left; its calls are being cancelled
+
+    # --- cancellation -------------------------------------------------------------------------
+
+    def cancel(self, call: Call[ServiceEntry], error: RPCError | None) -> None:
+        """Cancel ``call``; with ``error`` it answers that error, without it stays silent.
+
+        A call whose task has not started is only marked: it answers when it starts. Its task
+        is cancelled once at most, since the call takes one cancellation back before replying.
+        """
+        context: Context = call.context
+        context._mark_cancelled(error)
+        task = call.task
+        if task is not None and not call.task_cancelled and (call.started or error is None):
+            call.task_cancelled = True
+            task.cancel()
+
+    def expire(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
+        """A deadline passed: cancel the call or notification with ``DEADLINE_EXCEEDED``."""
+        name = work.entry.name
+        error = DeadlineExceeded(
+            f"the deadline for {name} passed before the handler finished", service=name
+        )
+        if type(work) is Call:
+            self.cancel(work, error)
+            return
+        work.context._mark_cancelled(error)
+        if work.task is not None and not work.task_cancelled:
+            work.task_cancelled = True
+            work.task.cancel()
+
+    def arm(
+        self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]
+    ) -> asyncio.TimerHandle | None:
+        """Arm the deadline of a call or notification that waits; None when it has none."""
+        deadline = work.context.deadline
+        if deadline is None:
+            return None
+        return self.loop.call_later(deadline - time.monotonic(), self.expire, work)
+
+    def cancel_all(self, error: RPCError | None) -> None:
+        """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
+
+        Without ``error`` (the connection is gone) every task is cancelled, even one that has
+        not started; since such a task never runs its coroutine's ``finally``, each counted
+        task gets a done-callback that settles it.
+        """
+        for cancel in self.session.cancel_all(error):
+            self.cancel(cancel.call, cancel.error)
+        if error is None:
+            for task in list(self.tasks):
+                task.cancel()
+            for task in list(self.counted):
+                task.cancel()
+                task.add_done_callback(self.counted.discard)
+
+    # --- reading ------------------------------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Read the connection until it ends, one reader task at a time (see :meth:`read`)."""
+        self.start_reader()
+        try:
+            await self.reading
+        finally:
+            if not self.reading.done():  # this handler was cancelled: stop reading too
+                self.reading.cancel()
+                if self.reader is not None:
+                    self.reader.cancel()
+
+    def start_reader(self) -> None:
+        # A plain task, not the loop's task factory: an eager factory would run the new reader
+        # inside this call, before it is recorded, and nest one reader in the next.
+        self.reader = asyncio.Task(self.read(), loop=self.loop)
+
+    async def read(self) -> None:
+        """Read and answer messages until the connection ends or a call has to wait.
+
+        A call that has to wait keeps this task, and a new reader takes over; the call's
+        deadline is armed then, and only then.
+        """
+        try:
+            waiting = await self.read_until_a_call_waits()
+        except asyncio.CancelledError:
+            self.reading.cancel()
+            raise
+        except BaseException as exc:  # the connection ended, or a bug in srvwire
+            if not self.reading.done():
+                self.reading.set_exception(exc)
+            if not isinstance(exc, TransportClosed):
+                raise
+            return
+        if waiting is None:
+            if not self.reading.done():
+                self.reading.set_result(None)
+            return
+        work, steps = waiting
+        task = asyncio.current_task()
+        assert task is not None
+        self.counted.add(task)
+        work.task = task
+        if type(work) is Call:
+            work.started = True
+            if work.context.cancelled:  # cancelled while its first step ran
+                self.cancel(work, work.context._cancel_error)
+        timer = self.arm(work)
+        self.start_reader()
+        try:
+            await finish(steps)
+        finally:
+            if timer is not None:
+                timer.cancel()
+            self.counted.discard(task)
+
+    async def read_until_a_call_waits(
+        self,
+    ) -> tuple[Call[ServiceEntry] | NotificationCall[ServiceEntry], Pending] | None:
+        """Answer messages; return a call or notification that has to wait, and its steps;
+        return None when the connection ended cleanly."""
+        conn = self.conn
+        session = self.session
+        reader = asyncio.current_task(self.loop)
+        assert reader is not None
+        while True:
+            try:
+                data = await conn.recv()
+            except TransportClosed as exc:
+                if exc.clean:
+                    return None
+                raise
+            for event in session.receive(data):
+                kind = type(event)
+                if kind is bytes:
+                    await self.send(event)
+                elif kind is Call:
+                    if event.batch is not None:
+                        self.start_in_task(event)
+                        continue
+                    self.begin(event)
+                    steps = first_step(self.run_call(event), copy_context())
+                    if isinstance(steps, Pending):
+                        return event, steps
+                    if reader.cancelling():
+                        await self.ignore_cancellation(event.entry)
+                elif kind is NotificationCall:
+                    if event.in_batch:
+                        self.start_in_task(event)
+                        continue
+                    self.begin(event)
+                    try:
+                        steps = first_step(self.run_notification(event), copy_context())
+                    except asyncio.CancelledError:  # only the handler can have cancelled it
+                        steps = None
+                    if isinstance(steps, Pending):
+                        return event, steps
+                    if reader.cancelling():
+                        await self.ignore_cancellation(None)
+                elif kind is CancelCall:
+                    self.cancel(event.call, event.error)
+                else:
+                    assert kind is Dropped
+                    self.dropped(event)
+
+    def begin(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
+        """Give a call or notification its context, its deadline measured from now."""
+        timeout = work.timeout
+        work.context = Context(
+            service=work.entry.name,
+            request_id=work.id if type(work) is Call else None,
+            peer=self.peer,
+            deadline=None if timeout is None else time.monotonic() + timeout,
+        )
+
+    def start_in_task(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
+        """Start a batch's call or notification in a task of its own, counted from now."""
+        self.begin(work)
+        work.task = self.spawn_counted(self.run_in_task(work))
+
+    def dropped(self, event: Dropped[ServiceEntry]) -> None:
+        if event.busy:
+            self.log.warning(
+                "dropped a notification to %s from %s: %s",
+                event.entry.name,
+                self.peer,
+                event.reason,
+            )
+        else:
+            self.log.info(
+                "dropped a notification to %s from %s: %s",
+                event.entry.name,
+                self.peer,
+                event.reason,
+            )
+
+    async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
+        """Take back a cancellation of the reader that a handler requested while it ran inline.
+
+        Nothing else can cancel the reader while a call runs on it without waiting: the handler
+        cancelled what it took for its own task (``asyncio.current_task().cancel()``), and that
+        call is over. The request is delivered at the reader's next suspension; it is made here,
+        and taken back, so that it can reach neither the reading nor the next call.
+        """
+        what = f"the handler for {entry.name}" if entry is not None else "a notification handler"
+        self.log.warning("%s cancelled its own task without waiting for anything; ignored", what)
+        try:
+            await asyncio.sleep(0)
+        except asyncio.CancelledError:
+            if self.reading.done():  # serve() stopped the reading meanwhile: stop
+                raise
+        task = asyncio.current_task(self.loop)
+        while task is not None and task.cancelling():
+            task.uncancel()
+
+    # --- running calls ------------------------------------------------------------------------
+
+    @staticmethod
+    async def take_back_cancellation() -> None:
+        """Take back the one cancellation of this task that srvwire requested.
+
+        It may not have been delivered yet (the handler swallowed an earlier one, or finished
+        as it was requested): let it arrive here, where it is harmless, then uncount it.
+        """
+        task = asyncio.current_task()
+        assert task is not None
+        with contextlib.suppress(asyncio.CancelledError):
+            await asyncio.sleep(0)
+        task.uncancel()
+
+    async def run_in_task(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
+        """Run a batch's call or notification in its own task, under its deadline."""
+        timer = self.arm(work)
+        try:
+            if isinstance(work, Call):
+                await self.run_call(work)
+            else:
+                await self.run_notification(work)
+        finally:
+            if timer is not None:
+                timer.cancel()
+            self.settle()
+
+    async def run_call(self, call: Call[ServiceEntry]) -> None:
+        """Run one call and send its reply (or its batch's, when it is the last to reply)."""
+        call.started = True
+        context: Context = call.context
+        session = self.session
+        entry = call.entry
+        log = self.log
+        reply: bytes | None
+        try:
+            if context._cancel_error is not None:  # cancelled before it started
+                reply = session.fail(call, context._cancel_error)
+            else:
+                result = await dispatch(
+                    entry, call.params, context, executor=self.executor, logger=log
+                )
+                if call.task_cancelled:  # cancelled meanwhile, and the handler finished anyway
+                    await self.take_back_cancellation()
+                    if context._cancel_error is None:  # the connection went away
+                        session.forget(call)
+                        raise asyncio.CancelledError
+                    reply = session.fail(call, context._cancel_error)
+                else:
+                    if log.isEnabledFor(logging.DEBUG):
+                        log.debug("%s id %r from %s: ok", entry.name, call.id, self.peer)
+                    reply = session.reply(call, result)
+                del result  # not held through the send: a large result would be held twice
+        except RPCError as exc:
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s id %r from %s: %s", entry.name, call.id, self.peer, exc)
+            reply = session.fail(call, exc)
+        except asyncio.CancelledError:
+            error = context._cancel_error
+            task = asyncio.current_task()
+            if error is None:
+                if call.task_cancelled:  # the connection went away: nobody to answer
+                    session.forget(call)
+                    raise
+                # Nothing in srvwire cancelled it: the handler cancelled its own task.
+                log.error("the handler for %s id %r cancelled its own task", entry.name, call.id)
+                error = InternalError(
+                    f"handler for {entry.name} was cancelled by its own code", service=entry.name
+                )
+                if call.task is None:
+                    task = None  # inline, on the reader: the reader takes the request back
+                elif task is not None:
+                    # The request may not have been delivered yet (the handler raised by
+                    # itself): let it arrive here, or it would end the task after the reply.
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await asyncio.sleep(0)
+            if task is not None:
+                task.uncancel()
+            reply = session.fail(call, error)
+        except Exception:  # a bug in srvwire: still answer, so that the caller is not left waiting
+            log.exception("%s id %r from %s failed inside srvwire", entry.name, call.id, self.peer)
+            reply = session.fail(
+                call,
+                InternalError(f"the server failed to answer {entry.name}", service=entry.name),
+            )
+        if reply is not None:
+            await self.send(reply)
+
+    async def run_notification(self, note: NotificationCall[ServiceEntry]) -> None:
+        """Run a notification's handler; nothing is answered, a failure is logged."""
+        entry = note.entry
+        context: Context = note.context
+        try:
+            await dispatch(entry, note.params, context, executor=self.executor, logger=self.log)
+        except RPCError as exc:
+            if self.log.isEnabledFor(logging.INFO):
+                self.log.info("notification to %s failed: %s", entry.name, exc)
+        except asyncio.CancelledError:
+            error = context._cancel_error
+            if error is None:
+                raise
+            asyncio.current_task().uncancel()  # type: ignore[union-attr]
+            if self.log.isEnabledFor(logging.INFO):
+                self.log.info("notification to %s failed: %s", entry.name, error)
+        finally:
+            self.session.done(note)

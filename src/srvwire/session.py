@@ -1,0 +1,495 @@
+"""The rules of a srvwire conversation, without I/O: one session object per side.
+
+:class:`ServerSession` takes what a client sent and says what to do: answer at once, start a
+call, run a notification, cancel a call. It writes every reply. :class:`ClientSession` writes
+requests under fresh ids and routes what the server sends to the call that waits for it. Neither
+awaits, reads a clock or touches a socket; the asyncio shells (:mod:`srvwire.server`,
+:mod:`srvwire.client`) move bytes between a transport and these objects and run the handlers.
+
+Server invariants:
+
+* **Every request gets exactly one reply** while the session is open: an immediate one (an
+  error, discovery, a ``$/cancel`` acknowledgement) from :meth:`ServerSession.receive`, or the
+  one :meth:`ServerSession.reply` or :meth:`ServerSession.fail` writes for a started
+  :class:`Call`. A call that ends without a reply (its connection went away) is
+  :meth:`~ServerSession.forget`-ten.
+* **Admission, in this order:** a closing session answers ``UNAVAILABLE``; a method that is not a
+  service is discovery, ``$/cancel`` or ``SERVICE_NOT_FOUND``; past ``max_in_flight`` a call is
+  answered ``RESOURCE_EXHAUSTED``; an id already in flight is ``INVALID_REQUEST``.
+* **In flight** counts calls from admission to their reply, and notifications from their start
+  to :meth:`~ServerSession.done`. A batch's calls count one by one, like single calls.
+* **``$/cancel`` reaches a call while it is in :attr:`ServerSession.calls`**, from admission to
+  its reply; ids are compared exactly (a boolean is never an id). A call with ``"id": null``
+  cannot be named, but shutdown still finds it in :attr:`ServerSession.anonymous`.
+* **A batch is answered once, as one array**, in the order of its items, when its last call
+  has replied; a batch of notifications only is not answered at all.
+* **A notification is never answered.** One that cannot run is reported as :class:`Dropped`.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeAlias, TypeVar
+
+from srvwire.errors import (
+    Cancelled,
+    InvalidRequest,
+    ParseError,
+    ResourceExhausted,
+    RPCError,
+    ServiceUnavailable,
+)
+from srvwire.protocol import (
+    CANCEL_METHOD,
+    DISCOVER_METHOD,
+    SERVICES_METHOD,
+    ErrorResponse,
+    Id,
+    Notification,
+    ProtocolViolation,
+    RawJSON,
+    RawReply,
+    Request,
+    Response,
+    canonical_name,
+    parse_incoming,
+    parse_replies,
+    peek_reply,
+    serialize_batch,
+    services_notification,
+    valid_id,
+)
+
+__all__ = [
+    "Call",
+    "CancelCall",
+    "ClientSession",
+    "Dropped",
+    "Entry",
+    "NotificationCall",
+    "ServerEvent",
+    "ServerSession",
+    "Services",
+    "ServicesChanged",
+    "Stray",
+]
+
+_PROTOCOL_PREFIX = "$/"
+
+
+class Entry(Protocol):
+    """What the session needs of a service: its canonical name."""
+
+    @property
+    def name(self) -> str: ...
+
+
+E = TypeVar("E", bound=Entry)
+E_co = TypeVar("E_co", bound=Entry, covariant=True)
+W = TypeVar("W")
+
+
+class Services(Protocol[E_co]):
+    """What the session needs of a registry (:class:`srvwire.dispatch.ServiceRegistry` is one)."""
+
+    def get(self, name: str) -> E_co | None: ...
+
+    def resolve(self, name: str) -> E_co:
+        """Return the entry, or raise the ``ServiceNotFound`` to answer."""
+        ...
+
+    def services(self) -> list[tuple[str, str]]: ...
+
+    def discover_json(self) -> str: ...
+
+
+class _Batch:
+    """The replies of one batch, in item order; sent when ``waiting`` reaches zero."""
+
+    __slots__ = ("replies", "waiting")
+
+    def __init__(self) -> None:
+        self.replies: list[bytes | None] = []
+        self.waiting = 0
+
+
+class Call(Generic[E]):
+    """A call the session admitted: what to run, and where its reply goes.
+
+    ``context``, ``task``, ``started`` and ``task_cancelled`` belong to whoever runs the call
+    (the server keeps them here so that a call is one object); the session never reads them.
+    """
+
+    __slots__ = (
+        "batch",
+        "context",
+        "entry",
+        "id",
+        "index",
+        "params",
+        "started",
+        "task",
+        "task_cancelled",
+        "timeout",
+    )
+
+    def __init__(self, id: Id, entry: E, params: Any, timeout: float | None) -> None:
+        self.id = id
+        self.entry = entry
+        self.params = params
+        self.timeout = timeout
+        self.batch: _Batch | None = None
+        self.index = 0
+        self.context: Any = None
+        self.task: Any = None
+        self.started = False
+        self.task_cancelled = False
+
+    def __repr__(self) -> str:
+        return f"<Call {self.entry.name} id={self.id!r}>"
+
+
+@dataclass(slots=True)
+class NotificationCall(Generic[E]):
+    """A notification to run; tell the session with :meth:`ServerSession.done` when it ends.
+
+    ``in_batch``: it came in a batch. ``context``, ``task`` and ``task_cancelled`` belong to
+    whoever runs it, as a :class:`Call`'s do.
+    """
+
+    entry: E
+    params: Any
+    timeout: float | None
+    in_batch: bool = False
+    context: Any = None
+    task: Any = None
+    task_cancelled: bool = False
+
+
+@dataclass(slots=True)
+class CancelCall(Generic[E]):
+    """Cancel ``call``, which is to answer ``error`` (``None``: the connection is gone)."""
+
+    call: Call[E]
+    error: RPCError | None
+
+
+@dataclass(slots=True)
+class Dropped(Generic[E]):
+    """A notification to ``entry`` that was not run, and why (for the log)."""
+
+    entry: E
+    reason: str
+    busy: bool = False  # dropped because too many calls were in flight
+
+
+ServerEvent: TypeAlias = "bytes | Call[E] | NotificationCall[E] | CancelCall[E] | Dropped[E]"
+"""What :meth:`ServerSession.receive` asks for: send bytes, start, run, cancel, or log."""
+
+
+class ServerSession(Generic[E]):
+    """The server's side of one connection: admission, cancellation, batches, shutdown."""
+
+    def __init__(self, services: Services[E], *, max_in_flight: int = 256) -> None:
+        self.services = services
+        self.max_in_flight = max_in_flight
+        self.calls: dict[Id, Call[E]] = {}
+        """Calls in flight that ``$/cancel`` can name, by id."""
+        self.anonymous: set[Call[E]] = set()
+        """Calls in flight with ``"id": null``."""
+        self.in_flight = 0
+        self.closing = False
+
+    # --- what the client sent -----------------------------------------------------------------
+
+    def receive(self, data: str | bytes) -> list[Any]:
+        """Read one message; return what to do about it, in order (see :data:`ServerEvent`).
+
+        Never raises on what a peer sent.
+        """
+        incoming = parse_incoming(data)
+        items = incoming.items
+        if not incoming.is_batch:
+            item = items[0]
+            if type(item) is Request:
+                events: list[Any] = []
+                events.append(self._admit(item, None, events))
+                return events
+            if type(item) is Notification:
+                event = self._notification(item)
+                return [] if event is None else [event]
+            assert type(item) is ErrorResponse
+            return [item.serialize()]
+        batch = _Batch()
+        events = []
+        for item in items:
+            if type(item) is Request:
+                index = len(batch.replies)
+                batch.replies.append(None)
+                admitted = self._admit(item, batch, events)
+                if isinstance(admitted, bytes):
+                    batch.replies[index] = admitted
+                else:
+                    admitted.index = index
+                    batch.waiting += 1
+                    events.append(admitted)
+            elif type(item) is Notification:
+                event = self._notification(item)
+                if event is not None:
+                    if type(event) is NotificationCall:
+                        event.in_batch = True
+                    events.append(event)
+            else:
+                assert type(item) is ErrorResponse
+                batch.replies.append(item.serialize())
+        if batch.replies and not batch.waiting:
+            events.append(serialize_batch(r for r in batch.replies if r is not None))
+        return events
+
+    def _admit(self, request: Request, batch: _Batch | None, events: list[Any]) -> bytes | Call[E]:
+        """Admit a call, or return its reply; a ``$/cancel`` adds its event to ``events``."""
+        id = request.id
+        if self.closing:
+            return ErrorResponse(id, ServiceUnavailable("the server is shutting down")).serialize()
+        entry = self.services.get(request.method)
+        if entry is None:
+            return self._special(request, events)
+        if self.in_flight >= self.max_in_flight:
+            exhausted = ResourceExhausted(
+                f"too many calls in flight on this connection (the limit is {self.max_in_flight})",
+                {"limit": self.max_in_flight},
+                service=entry.name,
+            )
+            return ErrorResponse(id, exhausted).serialize()
+        if id is not None and id in self.calls:
+            duplicate = InvalidRequest(
+                f"Invalid Request: id {id!r} is already used by a call in flight on this "
+                "connection",
+                service=entry.name,
+            )
+            return ErrorResponse(id, duplicate).serialize()
+        params = request.params
+        call = Call(id, entry, None if type(params) is RawJSON else params, request.timeout)
+        call.batch = batch
+        if id is not None:
+            self.calls[id] = call
+        else:
+            self.anonymous.add(call)
+        self.in_flight += 1
+        return call
+
+    def _special(self, request: Request, events: list[Any]) -> bytes:
+        """Answer a request for a method that is not a service: discovery, protocol, unknown."""
+        if request.method == DISCOVER_METHOD:
+            return Response(request.id, RawJSON(self.services.discover_json())).serialize()
+        if request.method == CANCEL_METHOD:
+            cancel = self._cancel(request.params)
+            if cancel is not None:
+                events.append(cancel)
+            return Response(request.id, None).serialize()
+        try:
+            self.services.resolve(request.method)
+        except RPCError as exc:
+            return ErrorResponse(request.id, exc).serialize()
+        raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
+
+    def _notification(self, note: Notification) -> Any:
+        method = note.method
+        if method.startswith(_PROTOCOL_PREFIX):
+            return self._cancel(note.params) if method == CANCEL_METHOD else None
+        entry = self.services.get(method)
+        if entry is None or self.closing:
+            return None
+        if note.error is not None:
+            return Dropped(entry, str(note.error))
+        if self.in_flight >= self.max_in_flight:
+            return Dropped(entry, "too many calls in flight", busy=True)
+        self.in_flight += 1
+        return NotificationCall(entry, note.params, note.timeout)
+
+    def _cancel(self, params: Any) -> CancelCall[E] | None:
+        """``$/cancel``: the call with ``params["id"]``, if it is still in flight."""
+        if type(params) is not dict:
+            return None
+        id = params.get("id")
+        if not valid_id(id) or id is None:
+            return None
+        call = self.calls.get(id)
+        if call is None or type(call.id) is not type(id):  # 1 is not 1.0 is not "1"
+            return None
+        return CancelCall(call, Cancelled("the caller cancelled the call"))
+
+    # --- what the runner reports ----------------------------------------------------------------
+
+    def reply(self, call: Call[E], result: bytes) -> bytes | None:
+        """Write the reply to ``call`` with ``result`` (its JSON); None while its batch waits."""
+        return self._answer(call, Response(call.id, RawJSON(result)).serialize())
+
+    def fail(self, call: Call[E], error: RPCError) -> bytes | None:
+        """Write the error reply to ``call``; None while its batch waits."""
+        return self._answer(call, ErrorResponse(call.id, error).serialize())
+
+    def _answer(self, call: Call[E], reply: bytes) -> bytes | None:
+        self.forget(call)
+        batch = call.batch
+        if batch is None:
+            return reply
+        batch.replies[call.index] = reply
+        batch.waiting -= 1
+        if batch.waiting:
+            return None
+        return serialize_batch(r for r in batch.replies if r is not None)
+
+    def forget(self, call: Call[E]) -> None:
+        """Take ``call`` out: ``$/cancel`` no longer finds it, and it no longer counts."""
+        id = call.id
+        if id is None:
+            if call in self.anonymous:
+                self.anonymous.discard(call)
+                self.in_flight -= 1
+        elif self.calls.get(id) is call:
+            del self.calls[id]
+            self.in_flight -= 1
+
+    def done(self, notification: NotificationCall[E]) -> None:
+        """A notification's handler ended: it no longer counts as in flight."""
+        self.in_flight -= 1
+
+    # --- shutdown -------------------------------------------------------------------------------
+
+    def announcement(self) -> bytes:
+        """The ``$/services`` notification: the first message, and the one after each change."""
+        return services_notification(self.services.services()).serialize()
+
+    def close(self) -> None:
+        """Stop admitting: from now on every new call is answered ``UNAVAILABLE``."""
+        self.closing = True
+
+    def cancel_all(self, error: RPCError | None) -> list[CancelCall[E]]:
+        """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
+
+        Without ``error`` (the connection is gone) the session also forgets them.
+        """
+        cancels = [CancelCall(call, error) for call in (*self.calls.values(), *self.anonymous)]
+        if error is None:
+            self.calls.clear()
+            self.anonymous.clear()
+        return cancels
+
+
+# --- the client's side ---------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class ServicesChanged:
+    """The server's ``$/services``: every service it offers now, canonical name -> type."""
+
+    services: dict[str, str]
+
+
+@dataclass(slots=True)
+class Stray:
+    """A reply no call waits for (its caller gave up), or an error the server sent about a
+    message it could not read (``id`` null); for the log."""
+
+    reply: Response | ErrorResponse
+
+
+ClientEvent: TypeAlias = "tuple[W, RawReply | Response | ErrorResponse] | ServicesChanged | Stray"
+
+
+class ClientSession(Generic[W]):
+    """The client's side of one connection: ids, the calls waiting, and what the server said.
+
+    Each waiting call is a *waiter* of the caller's choosing (the client uses a future); the
+    session hands it back with its reply. Invariants: ids are positive integers, never reused
+    on a session; a waiter is in :attr:`pending` from :meth:`request` until its reply arrives,
+    it is :meth:`cancel`-led or :meth:`forget`-ten, or the connection is :meth:`lost`.
+    """
+
+    def __init__(self) -> None:
+        self._ids: Iterator[int] = itertools.count(1)
+        self.pending: dict[int, W] = {}
+
+    def request(
+        self, method: str, params: str | None, timeout: float | None, waiter: W
+    ) -> tuple[int, bytes]:
+        """Write a request for ``method`` and register ``waiter`` under its new id.
+
+        ``params`` is the request's JSON object text (None: no params), ``timeout`` the time
+        the caller has left, sent as ``_meta.timeout``. Raise ``ValueError`` for params that
+        are not a JSON object when a timeout is sent; nothing is registered then.
+        """
+        id = next(self._ids)
+        data = Request(id, method, None if params is None else RawJSON(params), timeout).serialize()
+        self.pending[id] = waiter
+        return id, data
+
+    def cancel(self, id: int) -> bytes | None:
+        """Give up on the call ``id``: the ``$/cancel`` to send, or None if it is not waiting."""
+        if self.pending.pop(id, None) is None:
+            return None
+        return Notification(CANCEL_METHOD, {"id": id}).serialize()
+
+    def forget(self, id: int) -> None:
+        """Stop waiting for ``id`` without telling the server (it answered, or it is gone)."""
+        self.pending.pop(id, None)
+
+    def lost(self) -> list[W]:
+        """The connection ended: return every waiter, and wait for nothing any more."""
+        waiters = list(self.pending.values())
+        self.pending = {}
+        return waiters
+
+    def receive(self, data: str | bytes) -> list[Any]:
+        """Read one message from the server; return ``(waiter, reply)`` pairs and news.
+
+        A response a call waits for, written as a srvwire server writes it, is handed over
+        unparsed (a :class:`~srvwire.protocol.RawReply`, decoded by its caller); anything else
+        is parsed here. Raise :class:`~srvwire.protocol.ProtocolViolation` when it is not
+        JSON-RPC: the connection cannot be trusted to route other replies either.
+        """
+        if type(data) is str:
+            raw = peek_reply(data)
+            if raw is not None:
+                waiter = self.pending.pop(raw.id, None)
+                if waiter is not None:
+                    return [(waiter, raw)]
+        try:
+            messages = parse_replies(data)
+        except (ParseError, InvalidRequest) as exc:
+            raise ProtocolViolation(exc) from None
+        events: list[Any] = []
+        for message in messages:
+            if isinstance(message, Notification):
+                if message.method == SERVICES_METHOD:
+                    events.append(ServicesChanged(parse_services(message)))
+                continue  # other notifications: for later versions
+            id = message.id
+            waiter = self.pending.pop(id, None) if type(id) is int else None
+            events.append(Stray(message) if waiter is None else (waiter, message))
+        return events
+
+
+def parse_services(message: Notification) -> dict[str, str]:
+    """Read a ``$/services`` notification; raise ProtocolViolation when it is malformed."""
+    params = message.params
+    listed = params.get("services") if isinstance(params, dict) else None
+    if not isinstance(listed, list):
+        raise ProtocolViolation(
+            InvalidRequest(f"{SERVICES_METHOD} needs params {{'services': [...]}}")
+        )
+    services: dict[str, str] = {}
+    for entry in listed:
+        name = entry.get("name") if isinstance(entry, dict) else None
+        type_name = entry.get("type") if isinstance(entry, dict) else None
+        if not (isinstance(name, str) and isinstance(type_name, str)):
+            raise ProtocolViolation(
+                InvalidRequest(
+                    f"{SERVICES_METHOD} entries need a string 'name' and 'type', got {entry!r}"
+                )
+            )
+        services[canonical_name(name)] = type_name
+    return services
