@@ -28,6 +28,7 @@ from srvwire.loader import InterfaceLoader
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection
 from srvwire.transports.base import Transport, TransportClosed
+from srvwire.transports.memory import MemoryTransport
 from support import ROOT, scaled
 
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
@@ -1806,3 +1807,31 @@ async def test_readers_stay_readers_under_an_eager_task_factory(
             await w.ws.close()
     finally:
         loop.set_task_factory(None)
+
+
+async def test_a_deadline_that_passes_while_the_reply_is_being_sent_lets_it_go_out(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The reply is built in time, but the client does not read, so its send waits; the
+    # deadline passing then must not cancel the send of a reply that is already written.
+    expired = asyncio.Event()
+    expire = ServedConnection.expire
+
+    def recording_expire(self: ServedConnection, work: Any) -> None:
+        expire(self, work)
+        expired.set()
+
+    async def big(request: Any) -> Any:
+        await asyncio.sleep(0)  # wait once, so the deadline is armed
+        return {"text": "x" * 10_000}
+
+    monkeypatch.setattr(ServedConnection, "expire", recording_expire)
+    server.add_service("/big", Echo, big)
+    transport = MemoryTransport(high_water=1_000)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send(request("/big", deadline(0.05), id=1))
+        await expired.wait()  # the deadline passed while the reply waited for the reader
+        reply = await w.recv_reply()
+        assert reply["result"] == {"text": "x" * 10_000}
+        await w.ws.close()

@@ -89,12 +89,14 @@ def test_a_call_is_admitted_and_answered(server: ServerSession[ServiceEntry]) ->
         2.5,
     )
     assert server.in_flight == 1 and server.calls == {7: started}
+    assert server.answering(started)
     assert reply_of(server.reply(started, b'{"difference":5}')) == {  # type: ignore[arg-type]
         "jsonrpc": "2.0",
         "id": 7,
         "result": {"difference": 5},
     }
     assert server.in_flight == 0 and server.calls == {}
+    assert not server.answering(started)
 
 
 def test_a_failed_call_is_answered_with_its_error(server: ServerSession[ServiceEntry]) -> None:

@@ -124,8 +124,9 @@ class ServedConnection:
         A call whose task has not started is only marked: it answers when it starts. Its task
         is cancelled once at most, since the call takes one cancellation back before replying.
         """
-        context: Context = call.context
-        context._mark_cancelled(error)
+        context: Context | None = call.context
+        if context is not None:  # None only before the reader has begun it
+            context._mark_cancelled(error)
         task = call.task
         if task is not None and not call.task_cancelled and (call.started or error is None):
             call.task_cancelled = True
@@ -138,7 +139,8 @@ class ServedConnection:
             f"the deadline for {name} passed before the handler finished", service=name
         )
         if type(work) is Call:
-            self.cancel(work, error)
+            if self.session.answering(work):  # else its reply is built: let it go out
+                self.cancel(work, error)
             return
         work.context._mark_cancelled(error)
         if work.task is not None and not work.task_cancelled:
@@ -292,20 +294,14 @@ class ServedConnection:
         work.task = self.spawn_counted(self.run_in_task(work))
 
     def dropped(self, event: Dropped[ServiceEntry]) -> None:
-        if event.busy:
-            self.log.warning(
-                "dropped a notification to %s from %s: %s",
-                event.entry.name,
-                self.peer,
-                event.reason,
-            )
-        else:
-            self.log.info(
-                "dropped a notification to %s from %s: %s",
-                event.entry.name,
-                self.peer,
-                event.reason,
-            )
+        level = logging.WARNING if event.busy else logging.INFO
+        self.log.log(
+            level,
+            "dropped a notification to %s from %s: %s",
+            event.entry.name,
+            self.peer,
+            event.reason,
+        )
 
     async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
         """Take back a cancellation of the reader that a handler requested while it ran inline.

@@ -342,6 +342,12 @@ class ServerSession(Generic[E]):
             return None
         return serialize_batch(r for r in batch.replies if r is not None)
 
+    def answering(self, call: Call[E]) -> bool:
+        """Whether ``call`` is still in flight: admitted, and its reply not written yet."""
+        if call.id is None:
+            return call in self.anonymous
+        return self.calls.get(call.id) is call
+
     def forget(self, call: Call[E]) -> None:
         """Take ``call`` out: ``$/cancel`` no longer finds it, and it no longer counts."""
         id = call.id
