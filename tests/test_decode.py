@@ -107,22 +107,20 @@ def errors_of(exc: ValidationError) -> Errors:
     return [(error["loc"], error["type"]) for error in exc.errors()]
 
 
-class Recording(ModelDecoder[Message]):
+class Recording:
     """A :class:`ModelDecoder` that notes which of its two ways each decode took."""
 
-    __slots__ = ("calls",)
-
     def __init__(self, model: type[Message]) -> None:
-        super().__init__(model)
+        self.decoder = ModelDecoder(model)
         self.calls: list[str] = []
 
     def from_json(self, text: str) -> Message:
         self.calls.append("from_json")
-        return super().from_json(text)
+        return self.decoder.from_json(text)
 
     def from_data(self, data: Any) -> Message:
         self.calls.append("from_data")
-        return super().from_data(data)
+        return self.decoder.from_data(data)
 
 
 @pytest.mark.parametrize(

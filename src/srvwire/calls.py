@@ -87,6 +87,14 @@ def encode_request(
     cannot be written (nothing is sent then), ``TypeError`` for a model of another type or
     one that is not written as a JSON object.
     """
+    if srv is not None and type(request) is srv.Request:  # the common case, quickly
+        try:
+            text = dump_json(request).decode()
+        except PydanticSerializationError:
+            pass  # said below, with the field
+        else:
+            if text[:1] == "{":
+                return text
     value: BaseModel | Mapping[str, Any] = {} if request is None else request
     if srv is not None and not isinstance(value, srv.Request):
         if isinstance(value, BaseModel):

@@ -254,23 +254,20 @@ class Request:
         id = self.id
         if type(params) is RawJSON and type(timeout) is float and type(id) is int:
             text = params.text
-            # pydantic writes an object compactly: "{}", or '{"' and the members, then "}"
-            if (
-                type(text) is str
-                and text[-1:] == "}"
-                and (text == "{}" or text[:2] == '{"')
-                and math.isfinite(timeout)
-            ):
+            # pydantic writes an object compactly: "{}", or '{"' and the members, then "}";
+            # a finite float less itself is 0.0 (infinity and NaN give NaN)
+            if type(text) is str and text[-1:] == "}" and timeout - timeout == 0.0:
                 method = _encode_method(self.method)
+                if text[:2] == '{"':
+                    return (
+                        f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
+                        f'"params":{{"_meta":{{"timeout":{timeout!r}}},{text[1:]}}}'
+                    ).encode()
                 if text == "{}":
                     return (
                         f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
                         f'"params":{{"_meta":{{"timeout":{timeout!r}}}}}}}'
                     ).encode()
-                return (
-                    f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
-                    f'"params":{{"_meta":{{"timeout":{timeout!r}}},{text[1:]}}}'
-                ).encode()
         return (
             '{"jsonrpc":"2.0","id":'
             + _encode_id(id)
