@@ -1,7 +1,8 @@
 """Testing your own services with pytest, shown on the tutorial's robot.
 
-The handlers are tested twice: directly, as the async functions they are, and end to end,
-through a real server on a free port and a real client. Run the tests with::
+The handlers are tested directly, as the async functions they are, and end to end: through
+a real server on a free port and a real client, and through the same server in this process
+with no socket at all. Run the tests with::
 
     python -m pytest examples/testing_services.py
 
@@ -97,6 +98,26 @@ async def test_a_request_that_does_not_validate(client: srvwire.Client) -> None:
 
 
 # --8<-- [end:end_to_end]
+
+
+# --8<-- [start:in_process]
+@pytest.fixture
+async def in_process(server: srvwire.Server) -> AsyncIterator[srvwire.Client]:
+    transport = srvwire.MemoryTransport()  # a server and its clients in this process, no port
+    async with srvwire.serve(server, "robot", 0, transport=transport) as running:
+        async with srvwire.connect(running.url, transport=transport, timeout=5) as client:
+            yield client
+
+
+async def test_a_command_then_the_state_in_process(in_process: srvwire.Client) -> None:
+    move = {"command_type": "move", "parameters": [0.1, 0.2, 0.3, 0.4, 0.5]}
+    assert (await in_process.call("/execute_robot_command", move)).success
+
+    response = await in_process.call("/get_robot_state", {"query_type": "position"})
+    assert response.values == [0.1, 0.2, 0.3, 0.4, 0.5]
+
+
+# --8<-- [end:in_process]
 
 
 # --8<-- [start:deadline]

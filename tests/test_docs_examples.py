@@ -124,7 +124,7 @@ def test_the_testing_page_passes_under_pytest() -> None:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     summary = result.stdout.strip().splitlines()[-1]
-    assert re.fullmatch(r"6 passed in [\d.]+s", summary), result.stdout
+    assert re.fullmatch(r"7 passed in [\d.]+s", summary), result.stdout
 
 
 def test_the_generated_module_of_the_cli_page(tmp_path: Path) -> None:
