@@ -26,7 +26,7 @@ from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
 from srvwire.server import RunningServer, Server, serve
-from srvwire.serving import ServedConnection
+from srvwire.serving import CallRunner, ServedConnection
 from srvwire.transports.base import Transport, TransportClosed
 from srvwire.transports.memory import MemoryTransport
 from support import ROOT, scaled
@@ -434,7 +434,7 @@ def batch_of_two_calls_and_a_notification(conn: ServedConnection) -> list[Any]:
         )
     )
     for work in events:
-        conn.start_in_task(work)
+        conn.runner.start_in_task(work)
     return events
 
 
@@ -1348,12 +1348,12 @@ async def test_a_second_cancel_reason_neither_wins_nor_cancels_again(server: Ser
 
     conn = served(server, Socket())
     (call,) = conn.session.receive(json.dumps(request("echo", id=1)))
-    conn.begin(call)
+    conn.runner.begin(call)
     call.task = asyncio.create_task(asyncio.Event().wait())
     call.started = True
-    conn.cancel(call, Cancelled("first"))
-    conn.cancel(call, ServiceUnavailable("second"))
-    conn.cancel(call, None)  # the connection went away too
+    conn.runner.cancel(call, Cancelled("first"))
+    conn.runner.cancel(call, ServiceUnavailable("second"))
+    conn.runner.cancel(call, None)  # the connection went away too
     assert call.task.cancelling() == 1
     assert str(call.context._cancel_error) == str(Cancelled("first"))
     with pytest.raises(asyncio.CancelledError):
@@ -1522,15 +1522,15 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
 ) -> None:
     # A handler that answers without waiting cannot be interrupted: its deadline needs no timer.
     armed: list[asyncio.TimerHandle] = []
-    arm = ServedConnection.arm
+    arm = CallRunner.arm
 
-    def recording_arm(self: ServedConnection, work: Any) -> asyncio.TimerHandle | None:
+    def recording_arm(self: CallRunner, work: Any) -> asyncio.TimerHandle | None:
         timer = arm(self, work)
         if timer is not None:
             armed.append(timer)
         return timer
 
-    monkeypatch.setattr(ServedConnection, "arm", recording_arm)
+    monkeypatch.setattr(CallRunner, "arm", recording_arm)
 
     async def waits(request: Any) -> Any:
         await asyncio.sleep(0)
@@ -1652,9 +1652,9 @@ async def test_a_deadline_timer_is_disarmed_once_the_call_is_answered(
     server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
 ) -> None:
     armed: list[asyncio.TimerHandle] = []
-    arm = ServedConnection.arm
+    arm = CallRunner.arm
 
-    def recording_arm(self: ServedConnection, work: Any) -> asyncio.TimerHandle | None:
+    def recording_arm(self: CallRunner, work: Any) -> asyncio.TimerHandle | None:
         timer = arm(self, work)
         if timer is not None:
             armed.append(timer)
@@ -1664,7 +1664,7 @@ async def test_a_deadline_timer_is_disarmed_once_the_call_is_answered(
         await asyncio.sleep(0)
         return {"text": request.text}
 
-    monkeypatch.setattr(ServedConnection, "arm", recording_arm)
+    monkeypatch.setattr(CallRunner, "arm", recording_arm)
     server.add_service("/waits", Echo, waits)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
@@ -1815,9 +1815,9 @@ async def test_a_deadline_that_passes_while_the_reply_is_being_sent_lets_it_go_o
     # The reply is built in time, but the client does not read, so its send waits; the
     # deadline passing then must not cancel the send of a reply that is already written.
     expired = asyncio.Event()
-    expire = ServedConnection.expire
+    expire = CallRunner.expire
 
-    def recording_expire(self: ServedConnection, work: Any) -> None:
+    def recording_expire(self: CallRunner, work: Any) -> None:
         expire(self, work)
         expired.set()
 
@@ -1825,7 +1825,7 @@ async def test_a_deadline_that_passes_while_the_reply_is_being_sent_lets_it_go_o
         await asyncio.sleep(0)  # wait once, so the deadline is armed
         return {"text": "x" * 10_000}
 
-    monkeypatch.setattr(ServedConnection, "expire", recording_expire)
+    monkeypatch.setattr(CallRunner, "expire", recording_expire)
     server.add_service("/big", Echo, big)
     transport = MemoryTransport(high_water=1_000)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:

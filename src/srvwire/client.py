@@ -55,17 +55,14 @@ from srvwire.calls import (
 from srvwire.errors import (
     ConnectionLost,
     InternalError,
-    InvalidRequest,
-    RPCError,
     ServiceUnavailable,
 )
-from srvwire.link import CLOSE_PROTOCOL_VIOLATION, Link, LoggerLike
+from srvwire.link import Link, LoggerLike
 from srvwire.loader import SearchPath, load_service
 from srvwire.models import summarize_errors, validation_errors
-from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
-from srvwire.session import ServicesChanged
+from srvwire.protocol import DISCOVER_METHOD, canonical_name
 from srvwire.transports import get_transport
-from srvwire.transports.base import Options, Transport, TransportClosed
+from srvwire.transports.base import Options, Transport
 
 __all__ = [
     "DEFAULT_TIMEOUT",
@@ -203,41 +200,19 @@ class Client:
     async def _dial(self) -> None:
         """Open a connection and read the server's ``$/services``; start its reader."""
         options = self.options
-        url = self.url
-        try:
-            async with asyncio.timeout(options.open_timeout):
-                conn = await options.transport.connect(url, options.transport_options)
-                try:
-                    first = await conn.recv()
-                except BaseException:
-                    self.spawn(conn.close())
-                    raise
-        except TimeoutError as exc:
-            raise ServiceUnavailable(
-                f"cannot connect to {url}: not ready within {options.open_timeout:g} s",
-                {"url": url},
-            ) from exc
-        except (OSError, TransportClosed) as exc:
-            raise ServiceUnavailable(f"cannot connect to {url}: {exc}", {"url": url}) from exc
-        link = Link(self, conn)
-        try:
-            events = link.session.receive(first)
-            if not (len(events) == 1 and type(events[0]) is ServicesChanged):
-                raise ProtocolViolation(
-                    InvalidRequest("the server's first message was not $/services")
-                )
-        except ProtocolViolation as exc:
-            await conn.close(CLOSE_PROTOCOL_VIOLATION, "not a srvwire server")
-            raise ServiceUnavailable(
-                f"cannot connect to {url}: {exc.error.message}", {"url": url}
-            ) from exc
+        link, services = await Link.open(
+            self,
+            options.transport,
+            options.transport_options,
+            open_timeout=options.open_timeout,
+        )
         if self._closed:  # close() ran while this dial was under way
-            await conn.close()
-            raise ConnectionLost("the client is closed", {"url": url})
-        self._services = events[0].services
+            await link.conn.close()
+            raise ConnectionLost("the client is closed", {"url": self.url})
+        self._services = services
         self._link = link
         link.start()
-        self.logger.debug("connected to %s, %d services", url, len(self._services))
+        self.logger.debug("connected to %s, %d services", self.url, len(services))
         self._pulse()
 
     async def _supervise(self) -> None:
@@ -332,14 +307,7 @@ class Client:
         params = encode_request(method, srv, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
-            return reply.decode(None if srv is None else self._types.decoder(srv))
-        except RPCError as exc:  # the server's error reply
-            exc.service = method
-            raise
-        except ProtocolViolation as exc:
-            lost = link.violation(exc)
-            lost.service = method
-            raise lost from None
+            return link.result(method, reply, None if srv is None else self._types.decoder(srv))
         except ValidationError as exc:
             assert srv is not None
             errors = validation_errors(exc)
@@ -395,15 +363,7 @@ class Client:
         if link is None:
             raise self._not_connected(DISCOVER_METHOD)
         reply = await link.roundtrip(DISCOVER_METHOD, None, deadline, budget)
-        try:
-            document = reply.decode()
-        except RPCError as exc:
-            exc.service = DISCOVER_METHOD
-            raise
-        except ProtocolViolation as exc:
-            lost = link.violation(exc)
-            lost.service = DISCOVER_METHOD
-            raise lost from None
+        document = link.result(DISCOVER_METHOD, reply)
         methods = document.get("methods") if isinstance(document, dict) else None
         if not isinstance(methods, list):
             raise InternalError(

@@ -21,17 +21,25 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Coroutine
-from typing import Any, Protocol, TypeAlias
+from typing import Any, Protocol, TypeAlias, TypeVar
 
-from srvwire.errors import ConnectionLost, DeadlineExceeded
+from srvwire.errors import (
+    ConnectionLost,
+    DeadlineExceeded,
+    InvalidRequest,
+    RPCError,
+    ServiceUnavailable,
+)
 from srvwire.inline import Pending, finish_within, first_step
-from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Response
+from srvwire.protocol import Decoder, ErrorResponse, ProtocolViolation, RawReply, Response
 from srvwire.session import ClientSession, ServicesChanged, Stray
-from srvwire.transports.base import Connection, TransportClosed
+from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
 __all__ = ["CLOSE_PROTOCOL_VIOLATION", "Link", "LoggerLike", "Owner", "Reply"]
 
 Reply: TypeAlias = Response | ErrorResponse | RawReply
+
+T = TypeVar("T")
 
 LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
 
@@ -70,6 +78,46 @@ class Link:
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Reply]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
+
+    @classmethod
+    async def open(
+        cls, owner: Owner, transport: Transport, options: Options, *, open_timeout: float
+    ) -> tuple[Link, dict[str, str]]:
+        """Connect to ``owner.url`` and read the server's first message, its ``$/services``.
+
+        Return the link (its reader not started yet) and the services. Raise
+        :class:`~srvwire.errors.ServiceUnavailable` when that fails or takes longer than
+        ``open_timeout``, saying why; a peer whose first message is not ``$/services`` is not
+        a srvwire server, and is closed with 1008.
+        """
+        url = owner.url
+        try:
+            async with asyncio.timeout(open_timeout):
+                conn = await transport.connect(url, options)
+                try:
+                    first = await conn.recv()
+                except BaseException:
+                    owner.spawn(conn.close())
+                    raise
+        except TimeoutError as exc:
+            raise ServiceUnavailable(
+                f"cannot connect to {url}: not ready within {open_timeout:g} s", {"url": url}
+            ) from exc
+        except (OSError, TransportClosed) as exc:
+            raise ServiceUnavailable(f"cannot connect to {url}: {exc}", {"url": url}) from exc
+        link = cls(owner, conn)
+        try:
+            events = link.session.receive(first)
+            if not (len(events) == 1 and type(events[0]) is ServicesChanged):
+                raise ProtocolViolation(
+                    InvalidRequest("the server's first message was not $/services")
+                )
+        except ProtocolViolation as exc:
+            await conn.close(CLOSE_PROTOCOL_VIOLATION, "not a srvwire server")
+            raise ServiceUnavailable(
+                f"cannot connect to {url}: {exc.error.message}", {"url": url}
+            ) from exc
+        return link, events[0].services
 
     def start(self) -> None:
         """Start the reader."""
@@ -218,6 +266,23 @@ class Link:
             raise
         finally:
             session.forget(id)
+
+    def result(self, method: str, reply: Reply, decoder: Decoder[T] | None = None) -> T | Any:
+        """Return the result of ``reply`` (through ``decoder``), or raise the error it carries.
+
+        A reply that turns out not to be JSON-RPC fails this connection, as the reader would
+        have, and raises the ``ConnectionLost`` every pending call got. A result that does not
+        fit ``decoder`` raises its ``ValueError``.
+        """
+        try:
+            return reply.decode(decoder)
+        except RPCError as exc:  # the server's error reply
+            exc.service = method
+            raise
+        except ProtocolViolation as exc:
+            lost = self.violation(exc)
+            lost.service = method
+            raise lost from None
 
     def give_up(self, method: str, id: int, future: asyncio.Future[Reply]) -> None:
         """Tell the server to cancel a call we gave up on, in the background."""

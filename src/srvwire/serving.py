@@ -1,8 +1,9 @@
 """One connection a server serves: its session, its reader, and the runner of its calls.
 
-A :class:`ServedConnection` runs what its :class:`~srvwire.session.ServerSession` asks for:
-send a reply, start a call, run a notification, cancel a call. The rules of the conversation
-are the session's; the rules of time and tasks are this module's.
+A :class:`ServedConnection` reads and does what its :class:`~srvwire.session.ServerSession`
+asks: send a reply, start a call, run a notification, cancel a call. Its :class:`CallRunner`
+runs the calls. The rules of the conversation are the session's; the rules of time and tasks
+are this module's.
 
 Invariants:
 
@@ -21,7 +22,7 @@ Invariants:
   cancellation back and answers the reason. A task cancelled without a reason (its connection
   went away) answers nothing. A handler that cancels its own task is answered ``INTERNAL``.
 * **In flight is counted twice, for two purposes.** The session counts calls for admission;
-  :attr:`ServedConnection.counted` holds the tasks that shutdown waits for: a reader task a
+  :attr:`CallRunner.counted` holds the tasks that shutdown waits for: a reader task a
   waiting call took over, until the call is done, and each batch item's task, from its creation
   until its coroutine's ``finally`` (a task cancelled before its first step gets a
   done-callback instead). A task an eager task factory already ran to its end inside
@@ -34,9 +35,10 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from contextvars import copy_context
-from typing import Any
+from typing import Any, TypeAlias
 
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import DeadlineExceeded, InternalError, RPCError
@@ -44,54 +46,40 @@ from srvwire.inline import Pending, finish, first_step
 from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
 from srvwire.transports.base import Connection, TransportClosed
 
-__all__ = ["ServedConnection"]
+__all__ = ["CallRunner", "ServedConnection"]
 
 
-class ServedConnection:
-    """One client connection: its session, its reader, and the tasks of its calls."""
+Work: TypeAlias = Call[ServiceEntry] | NotificationCall[ServiceEntry]
+"""What a connection runs: a call, or a notification."""
 
-    __slots__ = (
-        "conn",
-        "counted",
-        "executor",
-        "log",
-        "loop",
-        "peer",
-        "reader",
-        "reading",
-        "session",
-        "tasks",
-    )
+
+class CallRunner:
+    """Runs the calls and notifications of one connection, under their deadlines.
+
+    ``send`` sends a reply on the connection; a call answers through the session, which writes
+    the reply (or, for the last call of a batch, the batch's).
+    """
+
+    __slots__ = ("counted", "executor", "log", "loop", "peer", "send", "session")
 
     def __init__(
         self,
-        conn: Connection,
-        registry: ServiceRegistry,
+        session: ServerSession[ServiceEntry],
+        send: Callable[[bytes], Awaitable[None]],
         *,
-        max_in_flight: int,
+        peer: Any,
         executor: Executor | None,
         logger: logging.Logger,
     ) -> None:
-        self.conn = conn
+        self.session = session
+        self.send = send
+        self.peer = peer
         self.executor = executor
         self.log = logger
-        self.session: ServerSession[ServiceEntry] = ServerSession(
-            registry, max_in_flight=max_in_flight
-        )
         self.loop = asyncio.get_running_loop()
-        self.peer: Any = conn.remote_address
-        self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
-        self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
-        self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
 
     # --- tasks --------------------------------------------------------------------------------
-
-    def spawn(self, coro: Any) -> asyncio.Task[Any]:
-        task: asyncio.Task[Any] = self.loop.create_task(coro)
-        self.tasks.add(task)
-        task.add_done_callback(self.tasks.discard)
-        return task
 
     def spawn_counted(self, coro: Any) -> asyncio.Task[Any]:
         """Spawn a call or notification task; it counts until its coroutine :meth:`settle` s."""
@@ -109,14 +97,39 @@ class ServedConnection:
         if task is not None:
             self.counted.discard(task)
 
-    async def send(self, data: bytes) -> None:
-        """Send one message; a connection that is gone is not an error here."""
-        try:
-            await self.conn.send(data)
-        except TransportClosed:
-            pass  # the caller left; its calls are being cancelled
+    # --- deadlines and cancellation -----------------------------------------------------------
 
-    # --- cancellation -------------------------------------------------------------------------
+    def begin(self, work: Work) -> None:
+        """Give a call or notification its context, its deadline measured from now."""
+        timeout = work.timeout
+        work.context = Context(
+            service=work.entry.name,
+            request_id=work.id if type(work) is Call else None,
+            peer=self.peer,
+            deadline=None if timeout is None else time.monotonic() + timeout,
+        )
+
+    def arm(self, work: Work) -> asyncio.TimerHandle | None:
+        """Arm the deadline of a call or notification that waits; None when it has none."""
+        deadline = work.context.deadline
+        if deadline is None:
+            return None
+        return self.loop.call_later(deadline - time.monotonic(), self.expire, work)
+
+    def expire(self, work: Work) -> None:
+        """A deadline passed: cancel the call or notification with ``DEADLINE_EXCEEDED``."""
+        name = work.entry.name
+        error = DeadlineExceeded(
+            f"the deadline for {name} passed before the handler finished", service=name
+        )
+        if type(work) is Call:
+            if self.session.answering(work):  # else its reply is built: let it go out
+                self.cancel(work, error)
+            return
+        work.context._mark_cancelled(error)
+        if work.task is not None and not work.task_cancelled:
+            work.task_cancelled = True
+            work.task.cancel()
 
     def cancel(self, call: Call[ServiceEntry], error: RPCError | None) -> None:
         """Cancel ``call``; with ``error`` it answers that error, without it stays silent.
@@ -132,198 +145,6 @@ class ServedConnection:
             call.task_cancelled = True
             task.cancel()
 
-    def expire(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
-        """A deadline passed: cancel the call or notification with ``DEADLINE_EXCEEDED``."""
-        name = work.entry.name
-        error = DeadlineExceeded(
-            f"the deadline for {name} passed before the handler finished", service=name
-        )
-        if type(work) is Call:
-            if self.session.answering(work):  # else its reply is built: let it go out
-                self.cancel(work, error)
-            return
-        work.context._mark_cancelled(error)
-        if work.task is not None and not work.task_cancelled:
-            work.task_cancelled = True
-            work.task.cancel()
-
-    def arm(
-        self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]
-    ) -> asyncio.TimerHandle | None:
-        """Arm the deadline of a call or notification that waits; None when it has none."""
-        deadline = work.context.deadline
-        if deadline is None:
-            return None
-        return self.loop.call_later(deadline - time.monotonic(), self.expire, work)
-
-    def cancel_all(self, error: RPCError | None) -> None:
-        """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
-
-        Without ``error`` (the connection is gone) every task is cancelled, even one that has
-        not started; since such a task never runs its coroutine's ``finally``, each counted
-        task gets a done-callback that settles it.
-        """
-        for cancel in self.session.cancel_all(error):
-            self.cancel(cancel.call, cancel.error)
-        if error is None:
-            for task in list(self.tasks):
-                task.cancel()
-            for task in list(self.counted):
-                task.cancel()
-                task.add_done_callback(self.counted.discard)
-
-    # --- reading ------------------------------------------------------------------------------
-
-    async def serve(self) -> None:
-        """Read the connection until it ends, one reader task at a time (see :meth:`read`)."""
-        self.start_reader()
-        try:
-            await self.reading
-        finally:
-            if not self.reading.done():  # this handler was cancelled: stop reading too
-                self.reading.cancel()
-                if self.reader is not None:
-                    self.reader.cancel()
-
-    def start_reader(self) -> None:
-        # A plain task, not the loop's task factory: an eager factory would run the new reader
-        # inside this call, before it is recorded, and nest one reader in the next.
-        self.reader = asyncio.Task(self.read(), loop=self.loop)
-
-    async def read(self) -> None:
-        """Read and answer messages until the connection ends or a call has to wait.
-
-        A call that has to wait keeps this task, and a new reader takes over; the call's
-        deadline is armed then, and only then.
-        """
-        try:
-            waiting = await self.read_until_a_call_waits()
-        except asyncio.CancelledError:
-            self.reading.cancel()
-            raise
-        except BaseException as exc:  # the connection ended, or a bug in srvwire
-            if not self.reading.done():
-                self.reading.set_exception(exc)
-            if not isinstance(exc, TransportClosed):
-                raise
-            return
-        if waiting is None:
-            if not self.reading.done():
-                self.reading.set_result(None)
-            return
-        work, steps = waiting
-        task = asyncio.current_task()
-        assert task is not None
-        self.counted.add(task)
-        work.task = task
-        if type(work) is Call:
-            work.started = True
-            if work.context.cancelled:  # cancelled while its first step ran
-                self.cancel(work, work.context._cancel_error)
-        timer = self.arm(work)
-        self.start_reader()
-        try:
-            await finish(steps)
-        finally:
-            if timer is not None:
-                timer.cancel()
-            self.counted.discard(task)
-
-    async def read_until_a_call_waits(
-        self,
-    ) -> tuple[Call[ServiceEntry] | NotificationCall[ServiceEntry], Pending] | None:
-        """Answer messages; return a call or notification that has to wait, and its steps;
-        return None when the connection ended cleanly."""
-        conn = self.conn
-        session = self.session
-        reader = asyncio.current_task(self.loop)
-        assert reader is not None
-        while True:
-            try:
-                data = await conn.recv()
-            except TransportClosed as exc:
-                if exc.clean:
-                    return None
-                raise
-            for event in session.receive(data):
-                kind = type(event)
-                if kind is bytes:
-                    await self.send(event)
-                elif kind is Call:
-                    if event.batch is not None:
-                        self.start_in_task(event)
-                        continue
-                    self.begin(event)
-                    steps = first_step(self.run_call(event), copy_context())
-                    if isinstance(steps, Pending):
-                        return event, steps
-                    if reader.cancelling():
-                        await self.ignore_cancellation(event.entry)
-                elif kind is NotificationCall:
-                    if event.in_batch:
-                        self.start_in_task(event)
-                        continue
-                    self.begin(event)
-                    try:
-                        steps = first_step(self.run_notification(event), copy_context())
-                    except asyncio.CancelledError:  # only the handler can have cancelled it
-                        steps = None
-                    if isinstance(steps, Pending):
-                        return event, steps
-                    if reader.cancelling():
-                        await self.ignore_cancellation(None)
-                elif kind is CancelCall:
-                    self.cancel(event.call, event.error)
-                else:
-                    assert kind is Dropped
-                    self.dropped(event)
-
-    def begin(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
-        """Give a call or notification its context, its deadline measured from now."""
-        timeout = work.timeout
-        work.context = Context(
-            service=work.entry.name,
-            request_id=work.id if type(work) is Call else None,
-            peer=self.peer,
-            deadline=None if timeout is None else time.monotonic() + timeout,
-        )
-
-    def start_in_task(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
-        """Start a batch's call or notification in a task of its own, counted from now."""
-        self.begin(work)
-        work.task = self.spawn_counted(self.run_in_task(work))
-
-    def dropped(self, event: Dropped[ServiceEntry]) -> None:
-        level = logging.WARNING if event.busy else logging.INFO
-        self.log.log(
-            level,
-            "dropped a notification to %s from %s: %s",
-            event.entry.name,
-            self.peer,
-            event.reason,
-        )
-
-    async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
-        """Take back a cancellation of the reader that a handler requested while it ran inline.
-
-        Nothing else can cancel the reader while a call runs on it without waiting: the handler
-        cancelled what it took for its own task (``asyncio.current_task().cancel()``), and that
-        call is over. The request is delivered at the reader's next suspension; it is made here,
-        and taken back, so that it can reach neither the reading nor the next call.
-        """
-        what = f"the handler for {entry.name}" if entry is not None else "a notification handler"
-        self.log.warning("%s cancelled its own task without waiting for anything; ignored", what)
-        try:
-            await asyncio.sleep(0)
-        except asyncio.CancelledError:
-            if self.reading.done():  # serve() stopped the reading meanwhile: stop
-                raise
-        task = asyncio.current_task(self.loop)
-        while task is not None and task.cancelling():
-            task.uncancel()
-
-    # --- running calls ------------------------------------------------------------------------
-
     @staticmethod
     async def take_back_cancellation() -> None:
         """Take back the one cancellation of this task that srvwire requested.
@@ -337,7 +158,14 @@ class ServedConnection:
             await asyncio.sleep(0)
         task.uncancel()
 
-    async def run_in_task(self, work: Call[ServiceEntry] | NotificationCall[ServiceEntry]) -> None:
+    # --- running ------------------------------------------------------------------------------
+
+    def start_in_task(self, work: Work) -> None:
+        """Start a batch's call or notification in a task of its own, counted from now."""
+        self.begin(work)
+        work.task = self.spawn_counted(self.run_in_task(work))
+
+    async def run_in_task(self, work: Work) -> None:
         """Run a batch's call or notification in its own task, under its deadline."""
         timer = self.arm(work)
         try:
@@ -382,25 +210,18 @@ class ServedConnection:
             reply = session.fail(call, exc)
         except asyncio.CancelledError:
             error = context._cancel_error
-            task = asyncio.current_task()
-            if error is None:
-                if call.task_cancelled:  # the connection went away: nobody to answer
-                    session.forget(call)
-                    raise
-                # Nothing in srvwire cancelled it: the handler cancelled its own task.
+            if error is not None:  # srvwire cancelled it, for this reason: take it back
+                asyncio.current_task().uncancel()  # type: ignore[union-attr]
+            elif call.task_cancelled:  # the connection went away: nobody to answer
+                session.forget(call)
+                raise
+            else:  # nothing in srvwire cancelled it: the handler cancelled its own task
                 log.error("the handler for %s id %r cancelled its own task", entry.name, call.id)
                 error = InternalError(
                     f"handler for {entry.name} was cancelled by its own code", service=entry.name
                 )
-                if call.task is None:
-                    task = None  # inline, on the reader: the reader takes the request back
-                elif task is not None:
-                    # The request may not have been delivered yet (the handler raised by
-                    # itself): let it arrive here, or it would end the task after the reply.
-                    with contextlib.suppress(asyncio.CancelledError):
-                        await asyncio.sleep(0)
-            if task is not None:
-                task.uncancel()
+                if call.task is not None:  # else inline: the reader takes the request back
+                    await self.take_back_cancellation()
             reply = session.fail(call, error)
         except Exception:  # a bug in srvwire: still answer, so that the caller is not left waiting
             log.exception("%s id %r from %s failed inside srvwire", entry.name, call.id, self.peer)
@@ -429,3 +250,209 @@ class ServedConnection:
                 self.log.info("notification to %s failed: %s", entry.name, error)
         finally:
             self.session.done(note)
+
+
+class ServedConnection:
+    """One client connection: its session, its reader, and the runner of its calls."""
+
+    __slots__ = ("conn", "log", "loop", "reader", "reading", "runner", "session", "tasks")
+
+    def __init__(
+        self,
+        conn: Connection,
+        registry: ServiceRegistry,
+        *,
+        max_in_flight: int,
+        executor: Executor | None,
+        logger: logging.Logger,
+    ) -> None:
+        self.conn = conn
+        self.log = logger
+        self.session: ServerSession[ServiceEntry] = ServerSession(
+            registry, max_in_flight=max_in_flight
+        )
+        self.runner = CallRunner(
+            self.session, self.send, peer=conn.remote_address, executor=executor, logger=logger
+        )
+        self.loop = asyncio.get_running_loop()
+        self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
+        self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
+        self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
+
+    @property
+    def peer(self) -> Any:
+        """Who is at the other end, as the transport names it."""
+        return self.runner.peer
+
+    @property
+    def counted(self) -> set[asyncio.Task[Any]]:
+        """The tasks of calls and notifications in flight (see the module's invariants)."""
+        return self.runner.counted
+
+    def spawn(self, coro: Any) -> asyncio.Task[Any]:
+        task: asyncio.Task[Any] = self.loop.create_task(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
+    async def send(self, data: bytes) -> None:
+        """Send one message; a connection that is gone is not an error here."""
+        try:
+            await self.conn.send(data)
+        except TransportClosed:
+            pass  # the caller left; its calls are being cancelled
+
+    def cancel_all(self, error: RPCError | None) -> None:
+        """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
+
+        Without ``error`` (the connection is gone) every task is cancelled, even one that has
+        not started; since such a task never runs its coroutine's ``finally``, each counted
+        task gets a done-callback that settles it.
+        """
+        runner = self.runner
+        for cancel in self.session.cancel_all(error):
+            runner.cancel(cancel.call, cancel.error)
+        if error is None:
+            for task in list(self.tasks):
+                task.cancel()
+            counted = runner.counted
+            for task in list(counted):
+                task.cancel()
+                task.add_done_callback(counted.discard)
+
+    # --- reading ------------------------------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Read the connection until it ends, one reader task at a time (see :meth:`read`)."""
+        self.start_reader()
+        try:
+            await self.reading
+        finally:
+            if not self.reading.done():  # this handler was cancelled: stop reading too
+                self.reading.cancel()
+                if self.reader is not None:
+                    self.reader.cancel()
+
+    def start_reader(self) -> None:
+        # A plain task, not the loop's task factory: an eager factory would run the new reader
+        # inside this call, before it is recorded, and nest one reader in the next.
+        self.reader = asyncio.Task(self.read(), loop=self.loop)
+
+    async def read(self) -> None:
+        """Read and answer messages until the connection ends or a call has to wait.
+
+        A call that has to wait keeps this task, and a new reader takes over; the call's
+        deadline is armed then, and only then.
+        """
+        try:
+            waiting = await self.read_until_a_call_waits()
+        except asyncio.CancelledError:
+            self.reading.cancel()
+            raise
+        except BaseException as exc:  # the connection ended, or a bug in srvwire
+            if not self.reading.done():
+                self.reading.set_exception(exc)
+            if not isinstance(exc, TransportClosed):
+                raise
+            return
+        if waiting is None:
+            if not self.reading.done():
+                self.reading.set_result(None)
+            return
+        work, steps = waiting
+        runner = self.runner
+        task = asyncio.current_task()
+        assert task is not None
+        runner.counted.add(task)
+        work.task = task
+        if type(work) is Call:
+            work.started = True
+            if work.context.cancelled:  # cancelled while its first step ran
+                runner.cancel(work, work.context._cancel_error)
+        timer = runner.arm(work)
+        self.start_reader()
+        try:
+            await finish(steps)
+        finally:
+            if timer is not None:
+                timer.cancel()
+            runner.counted.discard(task)
+
+    async def read_until_a_call_waits(
+        self,
+    ) -> tuple[Work, Pending] | None:
+        """Answer messages; return a call or notification that has to wait, and its steps;
+        return None when the connection ended cleanly."""
+        conn = self.conn
+        session = self.session
+        runner = self.runner
+        reader = asyncio.current_task(self.loop)
+        assert reader is not None
+        while True:
+            try:
+                data = await conn.recv()
+            except TransportClosed as exc:
+                if exc.clean:
+                    return None
+                raise
+            for event in session.receive(data):
+                kind = type(event)
+                if kind is bytes:
+                    await self.send(event)
+                elif kind is Call:
+                    if event.batch is not None:
+                        runner.start_in_task(event)
+                        continue
+                    runner.begin(event)
+                    steps = first_step(runner.run_call(event), copy_context())
+                    if isinstance(steps, Pending):
+                        return event, steps
+                    if reader.cancelling():
+                        await self.ignore_cancellation(event.entry)
+                elif kind is NotificationCall:
+                    if event.in_batch:
+                        runner.start_in_task(event)
+                        continue
+                    runner.begin(event)
+                    try:
+                        steps = first_step(runner.run_notification(event), copy_context())
+                    except asyncio.CancelledError:  # only the handler can have cancelled it
+                        steps = None
+                    if isinstance(steps, Pending):
+                        return event, steps
+                    if reader.cancelling():
+                        await self.ignore_cancellation(None)
+                elif kind is CancelCall:
+                    runner.cancel(event.call, event.error)
+                else:
+                    assert kind is Dropped
+                    self.dropped(event)
+
+    def dropped(self, event: Dropped[ServiceEntry]) -> None:
+        level = logging.WARNING if event.busy else logging.INFO
+        self.log.log(
+            level,
+            "dropped a notification to %s from %s: %s",
+            event.entry.name,
+            self.peer,
+            event.reason,
+        )
+
+    async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
+        """Take back a cancellation of the reader that a handler requested while it ran inline.
+
+        Nothing else can cancel the reader while a call runs on it without waiting: the handler
+        cancelled what it took for its own task (``asyncio.current_task().cancel()``), and that
+        call is over. The request is delivered at the reader's next suspension; it is made here,
+        and taken back, so that it can reach neither the reading nor the next call.
+        """
+        what = f"the handler for {entry.name}" if entry is not None else "a notification handler"
+        self.log.warning("%s cancelled its own task without waiting for anything; ignored", what)
+        try:
+            await asyncio.sleep(0)
+        except asyncio.CancelledError:
+            if self.reading.done():  # serve() stopped the reading meanwhile: stop
+                raise
+        task = asyncio.current_task(self.loop)
+        while task is not None and task.cancelling():
+            task.uncancel()
