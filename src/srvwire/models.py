@@ -8,12 +8,12 @@ message classes with the type name, spec and text.
 
 Invariants
 ----------
-* **One annotation per ROS type.** Each primitive has one public annotated alias here
-  (:data:`Int32`, :data:`Float32`, :data:`String`, ...). A field's annotation is that alias,
-  optionally wrapped for a string bound, wrapped in ``list[...]`` for arrays, and wrapped again
-  for array bounds and base64 input. :mod:`srvwire.codegen` writes the very same composition as
-  source text, so a built class and a generated one validate, serialize and describe themselves
-  (JSON schema) identically.
+* **One annotation per ROS type.** Each primitive has one public annotated alias, defined in
+  :mod:`srvwire.primitives` and re-exported here (:data:`Int32`, :data:`Float32`, ...). A
+  field's annotation is that alias, optionally wrapped for a string bound, wrapped in
+  ``list[...]`` for arrays, and wrapped again for array bounds and base64 input.
+  :mod:`srvwire.codegen` writes the very same composition as source text, so a built class and
+  a generated one validate, serialize and describe themselves (JSON schema) identically.
 * **Constraints live in pydantic-core.** Ranges, lengths and strictness are declared with
   ``Strict()`` and ``Field(ge=, le=, min_length=, max_length=)``, so validation runs in Rust.
   Only two checks call Python: the ``float32`` range (it must let ``inf`` and ``nan`` through,
@@ -40,17 +40,13 @@ bounds count characters (code points); ``byte``/``uint8`` arrays also accept bas
 
 from __future__ import annotations
 
-import base64
-import binascii
 import keyword
 import types
 from collections.abc import Callable, Mapping, Sequence
 from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
-from pydantic import ConfigDict, Field, GetCoreSchemaHandler, GetJsonSchemaHandler, Strict
-from pydantic.json_schema import JsonSchemaValue
-from pydantic_core import CoreSchema, PydanticCustomError, core_schema
+from pydantic import ConfigDict, Field
 
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
@@ -64,6 +60,27 @@ from srvwire.idl import (
     Scalar,
     ServiceSpec,
     TypeSpec,
+)
+from srvwire.primitives import (
+    FLOAT32_MAX,
+    PRIMITIVE_ALIASES,
+    PRIMITIVE_ANNOTATIONS,
+    AcceptBase64,
+    Bool,
+    Byte,
+    Char,
+    Float32,
+    Float64,
+    Int8,
+    Int16,
+    Int32,
+    Int64,
+    String,
+    UInt8,
+    UInt16,
+    UInt32,
+    UInt64,
+    WString,
 )
 
 __all__ = [
@@ -102,124 +119,8 @@ __all__ = [
     "zero_value",
 ]
 
-FLOAT32_MAX = 3.4028234663852886e38
-"""The largest finite ``float32``; a finite ``float32`` value must lie within ``±FLOAT32_MAX``."""
 
-
-# --- the primitive types -----------------------------------------------------------------------
-
-
-def _check_float32(value: float) -> float:
-    # abs() of nan is nan, and nan > x is False, so nan and the two infinities pass.
-    if abs(value) > FLOAT32_MAX and value not in (float("inf"), float("-inf")):
-        raise PydanticCustomError(
-            "float32_range",
-            "Input should be a float32: within ±{limit}, or inf, or nan",
-            {"limit": FLOAT32_MAX},
-        )
-    return value
-
-
-class _Float32Range:
-    """Annotation marker: a finite value must fit a float32; ``inf`` and ``nan`` are allowed."""
-
-    def __get_pydantic_core_schema__(
-        self, source: Any, handler: GetCoreSchemaHandler
-    ) -> CoreSchema:
-        return core_schema.no_info_after_validator_function(_check_float32, handler(source))
-
-    def __get_pydantic_json_schema__(
-        self, schema: CoreSchema, handler: GetJsonSchemaHandler
-    ) -> JsonSchemaValue:
-        json_schema = handler(schema)
-        json_schema.update(minimum=-FLOAT32_MAX, maximum=FLOAT32_MAX)
-        return json_schema
-
-    def __repr__(self) -> str:
-        return "Float32Range()"
-
-
-def _bytes_input(value: Any) -> Any:
-    if isinstance(value, str):
-        try:
-            return list(base64.b64decode(value, validate=True))
-        except (binascii.Error, ValueError) as exc:
-            raise PydanticCustomError(
-                "base64",
-                "Input should be a list of integers or base64 text: {reason}",
-                {"reason": str(exc)},
-            ) from None
-    if isinstance(value, bytes | bytearray | memoryview):
-        return list(value)
-    return value
-
-
-class _Base64Input:
-    """Annotation marker for ``byte``/``uint8`` arrays: also accept base64 text and ``bytes``.
-
-    The decoded bytes become a list of integers before the list's own checks (element range,
-    length) run, so a fixed or bounded array keeps its bounds. Output is always the list.
-    """
-
-    def __get_pydantic_core_schema__(
-        self, source: Any, handler: GetCoreSchemaHandler
-    ) -> CoreSchema:
-        return core_schema.no_info_before_validator_function(_bytes_input, handler(source))
-
-    def __get_pydantic_json_schema__(
-        self, schema: CoreSchema, handler: GetJsonSchemaHandler
-    ) -> JsonSchemaValue:
-        json_schema = handler(schema)
-        if handler.mode == "serialization":
-            return json_schema
-        return {"anyOf": [json_schema, {"type": "string", "contentEncoding": "base64"}]}
-
-    def __repr__(self) -> str:
-        return "AcceptBase64"
-
-
-AcceptBase64 = _Base64Input()
-"""Put in ``Annotated[list[UInt8], ..., AcceptBase64]`` to accept base64 text for the list."""
-
-
-# Written out (not computed from INTEGER_RANGES) so that type checkers see ``int``; a test checks
-# that each range matches the table in srvwire.idl.
-Bool: TypeAlias = Annotated[bool, Strict()]
-Byte: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=255)]
-Char: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=255)]
-Int8: TypeAlias = Annotated[int, Strict(), Field(ge=-128, le=127)]
-UInt8: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=255)]
-Int16: TypeAlias = Annotated[int, Strict(), Field(ge=-32768, le=32767)]
-UInt16: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=65535)]
-Int32: TypeAlias = Annotated[int, Strict(), Field(ge=-2147483648, le=2147483647)]
-UInt32: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=4294967295)]
-Int64: TypeAlias = Annotated[int, Strict(), Field(ge=-9223372036854775808, le=9223372036854775807)]
-UInt64: TypeAlias = Annotated[int, Strict(), Field(ge=0, le=18446744073709551615)]
-Float32: TypeAlias = Annotated[float, Strict(), _Float32Range()]
-Float64: TypeAlias = Annotated[float, Strict()]
-String: TypeAlias = Annotated[str, Strict()]
-WString: TypeAlias = Annotated[str, Strict()]
-
-PRIMITIVE_ALIASES: dict[str, str] = {
-    "bool": "Bool",
-    "byte": "Byte",
-    "char": "Char",
-    "int8": "Int8",
-    "uint8": "UInt8",
-    "int16": "Int16",
-    "uint16": "UInt16",
-    "int32": "Int32",
-    "uint32": "UInt32",
-    "int64": "Int64",
-    "uint64": "UInt64",
-    "float32": "Float32",
-    "float64": "Float64",
-    "string": "String",
-    "wstring": "WString",
-}
-"""Each ROS primitive type and the name of its annotated alias in this module."""
-
-_PRIMITIVES: dict[str, Any] = {ros: globals()[alias] for ros, alias in PRIMITIVE_ALIASES.items()}
+# --- ROS zero values and written defaults ------------------------------------------------------
 
 
 def _normalize(type_name: str, value: Scalar) -> Scalar:
@@ -344,7 +245,7 @@ _CONSTANT_TYPES: dict[str, type[Scalar]] = {
 def _element_annotation(spec: MessageSpec, field: FieldSpec, resolve: Resolver | None) -> Any:
     type_ = field.type
     if type_.is_primitive:
-        annotation = _PRIMITIVES.get(type_.name)
+        annotation = PRIMITIVE_ANNOTATIONS.get(type_.name)
         if annotation is None:
             raise InterfaceError(f"{spec.type_name}: field {field.name!r} has unknown type {type_}")
         if type_.string_bound is not None:
