@@ -7,12 +7,12 @@ srvwire's client, so the server's tests see exactly what a client in another lan
 from __future__ import annotations
 
 import asyncio
-import json
 from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
 
+from srvwire import testing
 from srvwire.loader import InterfaceLoader
 from srvwire.models import Service, build_service
 from srvwire.parser import parse_service
@@ -80,49 +80,15 @@ class Hang:
             self.cancelled.set()
 
 
-class Wire:
-    """A raw connection to a server, with JSON helpers and scaled timeouts.
+class Wire(testing.Wire):
+    """The plugin's raw wire, with the suite's timeouts scaled; ``ws`` is its connection."""
 
-    ``ws`` is the transport's connection: text goes out as it is, with no srvwire client
-    between, so the server's tests see exactly what a client in another language would.
-    """
-
-    def __init__(self, ws: Connection, services: list[dict[str, str]]) -> None:
-        self.ws = ws
-        self.services = services  # the first $/services the server sent
-
-    async def send(self, message: Any) -> None:
-        """Send ``message``: text or bytes as they are (as text), anything else as JSON."""
-        if isinstance(message, str | bytes):
-            await self.ws.send(message)
-        else:
-            await self.ws.send(json.dumps(message))
+    @property
+    def ws(self) -> Connection:
+        return self.connection
 
     async def recv(self, within: float = 5.0) -> Any:
-        """Receive and decode one message; fail if none comes within ``within`` seconds (scaled)."""
-        async with asyncio.timeout(scaled(within)):
-            data = await self.ws.recv()
-        assert isinstance(data, str), "the server sends text frames only"
-        return json.loads(data)
-
-    async def recv_reply(self, within: float = 5.0) -> Any:
-        """Receive the next message that is not a ``$/services`` notification."""
-        while True:
-            message = await self.recv(within)
-            if not (isinstance(message, dict) and message.get("method") == "$/services"):
-                return message
-
-    async def call(self, message: Any, within: float = 5.0) -> Any:
-        """Send ``message`` and return the reply."""
-        await self.send(message)
-        return await self.recv_reply(within)
-
-    async def request(self, method: str, params: Any = None, id: Any = 1) -> Any:
-        """Call ``method`` with ``params`` under ``id`` and return the reply object."""
-        message: dict[str, Any] = {"jsonrpc": "2.0", "id": id, "method": method}
-        if params is not None:
-            message["params"] = params
-        return await self.call(message)
+        return await super().recv(scaled(within))
 
 
 async def open_wire(running: RunningServer | str, **options: Any) -> Wire:
@@ -134,10 +100,11 @@ async def open_wire(running: RunningServer | str, **options: Any) -> Wire:
         else (running.transport, running.url)
     )
     conn = await transport.connect(url, Options(compression=None, **options))
-    async with asyncio.timeout(scaled(5)):
-        first = json.loads(await conn.recv())
+    wire = Wire(conn, [])
+    first = await wire.recv()
     assert first["method"] == "$/services", first
-    return Wire(conn, first["params"]["services"])
+    wire.services = first["params"]["services"]
+    return wire
 
 
 TRANSPORTS = ["websockets", "memory"]

@@ -34,6 +34,8 @@ RUN_ELSEWHERE = {
     "robot_command_client.py": "needs the robot server: tests/test_examples.py",
     "demo.py": "make demo; starts the robot server itself: tests/test_examples.py",
     "testing_services.py": "a pytest file: test_the_testing_page_passes_under_pytest",
+    "testing_with_the_plugin.py": "a pytest file: test_the_testing_page_passes_under_pytest",
+    "conftest.py": "the srvwire_server of testing_with_the_plugin.py, run with it",
 }
 
 # The scripts run here, with what each must print: its whole standard output, with the port of
@@ -103,14 +105,18 @@ def test_handling_errors_logs_the_lost_connection() -> None:
     ]
 
 
-def test_the_testing_page_passes_under_pytest() -> None:
+@pytest.mark.parametrize(
+    ("example", "tests"), [("testing_services.py", 7), ("testing_with_the_plugin.py", 6)]
+)
+def test_the_testing_page_passes_under_pytest(example: str, tests: int) -> None:
     # An examples/ file is not collected by the suite (testpaths is tests/): run it on its own.
+    # The plugin's example also takes examples/conftest.py, as pytest finds it beside it.
     result = subprocess.run(
         [
             sys.executable,
             "-m",
             "pytest",
-            "examples/testing_services.py",
+            f"examples/{example}",
             "-q",
             "-p",
             "no:cacheprovider",
@@ -124,7 +130,7 @@ def test_the_testing_page_passes_under_pytest() -> None:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     summary = result.stdout.strip().splitlines()[-1]
-    assert re.fullmatch(r"7 passed in [\d.]+s", summary), result.stdout
+    assert re.fullmatch(rf"{tests} passed in [\d.]+s", summary), result.stdout
 
 
 def test_the_generated_module_of_the_cli_page(tmp_path: Path) -> None:

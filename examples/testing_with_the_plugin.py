@@ -1,0 +1,96 @@
+"""Testing the tutorial's robot with srvwire's pytest plugin, and no fixtures of your own.
+
+``conftest.py``, beside this file, says which server to test: the plugin serves it for each
+test, in this process with no port, and hands the test a client or a raw connection to it.
+Run the tests with::
+
+    python -m pytest examples/testing_with_the_plugin.py
+
+They need pytest and pytest-asyncio with ``asyncio_mode = "auto"``, as srvwire's own
+``pyproject.toml`` sets it.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import pytest
+
+import srvwire
+from srvwire.testing import Wire
+
+Trigger = srvwire.load_service("std_srvs/srv/Trigger")
+
+JOINTS = ["joint_0", "joint_1", "joint_2", "joint_3", "joint_4"]
+
+
+# --8<-- [start:client]
+async def test_a_command_then_the_state(srvwire_client: srvwire.Client) -> None:
+    move = {"command_type": "move", "parameters": [0.1, 0.2, 0.3, 0.4, 0.5]}
+    assert (await srvwire_client.call("/execute_robot_command", move)).success
+
+    response = await srvwire_client.call("/get_robot_state", {"query_type": "position"})
+    assert (response.names, response.values) == (JOINTS, [0.1, 0.2, 0.3, 0.4, 0.5])
+
+
+async def test_a_misspelt_service_name(srvwire_client: srvwire.Client) -> None:
+    with pytest.raises(srvwire.ServiceNotFound) as caught:
+        await srvwire_client.call("/get_robot_status", {"query_type": "status"})
+
+    assert caught.value.data["candidates"] == ["/get_robot_state"]
+
+
+# --8<-- [end:client]
+
+
+# --8<-- [start:wire]
+async def test_the_reply_on_the_wire(srvwire_wire: Wire) -> None:
+    reply = await srvwire_wire.request("/get_robot_state", {"query_type": "status"}, id=7)
+
+    assert reply["id"] == 7
+    assert reply["result"]["message"] == "Robot status: IDLE"
+
+
+async def test_a_request_that_is_not_json(srvwire_wire: Wire) -> None:
+    reply = await srvwire_wire.call('{"jsonrpc": "2.0", "id": 1, "method": ')
+
+    assert (reply["id"], reply["error"]["code"]) == (None, -32700)
+
+
+# --8<-- [end:wire]
+
+
+# --8<-- [start:websockets]
+@pytest.mark.srvwire(transport="websockets")
+async def test_over_a_real_socket(
+    srvwire_running: srvwire.RunningServer, srvwire_client: srvwire.Client
+) -> None:
+    assert srvwire_running.url.startswith("ws://127.0.0.1:")  # a free port of its own
+
+    response = await srvwire_client.call("/get_robot_state", {"query_type": "position"})
+    assert response.names == JOINTS
+
+
+# --8<-- [end:websockets]
+
+
+# --8<-- [start:handler_errors]
+async def test_a_handler_that_raises(
+    srvwire_server: srvwire.Server,
+    srvwire_client: srvwire.Client,
+    srvwire_handler_errors: list[logging.LogRecord],
+) -> None:
+    async def calibrate(request: Any, response: Any) -> Any:
+        raise RuntimeError("the arm is stuck")
+
+    srvwire_server.add_service("/calibrate", Trigger, calibrate)  # the server being served
+    with pytest.raises(srvwire.InternalError):
+        await srvwire_client.call("/calibrate")
+
+    [record] = srvwire_handler_errors  # what the server logged, with the traceback
+    assert record.exc_info is not None and str(record.exc_info[1]) == "the arm is stuck"
+    srvwire_handler_errors.clear()  # expected: without this, the test fails
+
+
+# --8<-- [end:handler_errors]
