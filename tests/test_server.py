@@ -27,7 +27,7 @@ from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import CallRunner, ServedConnection
-from srvwire.transports.base import Transport, TransportClosed
+from srvwire.transports.base import Options, Transport, TransportClosed
 from srvwire.transports.memory import MemoryTransport
 from support import ROOT, scaled
 
@@ -1835,3 +1835,32 @@ async def test_a_deadline_that_passes_while_the_reply_is_being_sent_lets_it_go_o
         reply = await w.recv_reply()
         assert reply["result"] == {"text": "x" * 10_000}
         await w.ws.close()
+
+
+async def test_replies_a_client_does_not_read_count_against_its_limit() -> None:
+    # A client that writes calls and never reads: each reply waits in its send, and counts in
+    # flight until it goes out; past the limit the reader answers the next call itself, its
+    # own send waits too, and the client's writes are pushed back instead of piling up tasks.
+    server = Server(max_in_flight=4, grace_period=0)
+
+    async def big(request: Any) -> Any:
+        return {"text": "x" * 5_000}
+
+    server.add_service("/big", Echo, big)
+    transport = MemoryTransport(high_water=10_000)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        client = await transport.connect(running.url, Options(max_message_size=None))
+
+        async def write() -> None:
+            for id in range(1_000):
+                await client.send(json.dumps(request("/big", id=id)))
+
+        writing = asyncio.create_task(write())
+        for _ in range(2_000):  # let both sides run as far as they can
+            await asyncio.sleep(0)
+        (conn,) = running._connections
+        assert not writing.done()  # the client is held back
+        assert conn.session.in_flight <= server.max_in_flight
+        assert len(conn.counted) <= server.max_in_flight
+        writing.cancel()
+        await client.close()

@@ -95,8 +95,10 @@ def test_a_call_is_admitted_and_answered(server: ServerSession[ServiceEntry]) ->
         "id": 7,
         "result": {"difference": 5},
     }
-    assert server.in_flight == 0 and server.calls == {}
-    assert not server.answering(started)
+    assert server.calls == {} and not server.answering(started)  # $/cancel no longer finds it
+    assert server.in_flight == 1  # but it counts until its reply has gone out
+    server.sent(started)
+    assert server.in_flight == 0
 
 
 def test_a_failed_call_is_answered_with_its_error(server: ServerSession[ServiceEntry]) -> None:
@@ -104,6 +106,7 @@ def test_a_failed_call_is_answered_with_its_error(server: ServerSession[ServiceE
     answer = reply_of(server.fail(started, Cancelled("stop")))  # type: ignore[arg-type]
     assert answer["id"] == "a"
     assert answer["error"]["code"] == ErrorCode.CANCELLED
+    server.sent(started)
     assert server.in_flight == 0
 
 
@@ -124,23 +127,27 @@ def test_past_the_in_flight_limit_a_call_is_refused(server: ServerSession[Servic
     assert refused["error"]["code"] == ErrorCode.RESOURCE_EXHAUSTED
     assert refused["error"]["data"]["limit"] == 3
     server.reply(held[0], b"{}")
-    assert type(only(send(server, call(3)))) is Call
+    assert type(only(send(server, call(3)))) is bytes  # its reply has not gone out yet
+    server.sent(held[0])
+    assert type(only(send(server, call(4)))) is Call
 
 
 def test_an_id_in_flight_cannot_be_used_again(server: ServerSession[ServiceEntry]) -> None:
     first = only(send(server, call(1)))
-    duplicate = reply_of(only(send(server, call(1))))
-    assert duplicate["error"]["code"] == ErrorCode.INVALID_REQUEST
-    assert "already used" in duplicate["error"]["message"]
-    server.reply(first, b"{}")
+    for again in (1, 1.0):
+        duplicate = reply_of(only(send(server, call(again))))
+        assert duplicate["error"]["code"] == ErrorCode.INVALID_REQUEST
+        assert "already used" in duplicate["error"]["message"]
+    server.reply(first, b"{}")  # written, so the id is free again
     assert type(only(send(server, call(1)))) is Call
 
 
-def test_cancel_names_a_call_by_its_exact_id(server: ServerSession[ServiceEntry]) -> None:
+def test_cancel_names_a_call_by_its_id(server: ServerSession[ServiceEntry]) -> None:
     one = only(send(server, call(1)))
     text = only(send(server, call("1")))
-    for wrong in (True, 1.0, "01", None, [1], {"a": 1}):
+    for wrong in (True, "01", None, [1], {"a": 1}):
         assert send(server, note("$/cancel", {"id": wrong})) == [], wrong
+    assert only(send(server, note("$/cancel", {"id": 1.0}))).call is one  # the same number
     cancel = only(send(server, note("$/cancel", {"id": 1})))
     assert type(cancel) is CancelCall and cancel.call is one
     assert isinstance(cancel.error, Cancelled)
@@ -166,9 +173,10 @@ def test_a_call_that_cannot_be_named_is_still_found_at_shutdown(
     assert {c.call for c in server.cancel_all(error)} == {anonymous, named}
     assert server.in_flight == 2  # they still answer
     assert reply_of(server.fail(anonymous, error))["id"] is None  # type: ignore[arg-type]
+    server.sent(anonymous)
     assert server.in_flight == 1
     assert [c.call for c in server.cancel_all(None)] == [named]
-    assert server.calls == {} and server.anonymous == set()
+    assert server.calls == {} and server.anonymous == set() and server.in_flight == 0
 
 
 def test_a_closing_session_answers_unavailable(server: ServerSession[ServiceEntry]) -> None:
@@ -369,3 +377,15 @@ def test_a_session_pair_talks_with_no_loop(server: ServerSession[ServiceEntry]) 
     assert cancel.call is started
     late = server.fail(started, cancel.error)  # type: ignore[arg-type]
     assert type(only(client.receive(late or b""))) is Stray
+
+
+def test_a_violation_anywhere_in_a_batch_leaves_every_call_pending() -> None:
+    client: ClientSession[str] = ClientSession()
+    id, _ = client.request("/x", "{}", 1.0, "caller")
+    batch = (
+        f'[{{"jsonrpc":"2.0","id":{id},"result":{{}}}},'
+        '{"jsonrpc":"2.0","method":"$/services","params":{}}]'
+    )
+    with pytest.raises(ProtocolViolation):
+        client.receive(batch)
+    assert client.lost() == ["caller"]  # to be failed with the connection, not to wait

@@ -14,13 +14,18 @@ Invariants:
   to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
   reader task takes over. A batch's calls run in tasks of their own, started once the whole
   batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
+* **The reader waits only to send**, which is what pushes back on a client that writes
+  faster than it reads: a reply held by such a client counts in flight until it is sent, so
+  past ``max_in_flight`` the reader answers the next call itself, and waits.
 * **A deadline is a cancellation with a reason.** A call's ``_meta.timeout`` is armed as one
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
   ``UNAVAILABLE``: the reason is recorded in the call's :class:`~srvwire.dispatch.Context`
   first (the first one wins), then its task is cancelled, at most once; the call takes the
-  cancellation back and answers the reason. A task cancelled without a reason (its connection
-  went away) answers nothing. A handler that cancels its own task is answered ``INTERNAL``.
+  cancellation back and answers the reason. A reply already written is not cancelled. A task
+  cancelled without a reason (its connection went away) answers nothing. A handler that
+  cancels its own task is answered ``INTERNAL``, unless it returns without waiting: then its
+  result is its answer, and the reader takes the cancellation back.
 * **In flight is counted twice, for two purposes.** The session counts calls for admission;
   :attr:`CallRunner.counted` holds the tasks that shutdown waits for: a reader task a
   waiting call took over, until the call is done, and each batch item's task, from its creation
@@ -229,8 +234,11 @@ class CallRunner:
                 call,
                 InternalError(f"the server failed to answer {entry.name}", service=entry.name),
             )
-        if reply is not None:
-            await self.send(reply)
+        try:
+            if reply is not None:
+                await self.send(reply)
+        finally:
+            session.sent(call)  # until now it counted: a reply the client does not read holds
 
     async def run_notification(self, note: NotificationCall[ServiceEntry]) -> None:
         """Run a notification's handler; nothing is answered, a failure is logged."""

@@ -11,16 +11,19 @@ Server invariants:
 * **Every request gets exactly one reply** while the session is open: an immediate one (an
   error, discovery, a ``$/cancel`` acknowledgement) from :meth:`ServerSession.receive`, or the
   one :meth:`ServerSession.reply` or :meth:`ServerSession.fail` writes for a started
-  :class:`Call`. A call that ends without a reply (its connection went away) is
-  :meth:`~ServerSession.forget`-ten.
+  :class:`Call`, after which the runner says it was :meth:`~ServerSession.sent`. A call that
+  ends without a reply (its connection went away) is :meth:`~ServerSession.forget`-ten.
 * **Admission, in this order:** a closing session answers ``UNAVAILABLE``; a method that is not a
   service is discovery, ``$/cancel`` or ``SERVICE_NOT_FOUND``; past ``max_in_flight`` a call is
   answered ``RESOURCE_EXHAUSTED``; an id already in flight is ``INVALID_REQUEST``.
-* **In flight** counts calls from admission to their reply, and notifications from their start
-  to :meth:`~ServerSession.done`. A batch's calls count one by one, like single calls.
-* **``$/cancel`` reaches a call while it is in :attr:`ServerSession.calls`**, from admission to
-  its reply; ids are compared exactly (a boolean is never an id). A call with ``"id": null``
-  cannot be named, but shutdown still finds it in :attr:`ServerSession.anonymous`.
+* **In flight** counts calls from admission until their reply has been sent (so replies a
+  client does not read count against its limit, and past it the reader's own answers push
+  back), and notifications from their start to :meth:`~ServerSession.done`. A batch's calls
+  count one by one, like single calls.
+* **``$/cancel`` reaches a call while it is in :attr:`ServerSession.calls`**, from admission
+  until its reply is written; a boolean is never an id, and numbers equal in value are the
+  same id. A call with ``"id": null`` cannot be named, but shutdown still finds it in
+  :attr:`ServerSession.anonymous`.
 * **A batch is answered once, as one array**, in the order of its items, when its last call
   has replied; a batch of notifications only is not answered at all.
 * **A notification is never answered.** One that cannot run is reported as :class:`Dropped`.
@@ -31,7 +34,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, TypeAlias, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from srvwire.errors import (
     Cancelled,
@@ -50,9 +53,9 @@ from srvwire.protocol import (
     Notification,
     ProtocolViolation,
     RawJSON,
-    RawReply,
     Request,
     Response,
+    cancel_notification,
     canonical_name,
     parse_incoming,
     parse_replies,
@@ -69,7 +72,6 @@ __all__ = [
     "Dropped",
     "Entry",
     "NotificationCall",
-    "ServerEvent",
     "ServerSession",
     "Services",
     "ServicesChanged",
@@ -185,10 +187,6 @@ class Dropped(Generic[E]):
     busy: bool = False  # dropped because too many calls were in flight
 
 
-ServerEvent: TypeAlias = "bytes | Call[E] | NotificationCall[E] | CancelCall[E] | Dropped[E]"
-"""What :meth:`ServerSession.receive` asks for: send bytes, start, run, cancel, or log."""
-
-
 class ServerSession(Generic[E]):
     """The server's side of one connection: admission, cancellation, batches, shutdown."""
 
@@ -205,9 +203,11 @@ class ServerSession(Generic[E]):
     # --- what the client sent -----------------------------------------------------------------
 
     def receive(self, data: str | bytes) -> list[Any]:
-        """Read one message; return what to do about it, in order (see :data:`ServerEvent`).
+        """Read one message; return what to do about it, in order.
 
-        Never raises on what a peer sent.
+        Each event is ``bytes`` to send, a :class:`Call` to start, a
+        :class:`NotificationCall` to run, a :class:`CancelCall` to carry out, or a
+        :class:`Dropped` notification to log. Never raises on what a peer sent.
         """
         incoming = parse_incoming(data)
         items = incoming.items
@@ -270,8 +270,7 @@ class ServerSession(Generic[E]):
                 service=entry.name,
             )
             return ErrorResponse(id, duplicate).serialize()
-        params = request.params
-        call = Call(id, entry, None if type(params) is RawJSON else params, request.timeout)
+        call = Call(id, entry, request.params, request.timeout)
         call.batch = batch
         if id is not None:
             self.calls[id] = call
@@ -314,10 +313,10 @@ class ServerSession(Generic[E]):
         if type(params) is not dict:
             return None
         id = params.get("id")
-        if not valid_id(id) or id is None:
+        if id is None or not valid_id(id):  # a boolean is not an id: true is never 1
             return None
         call = self.calls.get(id)
-        if call is None or type(call.id) is not type(id):  # 1 is not 1.0 is not "1"
+        if call is None:
             return None
         return CancelCall(call, Cancelled("the caller cancelled the call"))
 
@@ -332,7 +331,7 @@ class ServerSession(Generic[E]):
         return self._answer(call, ErrorResponse(call.id, error).serialize())
 
     def _answer(self, call: Call[E], reply: bytes) -> bytes | None:
-        self.forget(call)
+        self._unlist(call)
         batch = call.batch
         if batch is None:
             return reply
@@ -348,16 +347,26 @@ class ServerSession(Generic[E]):
             return call in self.anonymous
         return self.calls.get(call.id) is call
 
+    def sent(self, call: Call[E]) -> None:
+        """The reply :meth:`reply` or :meth:`fail` wrote has gone out (or to its batch)."""
+        self.in_flight -= 1
+
     def forget(self, call: Call[E]) -> None:
-        """Take ``call`` out: ``$/cancel`` no longer finds it, and it no longer counts."""
+        """``call`` ended without a reply (its connection went away): it no longer counts."""
+        if self._unlist(call):
+            self.in_flight -= 1
+
+    def _unlist(self, call: Call[E]) -> bool:
+        """Take ``call`` out of the lists ``$/cancel`` and shutdown look in; say if it was."""
         id = call.id
         if id is None:
             if call in self.anonymous:
                 self.anonymous.discard(call)
-                self.in_flight -= 1
+                return True
         elif self.calls.get(id) is call:
             del self.calls[id]
-            self.in_flight -= 1
+            return True
+        return False
 
     def done(self, notification: NotificationCall[E]) -> None:
         """A notification's handler ended: it no longer counts as in flight."""
@@ -382,6 +391,7 @@ class ServerSession(Generic[E]):
         if error is None:
             self.calls.clear()
             self.anonymous.clear()
+            self.in_flight -= len(cancels)
         return cancels
 
 
@@ -401,9 +411,6 @@ class Stray:
     message it could not read (``id`` null); for the log."""
 
     reply: Response | ErrorResponse
-
-
-ClientEvent: TypeAlias = "tuple[W, RawReply | Response | ErrorResponse] | ServicesChanged | Stray"
 
 
 class ClientSession(Generic[W]):
@@ -437,7 +444,7 @@ class ClientSession(Generic[W]):
         """Give up on the call ``id``: the ``$/cancel`` to send, or None if it is not waiting."""
         if self.pending.pop(id, None) is None:
             return None
-        return Notification(CANCEL_METHOD, {"id": id}).serialize()
+        return cancel_notification(id).serialize()
 
     def forget(self, id: int) -> None:
         """Stop waiting for ``id`` without telling the server (it answered, or it is gone)."""
@@ -450,7 +457,8 @@ class ClientSession(Generic[W]):
         return waiters
 
     def receive(self, data: str | bytes) -> list[Any]:
-        """Read one message from the server; return ``(waiter, reply)`` pairs and news.
+        """Read one message from the server; return ``(waiter, reply)`` pairs and news
+        (:class:`ServicesChanged`, :class:`Stray`).
 
         A response a call waits for, written as a srvwire server writes it, is handed over
         unparsed (a :class:`~srvwire.protocol.RawReply`, decoded by its caller); anything else
@@ -467,11 +475,18 @@ class ClientSession(Generic[W]):
             messages = parse_replies(data)
         except (ParseError, InvalidRequest) as exc:
             raise ProtocolViolation(exc) from None
+        # Every item is read before any waiter is taken: a violation anywhere in a batch
+        # leaves every call pending, for lost() to hand back.
+        services = [
+            ServicesChanged(parse_services(message))
+            for message in messages
+            if isinstance(message, Notification) and message.method == SERVICES_METHOD
+        ]
         events: list[Any] = []
         for message in messages:
             if isinstance(message, Notification):
                 if message.method == SERVICES_METHOD:
-                    events.append(ServicesChanged(parse_services(message)))
+                    events.append(services.pop(0))
                 continue  # other notifications: for later versions
             id = message.id
             waiter = self.pending.pop(id, None) if type(id) is int else None
