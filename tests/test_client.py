@@ -1401,3 +1401,17 @@ async def test_async_for_gives_a_new_client_each_round(transport: Transport) -> 
         await clients[1].close()  # the last one is the loop's to close when it leaves early
     first, second = clients
     assert first is not second
+
+
+async def test_services_from_a_connection_that_is_no_longer_current_are_not_news(
+    peer: FakePeer, client: Client
+) -> None:
+    # A link that failed keeps reading until its close completes; what it reads then must not
+    # overwrite the services of the link that replaced it.
+    current = client._link
+    assert current is not None
+    before = dict(client.services)
+    client.services_changed(object(), {"/stale": "x/srv/Y"})  # type: ignore[arg-type]
+    assert dict(client.services) == before
+    client.services_changed(current, {"/fresh": "x/srv/Y"})
+    assert dict(client.services) == {"/fresh": "x/srv/Y"}

@@ -240,10 +240,14 @@ class Client:
         """Whether :meth:`close` was called."""
         return self._closed
 
-    def services_changed(self, services: dict[str, str]) -> None:
-        """The server sent ``$/services``: replace the advertised services, wake the waiters."""
-        self._services = services
-        self._pulse()
+    def services_changed(self, link: Link, services: dict[str, str]) -> None:
+        """The server sent ``$/services``: replace the advertised services, wake the waiters.
+
+        A link that is no longer the current one (failed, and closing) is not news.
+        """
+        if self._link is link:
+            self._services = services
+            self._pulse()
 
     def forget(self, link: Link) -> bool:
         """``link`` ended: forget it if it is the current one (and say so)."""

@@ -35,9 +35,10 @@ from srvwire.protocol import Decoder, ErrorResponse, ProtocolViolation, RawReply
 from srvwire.session import ClientSession, ServicesChanged, Stray
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
-__all__ = ["CLOSE_PROTOCOL_VIOLATION", "Link", "LoggerLike", "Owner", "Reply"]
+__all__ = ["CLOSE_PROTOCOL_VIOLATION", "Arrived", "Link", "LoggerLike", "Owner"]
 
-Reply: TypeAlias = Response | ErrorResponse | RawReply
+Arrived: TypeAlias = Response | ErrorResponse | RawReply
+"""A reply as it reaches its caller: parsed, or routed unparsed."""
 
 T = TypeVar("T")
 
@@ -58,7 +59,9 @@ class Owner(Protocol):
         """Whether the client was closed (then an ending connection is no news)."""
         ...
 
-    def services_changed(self, services: dict[str, str]) -> None: ...
+    def services_changed(self, link: Link, services: dict[str, str]) -> None:
+        """``link``'s server sent ``$/services``; news only while it is the current link."""
+        ...
 
     def forget(self, link: Link) -> bool:
         """Drop ``link`` if it is the current one; return whether it was."""
@@ -76,7 +79,7 @@ class Link:
         self.owner = owner
         self.conn = conn
         self.loop = asyncio.get_running_loop()
-        self.session: ClientSession[asyncio.Future[Reply]] = ClientSession()
+        self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
 
     @classmethod
@@ -143,7 +146,7 @@ class Link:
                         if not future.done():
                             future.set_result(event[1])
                     elif type(event) is ServicesChanged:
-                        owner.services_changed(event.services)
+                        owner.services_changed(self, event.services)
                     else:
                         assert type(event) is Stray
                         self.stray(event.reply)
@@ -216,7 +219,7 @@ class Link:
 
     async def roundtrip(
         self, method: str, params: str | None, deadline: float, budget: float
-    ) -> Reply:
+    ) -> Arrived:
         """Send one request and wait for its reply until ``deadline`` (loop time).
 
         ``params`` is the request's JSON object text, sent with the time left as
@@ -230,7 +233,7 @@ class Link:
                 {"timeout": budget},
                 service=method,
             )
-        future: asyncio.Future[Reply] = loop.create_future()
+        future: asyncio.Future[Arrived] = loop.create_future()
         session = self.session
         id, data = session.request(
             method, params, None if params is None else round(remaining, 6), future
@@ -267,7 +270,7 @@ class Link:
         finally:
             session.forget(id)
 
-    def result(self, method: str, reply: Reply, decoder: Decoder[T] | None = None) -> T | Any:
+    def result(self, method: str, reply: Arrived, decoder: Decoder[T] | None = None) -> T | Any:
         """Return the result of ``reply`` (through ``decoder``), or raise the error it carries.
 
         A reply that turns out not to be JSON-RPC fails this connection, as the reader would
@@ -284,7 +287,7 @@ class Link:
             lost.service = method
             raise lost from None
 
-    def give_up(self, method: str, id: int, future: asyncio.Future[Reply]) -> None:
+    def give_up(self, method: str, id: int, future: asyncio.Future[Arrived]) -> None:
         """Tell the server to cancel a call we gave up on, in the background."""
         # Resolved as we gave up: mark an error seen so asyncio stays quiet, and check a reply
         # the reader left unparsed as the reader would have checked it.
