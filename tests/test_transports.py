@@ -334,6 +334,16 @@ async def test_port_0_binds_a_real_port(transport: Transport) -> None:
         await listener.wait_closed()
 
 
+async def test_the_url_keeps_the_host_name_it_was_given(transport: Transport) -> None:
+    listener = await transport.listen(hold, "localhost", 0, Options())
+    try:
+        assert listener.host == "localhost"
+        assert listener.url == f"{SCHEMES[transport.name]}://localhost:{listener.port}"
+    finally:
+        listener.close()
+        await listener.wait_closed()
+
+
 async def test_listen_on_a_taken_port_raises_oserror(transport: Transport) -> None:
     first = await transport.listen(hold, "127.0.0.1", 0, Options())
     try:

@@ -96,12 +96,16 @@ class WebSocketsConnection(Connection):
 
 
 class WebSocketsListener(Listener):
-    """A ``websockets`` server; closing it keeps the connections it accepted."""
+    """A ``websockets`` server; closing it keeps the connections it accepted.
 
-    def __init__(self, server: Server) -> None:
+    ``host`` is the name it was asked to listen on (``localhost`` stays ``localhost``), else
+    the address its first socket bound; ``port`` is the port really bound.
+    """
+
+    def __init__(self, server: Server, host: str | None = None) -> None:
         self._server = server
         address = server.sockets[0].getsockname()
-        self.host = address[0]
+        self.host = host or address[0]
         self.port = address[1]
         self.url = _url(self.host, self.port)
 
@@ -133,7 +137,7 @@ class WebSocketsTransport(Transport):
             ping_interval=options.ping_interval,
             ping_timeout=options.ping_timeout,
         )
-        return WebSocketsListener(server)
+        return WebSocketsListener(server, host)
 
     async def connect(self, url: str, options: Options) -> WebSocketsConnection:
         # The caller bounds the whole opening; websockets' own timeout would be a second bound.
