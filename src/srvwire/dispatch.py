@@ -37,7 +37,7 @@ Invariants:
   measured from the moment the request was read; an already-expired deadline answers
   ``DEADLINE_EXCEEDED`` without running the handler. Past that, :func:`dispatch` is a plain
   coroutine: the server cancels its task when the deadline passes, with the reason recorded
-  in the :class:`Context` (see :mod:`srvwire.server`).
+  in the :class:`Context` (see :mod:`srvwire.serving`).
 """
 
 from __future__ import annotations
@@ -533,12 +533,13 @@ async def dispatch(
     executor: Executor | None = None,
     logger: logging.Logger | None = None,
 ) -> bytes:
-    """Validate ``params``, run the handler within the context's deadline, return the response.
+    """Validate ``params``, run the handler, and return the response as UTF-8 JSON bytes.
 
-    Return the response as UTF-8 JSON bytes (by .srv field names). Raise an
-    :class:`~srvwire.errors.RPCError` for the caller: InvalidParams, DeadlineExceeded,
-    InternalError, or whatever RPCError the handler raised. Cancelling the task that runs this
-    cancels the handler and marks ``context`` cancelled.
+    Raise an :class:`~srvwire.errors.RPCError` for the caller: InvalidParams, InternalError,
+    DeadlineExceeded for a deadline that had passed before the handler could start, or
+    whatever RPCError the handler raised. Cancelling the task that runs this cancels the
+    handler and marks ``context`` cancelled; a deadline that passes later is enforced that
+    way, by whoever runs the call.
     """
     try:
         request = entry.validate(params)

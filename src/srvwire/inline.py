@@ -16,12 +16,13 @@ Invariants:
   :func:`first_step`; a cancellation of the task while the coroutine waits is thrown into it.
 * **An optional context.** Given a :class:`contextvars.Context`, every step of the coroutine
   runs in it, so a coroutine that sets context variables leaves the caller's context alone.
-* **One deadline mechanism.** :func:`finish_within` is :func:`finish` under a deadline, the one
-  guard both the server (a handler's deadline) and the client (a send held by backpressure)
-  arm: ``asyncio.timeout`` for one purpose, a bare ``loop.call_later`` timer that cancels the
-  task, a few times cheaper. When the deadline passed, it raises :class:`Expired` (a
-  ``TimeoutError``), whatever the coroutine did with its cancellation, unless something else
-  cancelled the task too, which then stays a cancellation.
+* **A deadline for what waits.** :func:`finish_within` is :func:`finish` under a deadline,
+  what the client arms around a send held by backpressure: a bare ``loop.call_later`` timer
+  that cancels the task, a few times cheaper than ``asyncio.timeout``. When the deadline
+  passed, it raises :class:`Expired` (a ``TimeoutError``), whatever the coroutine did with its
+  cancellation, unless something else cancelled the task too, which then stays a
+  cancellation. (The server's call runner, :class:`srvwire.serving.CallRunner`, arms its own
+  timer, since its deadline is a cancellation with a reason.)
 """
 
 from __future__ import annotations

@@ -6,11 +6,14 @@ Nothing here awaits, touches a socket or knows about transports; the sessions
 Invariants:
 
 * **One writer per message.** Every message has one ``serialize()``, which returns compact
-  UTF-8 JSON bytes, the form every transport sends as a text message. It is total: data that
-  is not JSON (a set, an object) is written with ``str()`` and a non-finite float as ``null``
-  rather than failing, because an error reply must always be sendable. :class:`RawJSON` is
-  JSON already written (text or UTF-8 bytes, as pydantic writes it); as a result or as params
-  it is spliced in as it is, never decoded again, so a large result is copied once.
+  UTF-8 JSON bytes, the form every transport sends as a text message. Data that is not JSON
+  (a set, an object) is written with ``str()`` and a non-finite float as ``null`` rather than
+  failing, because an error reply must always be sendable; only a request or notification
+  whose ``_meta.timeout`` cannot be written (not a finite number, or one beside params that
+  are not an object) raises ``ValueError``, since ``null`` would mean "no deadline".
+  :class:`RawJSON` is JSON already written (text or UTF-8 bytes, as pydantic writes it); as a
+  result or as params it is spliced in as it is, never decoded again, so a large result is
+  copied once.
 * **One reader per side.** :func:`parse_incoming` reads what a client sends and never raises:
   every item is a :class:`Request`, a :class:`Notification` or an :class:`ErrorResponse` ready
   to be sent back. Input that is not JSON, not UTF-8, or nested deeper than :data:`MAX_DEPTH`
