@@ -37,6 +37,7 @@ __all__ = [
     "TypeResolver",
     "check_timeout",
     "encode_request",
+    "validate_request",
 ]
 
 SrvType: TypeAlias = type[Service] | str
@@ -78,6 +79,18 @@ def _refused(method: str, errors: list[dict[str, str]]) -> InvalidParams:
     )
 
 
+def validate_request(method: str, srv: type[Service], request: Mapping[str, Any]) -> Message:
+    """Build ``srv``'s ``Request`` from a mapping of its fields, as the server would.
+
+    Raise :class:`~srvwire.errors.InvalidParams` with the field paths (the same
+    ``data["errors"]`` the server sends) when it does not validate.
+    """
+    try:
+        return validate_python(srv.Request, request)
+    except ValidationError as exc:
+        raise _refused(method, validation_errors(exc)) from None
+
+
 def encode_request(
     method: str, srv: type[Service] | None, request: BaseModel | Mapping[str, Any] | None
 ) -> str:
@@ -101,10 +114,7 @@ def encode_request(
             raise TypeError(
                 f"{method} takes {srv.type_name} requests, not {type(value).__qualname__}"
             )
-        try:
-            value = validate_python(srv.Request, value)
-        except ValidationError as exc:
-            raise _refused(method, validation_errors(exc)) from None
+        value = validate_request(method, srv, value)
     if not isinstance(value, BaseModel | Mapping):
         raise TypeError(
             f"the request for {method} must be a model or a mapping, not {type(value).__qualname__}"

@@ -18,6 +18,7 @@ from typing import Any
 import pydantic
 import yaml
 
+from srvwire.calls import validate_request
 from srvwire.cli.common import (
     EXIT_CODES_HELP,
     CommandError,
@@ -32,7 +33,7 @@ from srvwire.cli.common import (
     remote_options,
 )
 from srvwire.errors import InterfaceError, InvalidParams
-from srvwire.models import Service, summarize_errors, validation_errors
+from srvwire.models import Service, summarize_errors
 from srvwire.protocol import canonical_name
 
 _TYPE_SHAPE = re.compile(r"^\w+/(?:\w+/)?\w+$")
@@ -181,10 +182,11 @@ def _try_load_service(args: argparse.Namespace, type_name: str) -> type[Service]
 
 
 def _validate_request(name: str, srv_type: type[Service], values: dict[str, Any]) -> Any:
+    """Validate VALUES as the client does, in the command's words."""
     try:
-        return srv_type.Request.model_validate(values)
-    except pydantic.ValidationError as exc:
-        errors = validation_errors(exc)
+        return validate_request(name, srv_type, values)
+    except InvalidParams as exc:
+        errors = exc.errors
         raise InvalidParams(
             f"VALUES do not fit {srv_type.type_name} (checked locally, not sent): "
             f"{summarize_errors(errors)}",
