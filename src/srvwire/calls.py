@@ -23,6 +23,7 @@ from srvwire.models import (
     ModelDecoder,
     Service,
     dump_json,
+    json_writer,
     summarize_errors,
     unencodable_strings,
     validate_python,
@@ -31,6 +32,7 @@ from srvwire.models import (
 from srvwire.protocol import describe_value, encode_json, timeout_seconds
 
 __all__ = [
+    "ServiceCodec",
     "ServiceInfo",
     "ServiceTypes",
     "SrvType",
@@ -92,7 +94,7 @@ def validate_request(method: str, srv: type[Service], request: Mapping[str, Any]
 
 
 def encode_request(
-    method: str, srv: type[Service] | None, request: BaseModel | Mapping[str, Any] | None
+    method: str, codec: ServiceCodec | None, request: BaseModel | Mapping[str, Any] | None
 ) -> str:
     """Validate ``request`` when its type is known and return its JSON text (an object).
 
@@ -100,9 +102,10 @@ def encode_request(
     cannot be written (nothing is sent then), ``TypeError`` for a model of another type or
     one that is not written as a JSON object.
     """
-    if srv is not None and type(request) is srv.Request:  # the common case, quickly
+    srv = None if codec is None else codec.service
+    if codec is not None and type(request) is codec.service.Request:  # the common case
         try:
-            text = dump_json(request).decode()
+            text = codec.write(request).decode()
         except PydanticSerializationError:
             pass  # said below, with the field
         else:
@@ -137,8 +140,20 @@ def encode_request(
     return text
 
 
+class ServiceCodec:
+    """A service type with what its calls need at hand: its response decoder, its request's
+    writer."""
+
+    __slots__ = ("decoder", "service", "write")
+
+    def __init__(self, service: type[Service]) -> None:
+        self.service = service
+        self.decoder: ModelDecoder[Message] = ModelDecoder(service.Response)
+        self.write: Callable[[Any], bytes] = json_writer(service.Request)
+
+
 class ServiceTypes:
-    """Which class a call's types come from, given or advertised, and each one's decoder.
+    """Which type a call's messages have, given or advertised, each made ready once.
 
     A type given by name that cannot be resolved is an error; one the server advertised is
     logged once, and its calls send and return plain dicts.
@@ -149,26 +164,26 @@ class ServiceTypes:
     ) -> None:
         self._resolve = resolve
         self._logger = logger
-        self._classes: dict[str, type[Service] | None] = {}
-        self._decoders: dict[type[Service], ModelDecoder[Message]] = {}
+        self._by_name: dict[str, ServiceCodec | None] = {}
+        self._by_class: dict[type[Service], ServiceCodec] = {}
 
     def service(
         self, method: str, srv_type: SrvType | None, advertised: str | None
-    ) -> type[Service] | None:
-        """Return the service class for ``method``, or None to send and return plain dicts."""
+    ) -> ServiceCodec | None:
+        """Return the type of ``method``'s messages, or None to send and return plain dicts."""
         if srv_type is not None and not isinstance(srv_type, str):
-            return srv_type
+            return self._codec(srv_type)
         named = srv_type is not None
         type_name = srv_type if srv_type is not None else advertised
         if type_name is None:
             return None
-        if type_name in self._classes:
-            cached = self._classes[type_name]
+        if type_name in self._by_name:
+            cached = self._by_name[type_name]
             if cached is not None or not named:
                 return cached
-        loaded: type[Service] | None
+        codec: ServiceCodec | None
         try:
-            loaded = self._resolve(type_name)
+            codec = self._codec(self._resolve(type_name))
         except InterfaceError as exc:
             if named:
                 raise  # the caller named a type that cannot be resolved: say so
@@ -178,13 +193,12 @@ class ServiceTypes:
                 method,
                 exc,
             )
-            loaded = None
-        self._classes[type_name] = loaded
-        return loaded
+            codec = None
+        self._by_name[type_name] = codec
+        return codec
 
-    def decoder(self, srv: type[Service]) -> ModelDecoder[Message]:
-        """The decoder of ``srv``'s responses, made once per class."""
-        decoder = self._decoders.get(srv)
-        if decoder is None:
-            decoder = self._decoders[srv] = ModelDecoder(srv.Response)
-        return decoder
+    def _codec(self, service: type[Service]) -> ServiceCodec:
+        codec = self._by_class.get(service)
+        if codec is None:
+            codec = self._by_class[service] = ServiceCodec(service)
+        return codec

@@ -55,12 +55,13 @@ from srvwire.calls import (
 from srvwire.errors import (
     ConnectionLost,
     InternalError,
+    RPCError,
     ServiceUnavailable,
 )
 from srvwire.link import Link, LoggerLike
 from srvwire.loader import SearchPath, load_service
 from srvwire.models import summarize_errors, validation_errors
-from srvwire.protocol import DISCOVER_METHOD, canonical_name
+from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Options, Transport
 
@@ -307,16 +308,19 @@ class Client:
         link = self._link
         if link is None:
             raise self._not_connected(method)
-        srv = self._types.service(method, srv_type, self._services.get(method))
-        params = encode_request(method, srv, request)
+        codec = self._types.service(method, srv_type, self._services.get(method))
+        params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
-            return link.result(method, reply, None if srv is None else self._types.decoder(srv))
+            return reply.decode(None if codec is None else codec.decoder)
+        except (RPCError, ProtocolViolation) as exc:
+            raise link.failure(method, exc) from None
         except ValidationError as exc:
-            assert srv is not None
+            assert codec is not None
             errors = validation_errors(exc)
             raise InternalError(
-                f"the response does not match {srv.type_name}: {summarize_errors(errors)}",
+                f"the response does not match {codec.service.type_name}: "
+                f"{summarize_errors(errors)}",
                 {"errors": errors},
                 service=method,
             ) from None
@@ -367,7 +371,10 @@ class Client:
         if link is None:
             raise self._not_connected(DISCOVER_METHOD)
         reply = await link.roundtrip(DISCOVER_METHOD, None, deadline, budget)
-        document = link.result(DISCOVER_METHOD, reply)
+        try:
+            document = reply.decode()
+        except (RPCError, ProtocolViolation) as exc:
+            raise link.failure(DISCOVER_METHOD, exc) from None
         methods = document.get("methods") if isinstance(document, dict) else None
         if not isinstance(methods, list):
             raise InternalError(

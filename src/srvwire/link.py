@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Coroutine
-from typing import Any, Protocol, TypeAlias, TypeVar
+from typing import Any, Protocol, TypeAlias
 
 from srvwire.errors import (
     ConnectionLost,
@@ -31,7 +31,7 @@ from srvwire.errors import (
     ServiceUnavailable,
 )
 from srvwire.inline import Pending, finish_within, first_step
-from srvwire.protocol import Decoder, ErrorResponse, ProtocolViolation, RawReply, Response
+from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Response
 from srvwire.session import ClientSession, ServicesChanged, Stray
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
@@ -40,7 +40,6 @@ __all__ = ["CLOSE_PROTOCOL_VIOLATION", "Arrived", "Link", "LoggerLike", "Owner"]
 Arrived: TypeAlias = Response | ErrorResponse | RawReply
 """A reply as it reaches its caller: parsed, or routed unparsed."""
 
-T = TypeVar("T")
 
 LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
 
@@ -268,24 +267,18 @@ class Link:
             exc.service = method
             raise
         finally:
-            session.forget(id)
+            session.pending.pop(id, None)  # answered or given up: forget it
 
-    def result(self, method: str, reply: Arrived, decoder: Decoder[T] | None = None) -> T | Any:
-        """Return the result of ``reply`` (through ``decoder``), or raise the error it carries.
+    def failure(self, method: str, exc: RPCError | ProtocolViolation) -> RPCError:
+        """The error a call to ``method`` raises when decoding its reply raised ``exc``.
 
-        A reply that turns out not to be JSON-RPC fails this connection, as the reader would
-        have, and raises the ``ConnectionLost`` every pending call got. A result that does not
-        fit ``decoder`` raises its ``ValueError``.
+        An error reply is that error, with the service named. A reply that turns out not to
+        be JSON-RPC fails this connection, as the reader would have, and the call raises the
+        ``ConnectionLost`` every pending call got.
         """
-        try:
-            return reply.decode(decoder)
-        except RPCError as exc:  # the server's error reply
-            exc.service = method
-            raise
-        except ProtocolViolation as exc:
-            lost = self.violation(exc)
-            lost.service = method
-            raise lost from None
+        error = self.violation(exc) if isinstance(exc, ProtocolViolation) else exc
+        error.service = method
+        return error
 
     def give_up(self, method: str, id: int, future: asyncio.Future[Arrived]) -> None:
         """Tell the server to cancel a call we gave up on, in the background."""

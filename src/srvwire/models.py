@@ -40,6 +40,7 @@ bounds count characters (code points); ``byte``/``uint8`` arrays also accept bas
 
 from __future__ import annotations
 
+import functools
 import keyword
 import types
 from collections.abc import Callable, Mapping, Sequence
@@ -111,6 +112,7 @@ __all__ = [
     "build_message",
     "build_service",
     "dump_json",
+    "json_writer",
     "python_name",
     "summarize_errors",
     "unencodable_strings",
@@ -528,6 +530,14 @@ def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
     if strict:
         return serializer.to_json(value, by_alias=True, warnings="error")
     return serializer.to_json(value, by_alias=True)
+
+
+def json_writer(model: type[M]) -> Callable[[M], bytes]:
+    """:func:`dump_json` for instances of exactly ``model``, with no lookup per call."""
+    write: Callable[[M], bytes] = functools.partial(
+        model.__pydantic_serializer__.to_json, by_alias=True
+    )
+    return write
 
 
 class ModelDecoder(Generic[M]):

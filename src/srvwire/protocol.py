@@ -87,6 +87,7 @@ __all__ = [
     "services_notification",
     "timeout_seconds",
     "valid_id",
+    "write_call",
 ]
 
 CANCEL_METHOD = "$/cancel"
@@ -248,29 +249,18 @@ class Request:
     def serialize(self) -> bytes:
         """Return this request as UTF-8 JSON.
 
-        Raise ``ValueError`` for a timeout with params that are not an object. The client's
-        calls (an int id, params written by pydantic as a compact object, a float timeout) are
-        written in one go.
+        Raise ``ValueError`` for a timeout with params that are not an object, or that is not
+        a finite number. The client's calls are written in one go, by :func:`write_call`.
         """
         params = self.params
         timeout = self.timeout
         id = self.id
         if type(params) is RawJSON and type(timeout) is float and type(id) is int:
             text = params.text
-            # pydantic writes an object compactly: "{}", or '{"' and the members, then "}";
-            # a finite float less itself is 0.0 (infinity and NaN give NaN)
-            if type(text) is str and text[-1:] == "}" and timeout - timeout == 0.0:
-                method = _encode_method(self.method)
-                if text[:2] == '{"':
-                    return (
-                        f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
-                        f'"params":{{"_meta":{{"timeout":{timeout!r}}},{text[1:]}}}'
-                    ).encode()
-                if text == "{}":
-                    return (
-                        f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
-                        f'"params":{{"_meta":{{"timeout":{timeout!r}}}}}}}'
-                    ).encode()
+            if type(text) is str:
+                written = write_call(id, self.method, text, timeout)
+                if written is not None:
+                    return written
         return (
             '{"jsonrpc":"2.0","id":'
             + _encode_id(id)
@@ -279,6 +269,31 @@ class Request:
             + _params_text(params, timeout)
             + "}"
         ).encode()
+
+
+def write_call(id: int, method: str, params: str, timeout: float) -> bytes | None:
+    """Write a request as the client sends its calls, in one go; None if it is not one.
+
+    ``params`` is an object written compactly, as pydantic writes one (``{}``, or ``{"`` and
+    the members), and ``timeout`` a finite float; other input is None, for
+    :meth:`Request.serialize` to write the long way. The same text as
+    ``Request(id, method, RawJSON(params), timeout).serialize()``, which calls this.
+    """
+    # a finite float less itself is 0.0 (infinity and NaN give NaN)
+    if params[-1:] != "}" or timeout - timeout != 0.0:
+        return None
+    method = _encode_method(method)
+    if params[:2] == '{"':
+        return (
+            f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
+            f'"params":{{"_meta":{{"timeout":{timeout!r}}},{params[1:]}}}'
+        ).encode()
+    if params == "{}":
+        return (
+            f'{{"jsonrpc":"2.0","id":{id},"method":{method},'
+            f'"params":{{"_meta":{{"timeout":{timeout!r}}}}}}}'
+        ).encode()
+    return None
 
 
 @dataclass(slots=True)

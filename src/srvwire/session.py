@@ -63,6 +63,7 @@ from srvwire.protocol import (
     serialize_batch,
     services_notification,
     valid_id,
+    write_call,
 )
 
 __all__ = [
@@ -436,7 +437,13 @@ class ClientSession(Generic[W]):
         are not a JSON object when a timeout is sent; nothing is registered then.
         """
         id = next(self._ids)
-        data = Request(id, method, None if params is None else RawJSON(params), timeout).serialize()
+        data = None
+        if params is not None and type(timeout) is float:
+            data = write_call(id, method, params, timeout)
+        if data is None:
+            data = Request(
+                id, method, None if params is None else RawJSON(params), timeout
+            ).serialize()
         self.pending[id] = waiter
         return id, data
 
