@@ -1521,16 +1521,7 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
     server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
 ) -> None:
     # A handler that answers without waiting cannot be interrupted: its deadline needs no timer.
-    armed: list[asyncio.TimerHandle] = []
-    arm = CallRunner.arm
-
-    def recording_arm(self: CallRunner, work: Any) -> asyncio.TimerHandle | None:
-        timer = arm(self, work)
-        if timer is not None:
-            armed.append(timer)
-        return timer
-
-    monkeypatch.setattr(CallRunner, "arm", recording_arm)
+    armed = record_armed_timers(monkeypatch)
 
     async def waits(request: Any) -> Any:
         await asyncio.sleep(0)
@@ -1548,6 +1539,21 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
 
 
 # --- deadlines: a cancellation with a reason, armed only for a call that waits -----------------
+
+
+def record_armed_timers(monkeypatch: pytest.MonkeyPatch) -> list[asyncio.TimerHandle]:
+    """Record every deadline timer a call runner arms."""
+    armed: list[asyncio.TimerHandle] = []
+    arm = CallRunner.arm
+
+    def recording_arm(self: CallRunner, work: Any) -> asyncio.TimerHandle | None:
+        timer = arm(self, work)
+        if timer is not None:
+            armed.append(timer)
+        return timer
+
+    monkeypatch.setattr(CallRunner, "arm", recording_arm)
+    return armed
 
 
 def deadline(seconds: float) -> dict[str, Any]:
@@ -1651,20 +1657,12 @@ async def test_the_first_reason_wins_over_a_deadline_that_passes_later(
 async def test_a_deadline_timer_is_disarmed_once_the_call_is_answered(
     server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
 ) -> None:
-    armed: list[asyncio.TimerHandle] = []
-    arm = CallRunner.arm
-
-    def recording_arm(self: CallRunner, work: Any) -> asyncio.TimerHandle | None:
-        timer = arm(self, work)
-        if timer is not None:
-            armed.append(timer)
-        return timer
+    armed = record_armed_timers(monkeypatch)
 
     async def waits(request: Any) -> Any:
         await asyncio.sleep(0)
         return {"text": request.text}
 
-    monkeypatch.setattr(CallRunner, "arm", recording_arm)
     server.add_service("/waits", Echo, waits)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
