@@ -26,6 +26,7 @@ from srvwire.idl import (
 )
 from srvwire.models import (
     FLOAT32_MAX,
+    MAX_LISTED_ERRORS,
     PRIMITIVE_ALIASES,
     Action,
     Message,
@@ -33,6 +34,7 @@ from srvwire.models import (
     build_action,
     build_message,
     build_service,
+    error_data,
     python_name,
     summarize_errors,
     unencodable_strings,
@@ -625,6 +627,24 @@ def test_summarize_errors_says_the_first_and_counts_the_rest() -> None:
     assert summarize_errors(errors[:1]) == "v[0]: Input should be less than or equal to 255"
     whole = errors_of(values, [1, 2])  # no path: the payload as a whole is wrong
     assert summarize_errors(whole) == "Input should be a valid dictionary or instance of One"
+
+
+def test_an_error_lists_the_first_problems_and_counts_them_all() -> None:
+    # A reply must not be much larger than the request that caused it: 1 000 bad elements
+    # are reported as the first MAX_LISTED_ERRORS of them, and how many there were.
+    values = one(unbounded("uint8"))
+    with pytest.raises(pydantic.ValidationError) as caught:
+        values.model_validate({"v": [256] * 1_000})
+    data = error_data(caught.value)
+    assert len(data["errors"]) == MAX_LISTED_ERRORS == 10
+    assert [e["path"] for e in data["errors"]] == [f"v[{i}]" for i in range(10)]
+    assert data["error_count"] == 1_000
+    assert summarize_errors(data["errors"], data["error_count"]) == (
+        "v[0]: Input should be less than or equal to 255 (and 999 more)"
+    )
+    with pytest.raises(pydantic.ValidationError) as few:
+        values.model_validate({"v": [256, 257]})
+    assert "error_count" not in error_data(few.value)  # all of them are listed
 
 
 def test_a_lone_surrogate_validates_but_unencodable_strings_finds_it() -> None:

@@ -1862,3 +1862,23 @@ async def test_replies_a_client_does_not_read_count_against_its_limit() -> None:
         assert len(conn.counted) <= server.max_in_flight
         writing.cancel()
         await client.close()
+
+
+async def test_a_reply_is_not_much_larger_than_the_request_that_caused_it(
+    transport: Transport,
+) -> None:
+    # 20 000 bad elements: the error lists the first ten and counts them all.
+    server = Server(max_message_size=None)
+    many = build("int32[] values\n---\nbool ok\n", "Many")
+    server.add_service("/many", many, lambda request: {"ok": True})
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running, max_message_size=None)
+        message = json.dumps(request("/many", {"values": ["x"] * 20_000}))
+        await w.send(message)
+        reply = await w.recv_reply()
+        assert error(reply) == (1, -32602, "INVALID_PARAMS")
+        data = reply["error"]["data"]
+        assert len(data["errors"]) == 10 and data["error_count"] == 20_000
+        assert reply["error"]["message"].endswith("(and 19999 more)")
+        assert len(json.dumps(reply)) < len(message) // 50
+        await w.ws.close()

@@ -389,3 +389,24 @@ def test_a_violation_anywhere_in_a_batch_leaves_every_call_pending() -> None:
     with pytest.raises(ProtocolViolation):
         client.receive(batch)
     assert client.lost() == ["caller"]  # to be failed with the connection, not to wait
+
+
+def test_a_batch_longer_than_the_limit_is_one_invalid_request() -> None:
+    limited: ServerSession[ServiceEntry] = ServerSession(registry(), max_batch=3)
+    assert [type(e) for e in limited.receive(json.dumps([call(i) for i in range(3)]))] == [Call] * 3
+    refused = reply_of(only(limited.receive(json.dumps([note("echo")] * 4))))
+    assert (refused["id"], refused["error"]["code"]) == (None, ErrorCode.INVALID_REQUEST)
+    assert refused["error"]["message"] == (
+        "Invalid Request: a batch of 4 messages; at most 3 are read in one batch"
+    )
+    assert limited.in_flight == 3  # the refused batch started nothing
+
+
+def test_discovery_is_answered_once_per_batch(server: ServerSession[ServiceEntry]) -> None:
+    answers = json.loads(only(send(server, [call(1, "rpc.discover"), call(2, "rpc.discover")])))
+    assert "methods" in answers[0]["result"]
+    assert answers[1]["error"]["code"] == ErrorCode.INVALID_REQUEST
+    assert answers[1]["error"]["message"] == (
+        "Invalid Request: rpc.discover is answered once per batch"
+    )
+    assert "methods" in reply_of(only(send(server, call(3, "rpc.discover"))))["result"]

@@ -23,11 +23,11 @@ from srvwire.models import (
     ModelDecoder,
     Service,
     dump_json,
+    error_data,
     json_writer,
     summarize_errors,
     unencodable_strings,
     validate_python,
-    validation_errors,
 )
 from srvwire.protocol import describe_value, encode_json, timeout_seconds
 
@@ -71,12 +71,13 @@ def check_timeout(timeout: float, what: str = "timeout") -> float:
     return seconds
 
 
-def _refused(method: str, errors: list[dict[str, str]]) -> InvalidParams:
+def _refused(method: str, data: dict[str, Any]) -> InvalidParams:
     """The error for a request the client will not send: it does not validate or encode."""
+    errors = data["errors"]
     return InvalidParams(
-        f"invalid params for {method}: {summarize_errors(errors)} "
+        f"invalid params for {method}: {summarize_errors(errors, data.get('error_count'))} "
         "(checked by the client; nothing was sent)",
-        {"errors": errors},
+        data,
         service=method,
     )
 
@@ -90,7 +91,7 @@ def validate_request(method: str, srv: type[Service], request: Mapping[str, Any]
     try:
         return validate_python(srv.Request, request)
     except ValidationError as exc:
-        raise _refused(method, validation_errors(exc)) from None
+        raise _refused(method, error_data(exc)) from None
 
 
 def encode_request(
@@ -131,7 +132,7 @@ def encode_request(
         errors = unencodable_strings(value) or [
             {"path": "", "message": str(exc), "type": "serialization_error"}
         ]
-        raise _refused(method, errors) from None
+        raise _refused(method, {"errors": errors}) from None
     if not text.startswith("{"):  # a RootModel or a custom serializer: not params by name
         raise TypeError(
             f"the request for {method} must serialize to a JSON object (params by name); "

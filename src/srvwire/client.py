@@ -60,7 +60,7 @@ from srvwire.errors import (
 )
 from srvwire.link import Link, LoggerLike
 from srvwire.loader import SearchPath, load_service
-from srvwire.models import summarize_errors, validation_errors
+from srvwire.models import error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Options, Transport
@@ -317,11 +317,11 @@ class Client:
             raise link.failure(method, exc) from None
         except ValidationError as exc:
             assert codec is not None
-            errors = validation_errors(exc)
+            data = error_data(exc)
             raise InternalError(
                 f"the response does not match {codec.service.type_name}: "
-                f"{summarize_errors(errors)}",
-                {"errors": errors},
+                f"{summarize_errors(data['errors'], exc.error_count())}",
+                data,
                 service=method,
             ) from None
 

@@ -71,6 +71,7 @@ from srvwire.errors import (
 from srvwire.models import (
     Service,
     dump_json,
+    error_data,
     summarize_errors,
     unencodable_strings,
     validate_python,
@@ -270,10 +271,11 @@ class ServiceEntry:
         try:
             return validate_python(self.request_model, params)
         except ValidationError as exc:
-            errors = validation_errors(exc)
+            data = error_data(exc)
             raise InvalidParams(
-                f"invalid params for {self.name}: {summarize_errors(errors)}",
-                {"errors": errors},
+                f"invalid params for {self.name}: "
+                f"{summarize_errors(data['errors'], exc.error_count())}",
+                data,
                 service=self.name,
             ) from None
 

@@ -86,6 +86,7 @@ from srvwire.primitives import (
 
 __all__ = [
     "FLOAT32_MAX",
+    "MAX_LISTED_ERRORS",
     "PRIMITIVE_ALIASES",
     "AcceptBase64",
     "Action",
@@ -112,6 +113,7 @@ __all__ = [
     "build_message",
     "build_service",
     "dump_json",
+    "error_data",
     "json_writer",
     "python_name",
     "summarize_errors",
@@ -436,29 +438,48 @@ def _path(location: tuple[int | str, ...]) -> str:
     return path
 
 
-def validation_errors(exc: pydantic.ValidationError) -> list[dict[str, str]]:
-    """Describe each problem of ``exc`` as ``{"path": ..., "message": ..., "type": ...}``.
+MAX_LISTED_ERRORS = 10
+"""How many problems an ``INVALID_PARAMS`` error lists; ``error_count`` says how many there were."""
 
-    ``path`` points into the payload by .srv field names: ``pose.position.x``, ``values[3]``,
-    ``points[0].x``; it is ``""`` when the payload as a whole is wrong (not an object).
-    ``type`` is pydantic's error type (``int_type``, ``less_than_equal``, ``extra_forbidden``).
+
+def validation_errors(exc: pydantic.ValidationError) -> list[dict[str, str]]:
+    """Describe the first problems of ``exc`` as ``{"path": ..., "message": ..., "type": ...}``.
+
+    At most :data:`MAX_LISTED_ERRORS` of them, so that a reply is not much larger than the
+    request that caused it. ``path`` points into the payload by .srv field names:
+    ``pose.position.x``, ``values[3]``, ``points[0].x``; it is ``""`` when the payload as a
+    whole is wrong (not an object). ``type`` is pydantic's error type (``int_type``,
+    ``less_than_equal``, ``extra_forbidden``).
     """
+    listed = exc.errors(include_url=False, include_context=False, include_input=False)
     return [
         {"path": _path(error["loc"]), "message": error["msg"], "type": error["type"]}
-        for error in exc.errors(include_url=False, include_context=False, include_input=False)
+        for error in listed[:MAX_LISTED_ERRORS]
     ]
 
 
-def summarize_errors(errors: Sequence[Mapping[str, str]]) -> str:
+def error_data(exc: pydantic.ValidationError) -> dict[str, Any]:
+    """The ``data`` of the error for ``exc``: ``{"errors": [...]}``, and ``"error_count"``
+    when there were more problems than it lists."""
+    data: dict[str, Any] = {"errors": validation_errors(exc)}
+    count = exc.error_count()
+    if count > len(data["errors"]):
+        data["error_count"] = count
+    return data
+
+
+def summarize_errors(errors: Sequence[Mapping[str, str]], count: int | None = None) -> str:
     """Say the first problem of a :func:`validation_errors` list, and how many more there are.
 
     ``values[3]: Input should be less than or equal to 255 (and 2 more)``; without the path when
-    the payload as a whole is wrong. The one wording for an ``INVALID_PARAMS`` message, whether
-    the server, the client or the command line found the problems.
+    the payload as a whole is wrong. ``count`` is how many problems there were in all, when the
+    list holds fewer. The one wording for an ``INVALID_PARAMS`` message, whether the server,
+    the client or the command line found the problems.
     """
     first = errors[0]
     where = f"{first['path']}: " if first["path"] else ""
-    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    total = len(errors) if count is None else count
+    more = f" (and {total - 1} more)" if total > 1 else ""
     return f"{where}{first['message']}{more}"
 
 

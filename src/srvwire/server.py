@@ -56,8 +56,9 @@ def _running_loop() -> asyncio.AbstractEventLoop | None:
 class Server:
     """A set of services and the options to serve them with; :func:`serve` makes it listen.
 
-    ``max_in_flight`` bounds the calls running at once on one connection; ``max_message_size``
-    the size of one incoming message in bytes (None: no limit); ``grace_period`` how long
+    ``max_in_flight`` bounds the calls running at once on one connection (a reply counts until
+    it is sent); ``max_batch`` the messages of one batch; ``max_message_size`` the size of one
+    incoming message in bytes (None: no limit); ``grace_period`` how long
     shutdown waits for calls in flight; ``ping_interval``/``ping_timeout`` the keepalive (None
     turns it off); ``compression="deflate"`` turns permessage-deflate on (off by default: it
     slows small calls down); ``executor`` runs sync handlers (default: asyncio's).
@@ -67,6 +68,7 @@ class Server:
         self,
         *,
         max_in_flight: int = 256,
+        max_batch: int = 100,
         max_message_size: int | None = 2**20,
         grace_period: float = 5.0,
         ping_interval: float | None = 20.0,
@@ -77,10 +79,13 @@ class Server:
     ) -> None:
         if max_in_flight < 1:
             raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
+        if max_batch < 1:
+            raise ValueError(f"max_batch must be at least 1, not {max_batch}")
         if grace_period < 0:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
         self.registry = ServiceRegistry()
         self.max_in_flight = max_in_flight
+        self.max_batch = max_batch
         self.max_message_size = max_message_size
         self.grace_period = grace_period
         self.ping_interval = ping_interval
@@ -400,6 +405,7 @@ class RunningServer:
             transport_connection,
             server.registry,
             max_in_flight=server.max_in_flight,
+            max_batch=server.max_batch,
             executor=server.executor,
             logger=server.logger,
         )

@@ -271,13 +271,14 @@ class ServedConnection:
         registry: ServiceRegistry,
         *,
         max_in_flight: int,
+        max_batch: int = 100,
         executor: Executor | None,
         logger: logging.Logger,
     ) -> None:
         self.conn = conn
         self.log = logger
         self.session: ServerSession[ServiceEntry] = ServerSession(
-            registry, max_in_flight=max_in_flight
+            registry, max_in_flight=max_in_flight, max_batch=max_batch
         )
         self.runner = CallRunner(
             self.session, self.send, peer=conn.remote_address, executor=executor, logger=logger

@@ -25,7 +25,9 @@ Server invariants:
   same id. A call with ``"id": null`` cannot be named, but shutdown still finds it in
   :attr:`ServerSession.anonymous`.
 * **A batch is answered once, as one array**, in the order of its items, when its last call
-  has replied; a batch of notifications only is not answered at all.
+  has replied; a batch of notifications only is not answered at all. A batch longer than
+  ``max_batch`` is one ``INVALID_REQUEST``, and ``rpc.discover`` is answered once per batch,
+  so that no reply is much larger than its request.
 * **A notification is never answered.** One that cannot run is reported as :class:`Dropped`.
 """
 
@@ -111,11 +113,12 @@ class Services(Protocol[E_co]):
 class _Batch:
     """The replies of one batch, in item order; sent when ``waiting`` reaches zero."""
 
-    __slots__ = ("replies", "waiting")
+    __slots__ = ("discovered", "replies", "waiting")
 
     def __init__(self) -> None:
         self.replies: list[bytes | None] = []
         self.waiting = 0
+        self.discovered = False  # whether it asked rpc.discover already
 
 
 class Call(Generic[E]):
@@ -191,9 +194,12 @@ class Dropped(Generic[E]):
 class ServerSession(Generic[E]):
     """The server's side of one connection: admission, cancellation, batches, shutdown."""
 
-    def __init__(self, services: Services[E], *, max_in_flight: int = 256) -> None:
+    def __init__(
+        self, services: Services[E], *, max_in_flight: int = 256, max_batch: int = 100
+    ) -> None:
         self.services = services
         self.max_in_flight = max_in_flight
+        self.max_batch = max_batch
         self.calls: dict[Id, Call[E]] = {}
         """Calls in flight that ``$/cancel`` can name, by id."""
         self.anonymous: set[Call[E]] = set()
@@ -223,6 +229,12 @@ class ServerSession(Generic[E]):
                 return [] if event is None else [event]
             assert type(item) is ErrorResponse
             return [item.serialize()]
+        if len(items) > self.max_batch:
+            too_long = InvalidRequest(
+                f"Invalid Request: a batch of {len(items)} messages; at most "
+                f"{self.max_batch} are read in one batch"
+            )
+            return [ErrorResponse(None, too_long).serialize()]
         batch = _Batch()
         events = []
         for item in items:
@@ -256,7 +268,7 @@ class ServerSession(Generic[E]):
             return ErrorResponse(id, ServiceUnavailable("the server is shutting down")).serialize()
         entry = self.services.get(request.method)
         if entry is None:
-            return self._special(request, events)
+            return self._special(request, batch, events)
         if self.in_flight >= self.max_in_flight:
             exhausted = ResourceExhausted(
                 f"too many calls in flight on this connection (the limit is {self.max_in_flight})",
@@ -280,9 +292,16 @@ class ServerSession(Generic[E]):
         self.in_flight += 1
         return call
 
-    def _special(self, request: Request, events: list[Any]) -> bytes:
+    def _special(self, request: Request, batch: _Batch | None, events: list[Any]) -> bytes:
         """Answer a request for a method that is not a service: discovery, protocol, unknown."""
         if request.method == DISCOVER_METHOD:
+            if batch is not None:
+                if batch.discovered:  # the document once per batch: a reply stays small
+                    again = InvalidRequest(
+                        "Invalid Request: rpc.discover is answered once per batch"
+                    )
+                    return ErrorResponse(request.id, again).serialize()
+                batch.discovered = True
             return Response(request.id, RawJSON(self.services.discover_json())).serialize()
         if request.method == CANCEL_METHOD:
             cancel = self._cancel(request.params)
