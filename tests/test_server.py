@@ -553,11 +553,54 @@ async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
             first = await w.call(request("subtract", [5, 3], id="after"))
         assert first == {"jsonrpc": "2.0", "id": "after", "result": {"difference": 2}}
         assert ran == []
-    dropped = [r.getMessage() for r in caplog.records if "dropped a notification" in r.message]
-    assert len(dropped) == 3
+    # The first drop says why; the burst's others are counted, and said when the connection ends.
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped ")]
     host = "memory" if transport.name == "memory" else "127.0.0.1"
-    assert dropped[0].startswith(f"dropped a notification to /note from ('{host}', ")
-    assert dropped[0].endswith("invalid _meta: must be an object, not a number")
+    first, more = lines
+    assert first.startswith(f"dropped a notification to /note from ('{host}', ")
+    assert first.endswith("invalid _meta: must be an object, not a number")
+    assert more.startswith("dropped 2 more notifications from (")
+    assert more.endswith(") since the last line about one")
+
+
+async def test_a_flood_of_notifications_writes_two_lines_not_thousands(
+    caplog: pytest.LogCaptureFixture, transport: Transport
+) -> None:
+    server = Server(max_in_flight=1, grace_period=0)
+    hangs = Hang()
+    server.add_service("/hangs", Echo, hangs)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send(request("/hangs", id=1))  # takes the one slot
+        await hangs.entered.wait()
+        for _ in range(1_000):
+            await w.send({"jsonrpc": "2.0", "method": "/hangs"})
+        # A call after them, answered RESOURCE_EXHAUSTED, shows they were all read.
+        assert error(await w.call(request("/hangs", id=2))) == (2, -32004, "RESOURCE_EXHAUSTED")
+        await w.ws.close()
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped ")]
+    assert len(lines) == 2
+    assert lines[0].endswith("too many calls in flight")
+    assert lines[1].startswith("dropped 999 more notifications from ")
+
+
+async def test_a_notification_without_a_deadline_gets_the_servers(transport: Transport) -> None:
+    # Nobody waits for a notification, so only the server's own deadline ends one that hangs,
+    # and gives its slot back.
+    server = Server(max_in_flight=1, notification_timeout=scaled(0.05))
+    hangs = Hang()
+    server.add_service("/hangs", Echo, hangs)
+    server.add_service("/echo", Echo, lambda request: {"text": request.text})
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send({"jsonrpc": "2.0", "method": "/hangs"})
+        await hangs.entered.wait()
+        await hangs.cancelled.wait()  # ended by the server's deadline
+        reply = await w.request("/echo", {"text": "the slot is free"}, id=1)
+        assert reply["result"] == {"text": "the slot is free"}
+        await w.ws.close()
+    with pytest.raises(ValueError, match="notification_timeout must be a number of seconds > 0"):
+        Server(notification_timeout=0)
 
 
 async def test_an_id_in_flight_cannot_be_reused(server: Server, transport: Transport) -> None:

@@ -57,11 +57,13 @@ class Server:
     """A set of services and the options to serve them with; :func:`serve` makes it listen.
 
     ``max_in_flight`` bounds the calls running at once on one connection (a reply counts until
-    it is sent); ``max_batch`` the messages of one batch; ``max_message_size`` the size of one
-    incoming message in bytes (None: no limit); ``grace_period`` how long
-    shutdown waits for calls in flight; ``ping_interval``/``ping_timeout`` the keepalive (None
-    turns it off); ``compression="deflate"`` turns permessage-deflate on (off by default: it
-    slows small calls down); ``executor`` runs sync handlers (default: asyncio's).
+    it is sent); ``max_batch`` the messages of one batch; ``notification_timeout`` how long a
+    notification's handler may run when the notification gives no deadline (None: forever);
+    ``max_message_size`` the size of one incoming message in bytes (None: no limit);
+    ``grace_period`` how long shutdown waits for calls in flight;
+    ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
+    ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
+    calls down); ``executor`` runs sync handlers (default: asyncio's).
     """
 
     def __init__(
@@ -69,6 +71,7 @@ class Server:
         *,
         max_in_flight: int = 256,
         max_batch: int = 100,
+        notification_timeout: float | None = 30.0,
         max_message_size: int | None = 2**20,
         grace_period: float = 5.0,
         ping_interval: float | None = 20.0,
@@ -81,11 +84,16 @@ class Server:
             raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
         if max_batch < 1:
             raise ValueError(f"max_batch must be at least 1, not {max_batch}")
+        if notification_timeout is not None and not notification_timeout > 0:
+            raise ValueError(
+                f"notification_timeout must be a number of seconds > 0, not {notification_timeout}"
+            )
         if grace_period < 0:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
         self.registry = ServiceRegistry()
         self.max_in_flight = max_in_flight
         self.max_batch = max_batch
+        self.notification_timeout = notification_timeout
         self.max_message_size = max_message_size
         self.grace_period = grace_period
         self.ping_interval = ping_interval
@@ -406,6 +414,7 @@ class RunningServer:
             server.registry,
             max_in_flight=server.max_in_flight,
             max_batch=server.max_batch,
+            notification_timeout=server.notification_timeout,
             executor=server.executor,
             logger=server.logger,
         )

@@ -54,6 +54,10 @@ from srvwire.transports.base import Connection, TransportClosed
 __all__ = ["CallRunner", "ServedConnection"]
 
 
+DROP_LOG_INTERVAL = 1.0
+"""Seconds: at most one line about a dropped notification per connection in this time; the
+rest are counted, and their number said in the next line, or when the connection ends."""
+
 Work: TypeAlias = Call[ServiceEntry] | NotificationCall[ServiceEntry]
 """What a connection runs: a call, or a notification."""
 
@@ -65,7 +69,16 @@ class CallRunner:
     the reply (or, for the last call of a batch, the batch's).
     """
 
-    __slots__ = ("counted", "executor", "log", "loop", "peer", "send", "session")
+    __slots__ = (
+        "counted",
+        "executor",
+        "log",
+        "loop",
+        "notification_timeout",
+        "peer",
+        "send",
+        "session",
+    )
 
     def __init__(
         self,
@@ -75,12 +88,14 @@ class CallRunner:
         peer: Any,
         executor: Executor | None,
         logger: logging.Logger,
+        notification_timeout: float | None = None,
     ) -> None:
         self.session = session
         self.send = send
         self.peer = peer
         self.executor = executor
         self.log = logger
+        self.notification_timeout = notification_timeout
         self.loop = asyncio.get_running_loop()
         self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
 
@@ -105,8 +120,14 @@ class CallRunner:
     # --- deadlines and cancellation -----------------------------------------------------------
 
     def begin(self, work: Work) -> None:
-        """Give a call or notification its context, its deadline measured from now."""
+        """Give a call or notification its context, its deadline measured from now.
+
+        A notification without a deadline of its own gets ``notification_timeout``: nobody
+        waits for it, so nothing else would ever end one that hangs.
+        """
         timeout = work.timeout
+        if timeout is None and type(work) is NotificationCall:
+            timeout = self.notification_timeout
         work.context = Context(
             service=work.entry.name,
             request_id=work.id if type(work) is Call else None,
@@ -263,7 +284,18 @@ class CallRunner:
 class ServedConnection:
     """One client connection: its session, its reader, and the runner of its calls."""
 
-    __slots__ = ("conn", "log", "loop", "reader", "reading", "runner", "session", "tasks")
+    __slots__ = (
+        "conn",
+        "drops",
+        "drops_logged",
+        "log",
+        "loop",
+        "reader",
+        "reading",
+        "runner",
+        "session",
+        "tasks",
+    )
 
     def __init__(
         self,
@@ -272,6 +304,7 @@ class ServedConnection:
         *,
         max_in_flight: int,
         max_batch: int = 100,
+        notification_timeout: float | None = None,
         executor: Executor | None,
         logger: logging.Logger,
     ) -> None:
@@ -281,8 +314,15 @@ class ServedConnection:
             registry, max_in_flight=max_in_flight, max_batch=max_batch
         )
         self.runner = CallRunner(
-            self.session, self.send, peer=conn.remote_address, executor=executor, logger=logger
+            self.session,
+            self.send,
+            peer=conn.remote_address,
+            executor=executor,
+            logger=logger,
+            notification_timeout=notification_timeout,
         )
+        self.drops = 0  # notifications dropped and not logged yet
+        self.drops_logged = -DROP_LOG_INTERVAL  # when a drop was last logged (loop time)
         self.loop = asyncio.get_running_loop()
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
@@ -337,6 +377,7 @@ class ServedConnection:
         try:
             await self.reading
         finally:
+            self.log_drops()
             if not self.reading.done():  # this handler was cancelled: stop reading too
                 self.reading.cancel()
                 if self.reader is not None:
@@ -438,6 +479,13 @@ class ServedConnection:
                     self.dropped(event)
 
     def dropped(self, event: Dropped[ServiceEntry]) -> None:
+        """Log a dropped notification; past one a :data:`DROP_LOG_INTERVAL`, count it instead."""
+        now = self.loop.time()
+        if now - self.drops_logged < DROP_LOG_INTERVAL:
+            self.drops += 1
+            return
+        self.log_drops()
+        self.drops_logged = now
         level = logging.WARNING if event.busy else logging.INFO
         self.log.log(
             level,
@@ -446,6 +494,16 @@ class ServedConnection:
             self.peer,
             event.reason,
         )
+
+    def log_drops(self) -> None:
+        """Say how many notifications were dropped without a line of their own."""
+        if self.drops:
+            self.log.warning(
+                "dropped %d more notifications from %s since the last line about one",
+                self.drops,
+                self.peer,
+            )
+            self.drops = 0
 
     async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
         """Take back a cancellation of the reader that a handler requested while it ran inline.
