@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import importlib.metadata
 import importlib.util
+import io
 import os
 import re
 import signal
@@ -516,6 +517,17 @@ def test_interface_proto_of_an_action_is_its_goal(
     assert (code, out) == (ExitCode.OK, "{target: {x: 0.0, y: 1.5}}\n")
 
 
+def test_interface_proto_of_a_name_without_package_suggests_full_names(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, out, err = run(capsys, "interface", "proto", "AddTwoInts")
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        "'AddTwoInts' has no package: write pkg/kind/Name or pkg/Name, as ros2 interface does; "
+        "did you mean example_interfaces/srv/AddTwoInts?"
+    )
+
+
 def test_interface_proto_of_an_empty_request(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = run(capsys, "interface", "proto", "std_srvs/srv/Trigger")
     assert (code, out) == (ExitCode.OK, '"{}\n"\n')
@@ -547,6 +559,52 @@ def test_interface_check_reports_each_broken_file(
 def test_interface_check_one_file(capsys: pytest.CaptureFixture[str], packages: Path) -> None:
     code, out, _ = run(capsys, "interface", "check", str(packages / "demo/msg/Vec.msg"))
     assert (code, out) == (ExitCode.OK, "checked 1 file, 0 errors\n")
+
+
+def test_interface_check_resolves_nested_types(
+    capsys: pytest.CaptureFixture[str], packages: Path, tmp_path: Path
+) -> None:
+    lost = write(packages, "demo/msg/Lost.msg", "# Nested types.\nVec here\n  Missing gone\n")
+    uses = write(tmp_path, "app/srv/Use.srv", "demo/Segment s\n---\ngeometry_msgs/Nope n\n")
+    code, out, err = run(
+        capsys, "interface", "check", str(packages), str(uses), "--path", str(packages)
+    )
+    assert (code, err) == (ExitCode.FAILURE, "")
+    assert out.splitlines() == [
+        f"{lost}:3:3: unknown type 'demo/Missing' of field 'gone': "
+        "no message 'Missing' in package 'demo'",
+        f"{uses}:3:1: unknown type 'geometry_msgs/Nope' of field 'n': "
+        "no message 'Nope' in package 'geometry_msgs'",
+        "checked 6 files, 2 errors",
+    ]
+
+
+def test_interface_check_counts_a_broken_nested_file_once(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    write(packages, "demo/msg/Outer.msg", "Vec v\n")
+    broken = write(packages, "demo/msg/Vec.msg", "float64 x\nWhere w\n")
+    code, out, _ = run(capsys, "interface", "check", str(packages))
+    assert code == ExitCode.FAILURE
+    assert out.splitlines() == [
+        f"{broken}:2:1: unknown type 'demo/Where' of field 'w': "
+        "no message 'Where' in package 'demo'",
+        "checked 5 files, 1 error",
+    ]
+
+
+def test_interface_check_nested_type_outside_the_checked_files(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    broken = write(packages, "demo/msg/Vec.msg", "float64 x\nWhere w\n")
+    outer = write(packages, "demo/msg/Outer.msg", "Vec v\n")
+    code, out, _ = run(capsys, "interface", "check", str(outer))
+    assert code == ExitCode.FAILURE
+    assert out.splitlines() == [
+        f"{broken}:2:1: unknown type 'demo/Where' of field 'w': "
+        "no message 'Where' in package 'demo'",
+        "checked 1 file, 1 error",
+    ]
 
 
 def test_interface_check_missing_path(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -929,6 +987,114 @@ def test_call_bad_url_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert one_error_line(err).startswith("bad --url: not a WebSocket URL: 'http://localhost:1'")
 
 
+def test_call_values_from_stdin(
+    capsys: pytest.CaptureFixture[str], remote: Remote, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("sys.stdin", io.StringIO("a: 1\nb: 2\n"))
+    code, out, err = call(capsys, remote, "/add_two_ints", "--json", "-")
+    assert (code, out, err) == (ExitCode.OK, '{"sum": 3}\n', "")
+
+
+def test_call_values_from_a_file(
+    capsys: pytest.CaptureFixture[str], remote: Remote, tmp_path: Path
+) -> None:
+    request = write(tmp_path, "request.yaml", "a: 40\nb: 2\n")
+    code, out, err = call(capsys, remote, "/add_two_ints", f"@{request}", "--json")
+    assert (code, out, err) == (ExitCode.OK, '{"sum": 42}\n', "")
+
+
+def test_call_values_from_a_missing_file_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    missing = tmp_path / "nowhere.yaml"
+    code, out, err = run(capsys, "call", "/add_two_ints", f"@{missing}")
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err) == (f"cannot read VALUES from {missing}: No such file or directory")
+
+
+def test_call_values_from_a_folder_exit_2(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    code, _, err = run(capsys, "call", "/add_two_ints", f"@{tmp_path}")
+    assert code == ExitCode.USAGE
+    assert one_error_line(err).startswith(f"cannot read VALUES from {tmp_path}: ")
+
+
+@pytest.mark.parametrize(
+    ("source", "text", "message"),
+    [
+        (
+            "-",
+            "a: [1\n",
+            "invalid VALUES from standard input at line 2, column 1: "
+            "expected ',' or ']', but got '<stream end>'",
+        ),
+        (
+            "-",
+            "[1, 2]\n",
+            "invalid VALUES from standard input: expected a YAML mapping such as "
+            "'{a: 1, b: 2}', got list [1, 2]",
+        ),
+        (
+            "@{file}",
+            "a: 1\n b: 2\n",
+            "invalid VALUES in {file} at line 2, column 3: mapping values are not allowed here",
+        ),
+    ],
+)
+def test_call_bad_values_from_stdin_or_a_file_exit_2(
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    source: str,
+    text: str,
+    message: str,
+) -> None:
+    file = write(tmp_path, "request.yaml", text)
+    monkeypatch.setattr("sys.stdin", io.StringIO(text))
+    code, out, err = run(capsys, "call", "/add_two_ints", source.replace("{file}", str(file)))
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err) == message.replace("{file}", str(file))
+
+
+def test_call_url_without_a_scheme_means_ws(
+    capsys: pytest.CaptureFixture[str], remote: Remote, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    host_port = remote.url.removeprefix("ws://")
+    code, out, _ = run(
+        capsys, "call", "/add_two_ints", "{a: 1, b: 2}", "--json", "--url", host_port
+    )
+    assert (code, out) == (ExitCode.OK, '{"sum": 3}\n')
+    monkeypatch.setenv("SRVWIRE_URL", host_port)
+    code, out, _ = run(capsys, "service", "type", "/trigger")
+    assert (code, out) == (ExitCode.OK, "std_srvs/srv/Trigger\n")
+
+
+def test_call_url_without_a_port_exits_2(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    code, _, err = run(capsys, "call", "/trigger", "--url", "robot")
+    assert code == ExitCode.USAGE
+    assert one_error_line(err) == (
+        "bad --url: 'robot' is not a server address; "
+        "expected ws://HOST:PORT, wss://HOST:PORT or HOST:PORT"
+    )
+    monkeypatch.setenv("SRVWIRE_URL", "robot")
+    code, _, err = run(capsys, "service", "list")
+    assert code == ExitCode.USAGE
+    assert one_error_line(err) == (
+        "bad $SRVWIRE_URL: 'robot' is not a server address; "
+        "expected ws://HOST:PORT, wss://HOST:PORT or HOST:PORT"
+    )
+
+
+def test_call_url_ipv6_host_and_port(capsys: pytest.CaptureFixture[str], closed_url: str) -> None:
+    port = closed_url.rsplit(":", 1)[1]
+    code, _, err = run(capsys, "call", "/trigger", "--url", f"[::1]:{port}")
+    assert code in (ExitCode.UNAVAILABLE,)
+    assert f"cannot connect to ws://[::1]:{port}" in one_error_line(err)
+
+
 @pytest.mark.parametrize(("argv", "expected"), [([], ExitCode.INTERRUPTED), (["-r", "1"], 0)])
 def test_call_interrupted(
     capsys: pytest.CaptureFixture[str],
@@ -1181,6 +1347,7 @@ def test_serve_a_file_until_ctrl_c(capsys: pytest.CaptureFixture[str], tmp_path:
     assert rest == "shutting down\nstopped\n"
     assert "Traceback" not in err
     assert "DEBUG srvwire.server: connection from" in err
+    assert "serving" not in err and "shutting down" not in err  # said once, on stdout
 
 
 @pytest.mark.parametrize(

@@ -133,10 +133,10 @@ def _take_late_positionals(
     argparse matches consecutive positionals in one go, so optional ones that come after an
     option are left over as "unrecognized". A command that takes them back names them in its
     ``late_positionals`` default (``call``: TYPE and VALUES); any other leftover is an error,
-    as argparse says.
+    as argparse says. A lone ``-`` is a positional (``call``'s VALUES from stdin).
     """
     slots: tuple[str, ...] = getattr(args, "late_positionals", ())
-    if slots and not any(extra.startswith("-") for extra in extras):
+    if slots and not any(extra.startswith("-") and extra != "-" for extra in extras):
         free = [slot for slot in slots if getattr(args, slot) is None]
         if len(extras) <= len(free):
             for slot, extra in zip(free, extras, strict=False):

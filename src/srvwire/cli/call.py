@@ -13,6 +13,8 @@ import asyncio
 import json
 import logging
 import re
+import sys
+from pathlib import Path
 from typing import Any
 
 import pydantic
@@ -50,9 +52,11 @@ def register(commands: Commands) -> None:
         "  srvwire call /add_two_ints '{a: 1, b: 2}'\n"
         "  srvwire call /add_two_ints example_interfaces/srv/AddTwoInts '{a: 1, b: 2}'\n"
         "  srvwire call /trigger --json\n"
-        "  srvwire call /get_robot_state '{query_type: pose}' --rate 2\n\n"
+        "  srvwire call /get_robot_state '{query_type: position}' --rate 2\n"
+        "  srvwire call /add_two_ints @request.yaml\n\n"
         "TYPE may be left out when the server advertises the service's type. With only one of\n"
-        "TYPE and VALUES given, it is TYPE when it looks like pkg/srv/Name or pkg/Name.\n\n"
+        "TYPE and VALUES given, it is TYPE when it looks like pkg/srv/Name or pkg/Name.\n"
+        "VALUES '-' reads the mapping from standard input, and '@FILE' from FILE.\n\n"
         + EXIT_CODES_HELP,
         [remote_options(), local_options()],
     )
@@ -64,7 +68,8 @@ def register(commands: Commands) -> None:
         "values",
         metavar="VALUES",
         nargs="?",
-        help="the request as a YAML mapping, e.g. '{a: 1, b: 2}' (default: {}, all defaults)",
+        help="the request as a YAML mapping, e.g. '{a: 1, b: 2}'; '-' reads it from stdin, "
+        "'@FILE' from FILE (default: {}, all defaults)",
     )
     call.add_argument(
         "-r",
@@ -105,23 +110,39 @@ def _cmd_call(args: argparse.Namespace) -> int:
 
 
 def _parse_values(text: str | None) -> dict[str, Any]:
-    """Read VALUES: a YAML mapping, ``{}`` when left out."""
+    """Read VALUES: a YAML mapping, ``{}`` when left out; ``-`` is stdin and ``@path`` a file."""
     if text is None:
         return {}
+    what = "VALUES"
+    if text == "-":
+        what, text = "VALUES from standard input", sys.stdin.read()
+    elif text.startswith("@"):
+        path = text[1:]
+        try:
+            what, text = f"VALUES in {path}", Path(path).read_text(encoding="utf-8")
+        except OSError as exc:
+            reason = exc.strerror or str(exc)
+            raise CommandError(
+                f"cannot read VALUES from {path}: {reason}", ExitCode.USAGE
+            ) from None
+        except UnicodeDecodeError as exc:
+            raise CommandError(
+                f"cannot read VALUES from {path}: not UTF-8 text ({exc.reason})", ExitCode.USAGE
+            ) from None
     try:
         values = yaml.safe_load(text)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = exc.problem or exc.context or "not valid YAML"
-        raise CommandError(f"invalid VALUES{where}: {problem}", ExitCode.USAGE) from None
+        raise CommandError(f"invalid {what}{where}: {problem}", ExitCode.USAGE) from None
     except yaml.YAMLError as exc:
-        raise CommandError(f"invalid VALUES: {exc}", ExitCode.USAGE) from None
+        raise CommandError(f"invalid {what}: {exc}", ExitCode.USAGE) from None
     if values is None:
         return {}
     if not isinstance(values, dict):
         raise CommandError(
-            f"invalid VALUES: expected a YAML mapping such as '{{a: 1, b: 2}}', "
+            f"invalid {what}: expected a YAML mapping such as '{{a: 1, b: 2}}', "
             f"got {type(values).__name__} {values!r}",
             ExitCode.USAGE,
         )
@@ -187,10 +208,11 @@ def _validate_request(name: str, srv_type: type[Service], values: dict[str, Any]
         return validate_request(name, srv_type, values)
     except InvalidParams as exc:
         errors = exc.errors
+        count = exc.data.get("error_count") if isinstance(exc.data, dict) else None
         raise InvalidParams(
             f"VALUES do not fit {srv_type.type_name} (checked locally, not sent): "
-            f"{summarize_errors(errors)}",
-            {"errors": errors},
+            f"{summarize_errors(errors, count)}",
+            exc.data,
             service=name,
         ) from None
 

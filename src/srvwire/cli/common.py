@@ -15,15 +15,18 @@ import argparse
 import contextlib
 import enum
 import os
+import re
 from collections.abc import AsyncIterator, Mapping, Sequence
 from pathlib import Path
 from typing import Final, NoReturn, TypeAlias
 
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect
-from srvwire.errors import ErrorCode, RPCError, is_reserved_code
+from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
 from srvwire.loader import InterfaceLoader, default_search_path
 
 URL_ENV_VAR = "SRVWIRE_URL"
+
+_HOST_PORT = re.compile(r"^(?:\[[0-9A-Fa-f:.]+\]|[^:/\[\]]+):\d+$")
 
 
 class ExitCode(enum.IntEnum):
@@ -143,8 +146,8 @@ def remote_options() -> Parser:
     remote = Parser(add_help=False)
     remote.add_argument(
         "--url",
-        default=os.environ.get(URL_ENV_VAR) or DEFAULT_URL,
-        help=f"server to talk to (default: ${URL_ENV_VAR}, else {DEFAULT_URL})",
+        help=f"server to talk to, ws://HOST:PORT, wss://HOST:PORT or HOST:PORT "
+        f"(default: ${URL_ENV_VAR}, else {DEFAULT_URL})",
     )
     remote.add_argument(
         "--timeout",
@@ -210,16 +213,54 @@ def interface_loader(args: argparse.Namespace) -> InterfaceLoader:
     return InterfaceLoader([*extra, *default_search_path()])
 
 
+def resolve_type(loader: InterfaceLoader, name: str) -> str:
+    """Return the full name of TYPE; a name without a package suggests the full names that fit.
+
+    As with ``ros2 interface``, TYPE names its package: ``AddTwoInts`` alone is an error, which
+    names the types of that name on the search path.
+    """
+    if "/" in name:
+        return loader.resolve_name(name)
+    matches = [full for full in loader.types() if full.rsplit("/", 1)[1] == name]
+    fits = f"; did you mean {' or '.join(matches)}?" if matches else ""
+    raise InterfaceError(
+        f"{name!r} has no package: write pkg/kind/Name or pkg/Name, as ros2 interface does{fits}"
+    )
+
+
+def server_url(args: argparse.Namespace) -> str:
+    """The server's URL: ``--url``, else ``$SRVWIRE_URL``, else the default.
+
+    ``HOST:PORT`` means ``ws://HOST:PORT``; any other text without a scheme is a usage error.
+    A URL with a scheme is left for the transport to check.
+    """
+    given: str | None = args.url
+    source = "--url"
+    if given is None:
+        given, source = os.environ.get(URL_ENV_VAR) or DEFAULT_URL, f"${URL_ENV_VAR}"
+    if "://" in given:
+        return given
+    if _HOST_PORT.match(given):
+        return f"ws://{given}"
+    raise CommandError(
+        f"bad {source}: {given!r} is not a server address; "
+        "expected ws://HOST:PORT, wss://HOST:PORT or HOST:PORT",
+        ExitCode.USAGE,
+    )
+
+
 @contextlib.asynccontextmanager
 async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
     """Open a client on ``--url`` with ``--timeout`` and the search path, as ``async with``.
 
-    A URL that is not ``ws://`` or ``wss://`` is a usage error.
+    A URL that is not ``ws://``, ``wss://`` or ``HOST:PORT`` is a usage error.
     """
+    url = server_url(args)
+    source = "--url" if args.url is not None else f"${URL_ENV_VAR}"
     entered = False
     try:
         async with connect(
-            args.url,
+            url,
             timeout=args.timeout,
             open_timeout=args.timeout,
             search_path=[*getattr(args, "path", []), *default_search_path()],
@@ -229,7 +270,7 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
     except ValueError as exc:
         if entered:  # raised by the command, not by connecting: not about --url
             raise
-        raise CommandError(f"bad --url: {exc}", ExitCode.USAGE) from None
+        raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
 
 
 def plural(count: int, noun: str) -> str:

@@ -1,8 +1,9 @@
 """``srvwire interface``: list, show, template and check interface files; no server involved.
 
-Every subcommand but ``check`` reads the search path (``--path``, then the default one) through
-one :class:`~srvwire.loader.InterfaceLoader`; ``check`` parses the files it is given, each on
-its own.
+Every subcommand reads the search path (``--path``, then the default one) through an
+:class:`~srvwire.loader.InterfaceLoader`. ``check`` parses the files it is given, then loads each
+through a loader that finds its package first, so the loader reports a nested type that does not
+resolve, at the field that names it.
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ from srvwire.cli.common import (
     interface_loader,
     local_options,
     plural,
+    resolve_type,
 )
-from srvwire.errors import InterfaceError
+from srvwire.errors import InterfaceError, InterfaceSyntaxError
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
-from srvwire.loader import InterfaceLoader
+from srvwire.loader import InterfaceLoader, default_search_path
 from srvwire.parser import parse_file, split_comment
 
 INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
@@ -131,7 +133,9 @@ def register(commands: Commands) -> None:
         "  srvwire interface check interfaces/\n"
         "  srvwire interface check my_pkg/srv/Move.srv my_pkg/msg/\n\n"
         "Folders are searched recursively for .msg, .srv and .action files. Each broken file\n"
-        "is reported as path:line:column: message; the exit code is 1 if any file is broken.",
+        "is reported as path:line:column: message; the exit code is 1 if any file is broken.\n"
+        "Nested types are looked up in the file's own package, then on the search path.",
+        [local],
     )
     check.add_argument(
         "paths", metavar="PATH", nargs="+", type=Path, help="an interface file or a folder"
@@ -172,7 +176,7 @@ def _cmd_interface_package(args: argparse.Namespace) -> int:
 def _cmd_interface_show(args: argparse.Namespace) -> int:
     loader = interface_loader(args)
     keep = "all" if args.all_comments else "none" if args.no_comments else "top"
-    for line in _definition_lines(loader, loader.resolve_name(args.type), keep, ()):
+    for line in _definition_lines(loader, resolve_type(loader, args.type), keep, ()):
         print(line)
     return ExitCode.OK
 
@@ -218,7 +222,7 @@ def _parts_of(spec: MessageSpec | ServiceSpec | ActionSpec) -> tuple[MessageSpec
 
 def _cmd_interface_proto(args: argparse.Namespace) -> int:
     loader = interface_loader(args)
-    name = loader.resolve_name(args.type)
+    name = resolve_type(loader, args.type)
     kind = name.split("/")[1]
     if kind == InterfaceKind.MSG.value:
         instance: pydantic.BaseModel = loader.load_message(name)()
@@ -251,9 +255,13 @@ def _cmd_interface_check(args: argparse.Namespace) -> int:
         else:
             raise CommandError(f"no such file or folder: {path}", ExitCode.USAGE)
     errors = 0
+    loaders: dict[Path, InterfaceLoader] = {}
+    checked = {str(file.absolute()) for file in files}
     for file in files:
         try:
-            parse_file(file)
+            spec = parse_file(file)
+            if file.parent.name == file.suffix.removeprefix("."):  # pkg/srv/Name.srv
+                _load_checked(file, spec.package, loaders, args.path, checked)
         except InterfaceError as exc:
             errors += 1
             print(exc)
@@ -262,3 +270,33 @@ def _cmd_interface_check(args: argparse.Namespace) -> int:
             print(f"{file}: cannot read the file: {exc.strerror}")
     print(f"checked {plural(len(files), 'file')}, {plural(errors, 'error')}")
     return ExitCode.FAILURE if errors else ExitCode.OK
+
+
+def _load_checked(
+    file: Path,
+    package: str,
+    loaders: dict[Path, InterfaceLoader],
+    extra: list[Path],
+    checked: set[str],
+) -> None:
+    """Load the type ``file`` defines, so its nested types resolve or are reported.
+
+    The loader searches the folder holding the file's package first, then ``--path`` and the
+    default search path; one loader serves every file under the same folder. An error the
+    loader places in ``file`` names it as the user wrote it; one in another checked file is
+    that file's to report, so it is counted once.
+    """
+    root = file.absolute().parent.parent.parent
+    loader = loaders.get(root)
+    if loader is None:
+        loader = loaders[root] = InterfaceLoader([root, *extra, *default_search_path()])
+    try:
+        loader.load(f"{package}/{file.parent.name}/{file.stem}")
+    except InterfaceSyntaxError as exc:
+        if exc.path in checked and exc.path != str(file.absolute()):
+            return
+        if exc.path != str(file.absolute()):
+            raise
+        raise InterfaceSyntaxError(
+            exc.message, path=file, line=exc.line, column=exc.column
+        ) from exc

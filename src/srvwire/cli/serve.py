@@ -23,6 +23,8 @@ from srvwire.server import RunningServer, Server
 
 _ATTRIBUTE_PATH = re.compile(r"^[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*$")
 _DEFAULT_TARGET_ATTRIBUTES = ("server", "app")
+# What Server.run logs as it starts and stops, which the ready/stopping callbacks print.
+_LIFECYCLE_LINE = re.compile(r"serving \d+ services? on \S+|shutting down")
 
 
 def register(commands: Commands) -> None:
@@ -66,6 +68,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     server = _load_target(args.target, factory=args.factory)
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.addFilter(_printed_already)
     package_logger = logging.getLogger("srvwire")
     previous_level = package_logger.level
     package_logger.addHandler(handler)
@@ -92,6 +95,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         package_logger.setLevel(previous_level)
     print("stopped", flush=True)
     return ExitCode.OK
+
+
+def _printed_already(record: logging.LogRecord) -> bool:
+    """Drop the server's log lines that ``serve`` prints on stdout, so each is said once."""
+    return not (record.name == "srvwire.server" and _LIFECYCLE_LINE.fullmatch(record.getMessage()))
 
 
 def _load_target(target: str, *, factory: bool = False) -> Server:
