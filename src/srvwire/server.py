@@ -43,6 +43,9 @@ __all__ = ["RunningServer", "Server", "serve"]
 
 H = TypeVar("H", bound=Handler)
 
+# Marks the log lines that say the server started or is stopping, for a caller that prints
+# them its own way (srvwire serve) to leave out: record.srvwire_lifecycle is True.
+_LIFECYCLE = {"srvwire_lifecycle": True}
 _LOOP_CHECK_INTERVAL = 1.0  # seconds between checks that a loop we wait on still runs
 
 
@@ -248,11 +251,13 @@ class Server:
             async with serve(self, host, port, transport=transport) as running:
                 count = len(self.registry)
                 services = "service" if count == 1 else "services"
-                self.logger.info("serving %d %s on %s", count, services, running.url)
+                self.logger.info(
+                    "serving %d %s on %s", count, services, running.url, extra=_LIFECYCLE
+                )
                 if ready is not None:
                     ready(running)
                 await stop.wait()
-                self.logger.info("shutting down")
+                self.logger.info("shutting down", extra=_LIFECYCLE)
                 if stopping is not None:
                     stopping(running)
         finally:

@@ -23,8 +23,6 @@ from srvwire.server import RunningServer, Server
 
 _ATTRIBUTE_PATH = re.compile(r"^[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*$")
 _DEFAULT_TARGET_ATTRIBUTES = ("server", "app")
-# What Server.run logs as it starts and stops, which the ready/stopping callbacks print.
-_LIFECYCLE_LINE = re.compile(r"serving \d+ services? on \S+|shutting down")
 
 
 def register(commands: Commands) -> None:
@@ -98,8 +96,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _printed_already(record: logging.LogRecord) -> bool:
-    """Drop the server's log lines that ``serve`` prints on stdout, so each is said once."""
-    return not (record.name == "srvwire.server" and _LIFECYCLE_LINE.fullmatch(record.getMessage()))
+    """Drop the server's start and stop lines, which ``serve`` prints on stdout its own way."""
+    return not getattr(record, "srvwire_lifecycle", False)
 
 
 def _load_target(target: str, *, factory: bool = False) -> Server:
