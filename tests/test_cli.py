@@ -1471,3 +1471,27 @@ def test_unexpected_errors_are_one_line(
     code, out, err = run(capsys, "interface", "packages")
     assert (code, out) == (ExitCode.FAILURE, "")
     assert one_error_line(err) == message
+
+
+def test_interface_check_finds_the_package_however_the_path_is_written(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # From inside the kind folder, or through '..': the package is where the file really is.
+    broken = write(tmp_path, "pkg/msg/N.msg", "Missing2 m\n")
+    expected = "unknown type 'pkg/Missing2' of field 'm': no message 'Missing2' in package 'pkg'"
+    monkeypatch.chdir(broken.parent)
+    for written in ("N.msg", "../msg/N.msg"):
+        code, out, _ = run(capsys, "interface", "check", written)
+        assert code == ExitCode.FAILURE, written
+        assert out.splitlines() == [f"{written}:1:1: {expected}", "checked 1 file, 1 error"]
+
+
+def test_call_values_from_a_closed_stdin_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str], remote: Remote, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("sys.stdin", None)
+    code, out, err = call(capsys, remote, "/add_two_ints", "-")
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert (
+        err == "srvwire: error: cannot read VALUES from standard input: standard input is closed\n"
+    )

@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Build the parser for every command; defaults that come from the environment are read now."""
+    """Build the parser for every command (the environment is read when a command runs)."""
     parser = Parser(
         prog="srvwire",
         description="ROS 2 style services over JSON-RPC 2.0 on WebSockets.",

@@ -14,6 +14,7 @@ import json
 import logging
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -109,26 +110,39 @@ def _cmd_call(args: argparse.Namespace) -> int:
         raise
 
 
+def _stdin() -> bytes:
+    stdin = sys.stdin
+    if stdin is None:
+        raise OSError("standard input is closed")
+    if stdin.isatty():
+        raise OSError("standard input is a terminal; pipe the values in, or give @FILE")
+    binary = getattr(stdin, "buffer", None)  # a text stream put in its place has none
+    return binary.read() if binary is not None else stdin.read().encode()
+
+
+def _read_values(source: str, read: Callable[[], bytes]) -> str:
+    """Read VALUES from ``source`` as UTF-8 text; a usage error says why it cannot be."""
+    try:
+        return read().decode("utf-8")
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise CommandError(f"cannot read VALUES from {source}: {reason}", ExitCode.USAGE) from None
+    except UnicodeDecodeError as exc:
+        raise CommandError(
+            f"cannot read VALUES from {source}: not UTF-8 text ({exc.reason})", ExitCode.USAGE
+        ) from None
+
+
 def _parse_values(text: str | None) -> dict[str, Any]:
     """Read VALUES: a YAML mapping, ``{}`` when left out; ``-`` is stdin and ``@path`` a file."""
     if text is None:
         return {}
     what = "VALUES"
     if text == "-":
-        what, text = "VALUES from standard input", sys.stdin.read()
+        what, text = "VALUES from standard input", _read_values("standard input", _stdin)
     elif text.startswith("@"):
         path = text[1:]
-        try:
-            what, text = f"VALUES in {path}", Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            reason = exc.strerror or str(exc)
-            raise CommandError(
-                f"cannot read VALUES from {path}: {reason}", ExitCode.USAGE
-            ) from None
-        except UnicodeDecodeError as exc:
-            raise CommandError(
-                f"cannot read VALUES from {path}: not UTF-8 text ({exc.reason})", ExitCode.USAGE
-            ) from None
+        what, text = f"VALUES in {path}", _read_values(path, Path(path).read_bytes)
     try:
         values = yaml.safe_load(text)
     except yaml.MarkedYAMLError as exc:

@@ -256,15 +256,18 @@ def _cmd_interface_check(args: argparse.Namespace) -> int:
             raise CommandError(f"no such file or folder: {path}", ExitCode.USAGE)
     errors = 0
     loaders: dict[Path, InterfaceLoader] = {}
-    checked = {str(file.absolute()) for file in files}
+    checked = {str(file.resolve()) for file in files}
     for file in files:
         try:
             spec = parse_file(file)
-            if file.parent.name == file.suffix.removeprefix("."):  # pkg/srv/Name.srv
+            if file.resolve().parent.name == file.suffix.removeprefix("."):  # pkg/srv/Name.srv
                 _load_checked(file, spec.package, loaders, args.path, checked)
-        except InterfaceError as exc:
+        except InterfaceSyntaxError as exc:
             errors += 1
             print(exc)
+        except InterfaceError as exc:  # no position of its own: say which file it is about
+            errors += 1
+            print(f"{file}: {exc}")
         except OSError as exc:
             errors += 1
             print(f"{file}: cannot read the file: {exc.strerror}")
@@ -286,16 +289,19 @@ def _load_checked(
     loader places in ``file`` names it as the user wrote it; one in another checked file is
     that file's to report, so it is counted once.
     """
-    root = file.absolute().parent.parent.parent
+    resolved = file.resolve()  # the folders as they are, whatever '..' the user wrote
+    root = resolved.parent.parent.parent
     loader = loaders.get(root)
     if loader is None:
         loader = loaders[root] = InterfaceLoader([root, *extra, *default_search_path()])
     try:
-        loader.load(f"{package}/{file.parent.name}/{file.stem}")
+        loader.load(f"{package}/{resolved.parent.name}/{file.stem}")
     except InterfaceSyntaxError as exc:
-        if exc.path in checked and exc.path != str(file.absolute()):
+        here = str(resolved)
+        there = str(Path(exc.path).resolve()) if exc.path else None
+        if there in checked and there != here:
             return
-        if exc.path != str(file.absolute()):
+        if there != here:
             raise
         raise InterfaceSyntaxError(
             exc.message, path=file, line=exc.line, column=exc.column
