@@ -1415,3 +1415,17 @@ async def test_services_from_a_connection_that_is_no_longer_current_are_not_news
     assert dict(client.services) == before
     client.services_changed(current, {"/fresh": "x/srv/Y"})
     assert dict(client.services) == {"/fresh": "x/srv/Y"}
+
+
+def test_a_refusal_lists_ten_problems_and_counts_them_all() -> None:
+    from conftest import build
+    from srvwire.calls import ServiceCodec, encode_request
+
+    names = build("string[] names\n---\nbool ok\n", "Names")
+    request = names.Request(names=["\ud800"] * 25)  # validates, but cannot be written
+    with pytest.raises(InvalidParams) as caught:
+        encode_request("/names", ServiceCodec(names), request)
+    data = caught.value.data
+    assert [e["path"] for e in data["errors"]] == [f"names[{i}]" for i in range(10)]
+    assert data["error_count"] == 25
+    assert "(and 24 more)" in caught.value.message

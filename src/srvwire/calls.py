@@ -25,6 +25,7 @@ from srvwire.models import (
     dump_json,
     error_data,
     json_writer,
+    listed_errors,
     summarize_errors,
     unencodable_strings,
     validate_python,
@@ -132,7 +133,7 @@ def encode_request(
         errors = unencodable_strings(value) or [
             {"path": "", "message": str(exc), "type": "serialization_error"}
         ]
-        raise _refused(method, {"errors": errors}) from None
+        raise _refused(method, listed_errors(errors)) from None
     if not text.startswith("{"):  # a RootModel or a custom serializer: not params by name
         raise TypeError(
             f"the request for {method} must serialize to a JSON object (params by name); "

@@ -115,6 +115,7 @@ __all__ = [
     "dump_json",
     "error_data",
     "json_writer",
+    "listed_errors",
     "python_name",
     "summarize_errors",
     "unencodable_strings",
@@ -442,11 +443,12 @@ MAX_LISTED_ERRORS = 10
 """How many problems an ``INVALID_PARAMS`` error lists; ``error_count`` says how many there were."""
 
 
-def validation_errors(exc: pydantic.ValidationError) -> list[dict[str, str]]:
-    """Describe the first problems of ``exc`` as ``{"path": ..., "message": ..., "type": ...}``.
+def validation_errors(
+    exc: pydantic.ValidationError, limit: int | None = None
+) -> list[dict[str, str]]:
+    """Describe the problems of ``exc`` (the first ``limit``) as ``{"path", "message", "type"}``.
 
-    At most :data:`MAX_LISTED_ERRORS` of them, so that a reply is not much larger than the
-    request that caused it. ``path`` points into the payload by .srv field names:
+    ``path`` points into the payload by .srv field names:
     ``pose.position.x``, ``values[3]``, ``points[0].x``; it is ``""`` when the payload as a
     whole is wrong (not an object). ``type`` is pydantic's error type (``int_type``,
     ``less_than_equal``, ``extra_forbidden``).
@@ -454,17 +456,23 @@ def validation_errors(exc: pydantic.ValidationError) -> list[dict[str, str]]:
     listed = exc.errors(include_url=False, include_context=False, include_input=False)
     return [
         {"path": _path(error["loc"]), "message": error["msg"], "type": error["type"]}
-        for error in listed[:MAX_LISTED_ERRORS]
+        for error in listed[:limit]
     ]
 
 
 def error_data(exc: pydantic.ValidationError) -> dict[str, Any]:
-    """The ``data`` of the error for ``exc``: ``{"errors": [...]}``, and ``"error_count"``
-    when there were more problems than it lists."""
-    data: dict[str, Any] = {"errors": validation_errors(exc)}
-    count = exc.error_count()
-    if count > len(data["errors"]):
-        data["error_count"] = count
+    """The ``data`` of the error for ``exc``: see :func:`listed_errors`."""
+    return listed_errors(validation_errors(exc, MAX_LISTED_ERRORS), exc.error_count())
+
+
+def listed_errors(errors: Sequence[Mapping[str, str]], count: int | None = None) -> dict[str, Any]:
+    """``{"errors": [...]}`` with the first :data:`MAX_LISTED_ERRORS` of ``errors``, and
+    ``"error_count"`` (``count``, or how many ``errors`` holds) when that is more, so that a
+    reply is not much larger than the request that caused it."""
+    total = len(errors) if count is None else count
+    data: dict[str, Any] = {"errors": list(errors[:MAX_LISTED_ERRORS])}
+    if total > len(data["errors"]):
+        data["error_count"] = total
     return data
 
 
