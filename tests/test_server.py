@@ -22,6 +22,7 @@ from websockets.uri import parse_uri
 
 import srvwire
 from conftest import Echo, Hang, Subtract, Wire, build, open_wire, subtract, websockets_only
+from srvwire import serving
 from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
@@ -534,8 +535,13 @@ async def test_a_notification_runs_its_handler_without_a_reply(
 
 
 async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
-    server: Server, caplog: pytest.LogCaptureFixture, transport: Transport
+    server: Server,
+    caplog: pytest.LogCaptureFixture,
+    transport: Transport,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    monkeypatch.setattr(serving, "DROP_LOG_INTERVAL", 1e9)  # the whole test is one interval
+    caplog.set_level(logging.INFO, "srvwire.server")  # until the connection has ended too
     ran: list[Any] = []
 
     async def handler(request: Any) -> Any:
@@ -559,13 +565,14 @@ async def test_a_notification_with_a_bad_meta_is_dropped_not_answered(
     first, more = lines
     assert first.startswith(f"dropped a notification to /note from ('{host}', ")
     assert first.endswith("invalid _meta: must be an object, not a number")
-    assert more.startswith("dropped 2 more notifications from (")
+    assert more.startswith("dropped 2 more notifications from (")  # said as the connection ended
     assert more.endswith(") since the last line about one")
 
 
 async def test_a_flood_of_notifications_writes_two_lines_not_thousands(
-    caplog: pytest.LogCaptureFixture, transport: Transport
+    caplog: pytest.LogCaptureFixture, transport: Transport, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(serving, "DROP_LOG_INTERVAL", 1e9)  # the whole test is one interval
     server = Server(max_in_flight=1, grace_period=0)
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
@@ -1925,3 +1932,34 @@ async def test_a_reply_is_not_much_larger_than_the_request_that_caused_it(
         assert reply["error"]["message"].endswith("(and 19999 more)")
         assert len(json.dumps(reply)) < len(message) // 50
         await w.ws.close()
+
+
+async def test_the_count_of_dropped_notifications_is_said_when_the_interval_ends(
+    caplog: pytest.LogCaptureFixture, transport: Transport, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Not only when the connection ends: a timer says it once the interval has passed.
+    monkeypatch.setattr(serving, "DROP_LOG_INTERVAL", scaled(0.05))
+    server = Server(max_in_flight=1, grace_period=0)
+    hangs = Hang()
+    said = asyncio.Event()
+
+    class Said(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if "more notification" in record.getMessage():
+                said.set()
+
+    server.logger.addHandler(handler := Said())
+    try:
+        server.add_service("/hangs", Echo, hangs)
+        async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+            w = await open_wire(running)
+            await w.send(request("/hangs", id=1))
+            await hangs.entered.wait()
+            for _ in range(3):
+                await w.send({"jsonrpc": "2.0", "method": "/hangs"})
+            await said.wait()
+            await w.ws.close()
+    finally:
+        server.logger.removeHandler(handler)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped ")]
+    assert lines[1].startswith("dropped 2 more notifications from ")

@@ -55,8 +55,8 @@ __all__ = ["CallRunner", "ServedConnection"]
 
 
 DROP_LOG_INTERVAL = 1.0
-"""Seconds: at most one line about a dropped notification per connection in this time; the
-rest are counted, and their number said in the next line, or when the connection ends."""
+"""Seconds: at most one line about dropped notifications per connection in this time; the
+drops in between are counted, and their number said when it ends (or the connection does)."""
 
 Work: TypeAlias = Call[ServiceEntry] | NotificationCall[ServiceEntry]
 """What a connection runs: a call, or a notification."""
@@ -287,7 +287,9 @@ class ServedConnection:
     __slots__ = (
         "conn",
         "drops",
+        "drops_level",
         "drops_logged",
+        "drops_timer",
         "log",
         "loop",
         "reader",
@@ -322,7 +324,9 @@ class ServedConnection:
             notification_timeout=notification_timeout,
         )
         self.drops = 0  # notifications dropped and not logged yet
-        self.drops_logged = -DROP_LOG_INTERVAL  # when a drop was last logged (loop time)
+        self.drops_level = logging.INFO  # the most serious level among them
+        self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
+        self.drops_timer: asyncio.TimerHandle | None = None  # says the count when it fires
         self.loop = asyncio.get_running_loop()
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
@@ -479,14 +483,18 @@ class ServedConnection:
                     self.dropped(event)
 
     def dropped(self, event: Dropped[ServiceEntry]) -> None:
-        """Log a dropped notification; past one a :data:`DROP_LOG_INTERVAL`, count it instead."""
+        """Log a dropped notification, or count it if a line about drops was written less than
+        :data:`DROP_LOG_INTERVAL` ago; the count is said when that interval ends."""
+        level = logging.WARNING if event.busy else logging.INFO
         now = self.loop.time()
         if now - self.drops_logged < DROP_LOG_INTERVAL:
             self.drops += 1
+            self.drops_level = max(self.drops_level, level)
+            if self.drops_timer is None:
+                wait = self.drops_logged + DROP_LOG_INTERVAL - now
+                self.drops_timer = self.loop.call_later(wait, self.log_drops)
             return
-        self.log_drops()
         self.drops_logged = now
-        level = logging.WARNING if event.busy else logging.INFO
         self.log.log(
             level,
             "dropped a notification to %s from %s: %s",
@@ -496,14 +504,22 @@ class ServedConnection:
         )
 
     def log_drops(self) -> None:
-        """Say how many notifications were dropped without a line of their own."""
+        """Say how many notifications were dropped without a line of their own, at the level
+        the most serious of them had."""
+        if self.drops_timer is not None:
+            self.drops_timer.cancel()
+            self.drops_timer = None
         if self.drops:
-            self.log.warning(
-                "dropped %d more notifications from %s since the last line about one",
+            self.log.log(
+                self.drops_level,
+                "dropped %d more %s from %s since the last line about one",
                 self.drops,
+                "notification" if self.drops == 1 else "notifications",
                 self.peer,
             )
             self.drops = 0
+            self.drops_level = logging.INFO
+            self.drops_logged = self.loop.time()
 
     async def ignore_cancellation(self, entry: ServiceEntry | None) -> None:
         """Take back a cancellation of the reader that a handler requested while it ran inline.
