@@ -280,7 +280,9 @@ def write_call(id: int, method: str, params: str, timeout: float) -> bytes | Non
     ``Request(id, method, RawJSON(params), timeout).serialize()``, which calls this.
     """
     # a finite float less itself is 0.0 (infinity and NaN give NaN)
-    if params[-1:] != "}" or timeout - timeout != 0.0:
+    if type(id) is not int or type(timeout) is not float or timeout - timeout != 0.0:
+        return None
+    if params[-1:] != "}":
         return None
     method = _encode_method(method)
     if params[:2] == '{"':

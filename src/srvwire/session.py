@@ -26,8 +26,9 @@ Server invariants:
   :attr:`ServerSession.anonymous`.
 * **A batch is answered once, as one array**, in the order of its items, when its last call
   has replied; a batch of notifications only is not answered at all. A batch longer than
-  ``max_batch`` is one ``INVALID_REQUEST``, and ``rpc.discover`` is answered once per batch,
-  so that no reply is much larger than its request.
+  ``max_batch`` is refused whole, with one ``INVALID_REQUEST``, even one of notifications
+  only: it is not read. ``rpc.discover`` is answered once per batch, so that no reply is much
+  larger than its request.
 * **A notification is never answered.** One that cannot run is reported as :class:`Dropped`.
 """
 
@@ -439,7 +440,8 @@ class ClientSession(Generic[W]):
     Each waiting call is a *waiter* of the caller's choosing (the client uses a future); the
     session hands it back with its reply. Invariants: ids are positive integers, never reused
     on a session; a waiter is in :attr:`pending` from :meth:`request` until its reply arrives,
-    it is :meth:`cancel`-led or :meth:`forget`-ten, or the connection is :meth:`lost`.
+    it is :meth:`cancel`-led or taken out of :attr:`pending` by its caller, or the connection is
+    :meth:`lost`.
     """
 
     def __init__(self) -> None:
@@ -457,7 +459,7 @@ class ClientSession(Generic[W]):
         """
         id = next(self._ids)
         data = None
-        if params is not None and type(timeout) is float:
+        if params is not None and timeout is not None:
             data = write_call(id, method, params, timeout)
         if data is None:
             data = Request(
@@ -471,10 +473,6 @@ class ClientSession(Generic[W]):
         if self.pending.pop(id, None) is None:
             return None
         return cancel_notification(id).serialize()
-
-    def forget(self, id: int) -> None:
-        """Stop waiting for ``id`` without telling the server (it answered, or it is gone)."""
-        self.pending.pop(id, None)
 
     def lost(self) -> list[W]:
         """The connection ended: return every waiter, and wait for nothing any more."""
