@@ -14,6 +14,7 @@ LAYERS: dict[str, int] = {
     "errors": 0,
     "version": 0,
     "inline": 0,
+    "threads": 0,
     "idl": 1,
     "scanner": 1,
     "primitives": 1,

@@ -1963,3 +1963,47 @@ async def test_the_count_of_dropped_notifications_is_said_when_the_interval_ends
         server.logger.removeHandler(handler)
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped ")]
     assert lines[1].startswith("dropped 2 more notifications from ")
+
+
+STUCK_SCRIPT = """\
+import logging, sys, threading
+sys.path.insert(0, {tests!r})
+from conftest import Echo
+from srvwire.server import Server
+logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+server = Server(grace_period=0.1)
+def stuck(request):  # a blocking handler that never returns, as a hung driver call would
+    print("entered", flush=True)
+    threading.Event().wait()
+server.add_service("/stuck", Echo, stuck)
+server.run("127.0.0.1", 0, ready=lambda running: print("ready", running.url, flush=True))
+print("stopped", flush=True)
+"""
+
+
+async def test_sigterm_ends_the_process_even_with_a_blocking_handler_stuck(
+    tmp_path: Any,
+) -> None:
+    script = tmp_path / "stuck.py"
+    script.write_text(STUCK_SCRIPT.format(tests=str(ROOT / "tests")))
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, str(script), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+    )
+    try:
+        assert process.stderr is not None and process.stdout is not None
+        async with asyncio.timeout(scaled(20)):  # a backstop: the process must exit by itself
+            line = (await process.stdout.readline()).decode()
+            assert line.startswith("ready ws://127.0.0.1:"), line
+            w = await open_wire(line.split()[1])
+            await w.send(request("/stuck", id=1))
+            assert (await process.stdout.readline()).decode() == "entered\n"
+            process.send_signal(signal.SIGTERM)
+            assert error(await w.recv_reply()) == (1, -32003, "UNAVAILABLE")
+            assert await process.wait() == 0
+            assert (await process.stdout.read()).decode() == "stopped\n"
+            log = (await process.stderr.read()).decode()
+            assert "leaving 1 blocking handler running in its thread: stuck (" in log
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()

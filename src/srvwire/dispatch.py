@@ -29,10 +29,10 @@ Invariants:
   (``Task.cancelling()``): the server cancelled the call, and knows what to answer. A
   CancelledError the handler raises by itself (it awaited a future that something else
   cancelled) is a handler failure like any other, ``INTERNAL``, so the caller is still answered.
-* **Sync handlers never run on the event loop.** A plain ``def`` handler runs in the executor the
-  server was given, or in asyncio's default one. It cannot be interrupted: when its call is
-  cancelled or its deadline passes, the caller is answered at once and
-  :attr:`Context.cancelled` turns true so the handler can stop early.
+* **Sync handlers never run on the event loop.** A plain ``def`` handler runs in the server's
+  executor (by default its :class:`~srvwire.threads.HandlerThreads`). It cannot be
+  interrupted: when its call is cancelled or its deadline passes, the caller is answered at
+  once and :attr:`Context.cancelled` turns true so the handler can stop early.
 * **A deadline is the caller's, enforced by whoever runs the call.** ``_meta.timeout`` is
   measured from the moment the request was read; an already-expired deadline answers
   ``DEADLINE_EXCEEDED`` without running the handler. Past that, :func:`dispatch` is a plain

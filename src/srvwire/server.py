@@ -36,6 +36,7 @@ from srvwire.dispatch import Handler, ServiceRegistry
 from srvwire.errors import ServiceUnavailable
 from srvwire.models import Service
 from srvwire.serving import ServedConnection
+from srvwire.threads import HandlerThreads
 from srvwire.transports import get_transport
 from srvwire.transports.base import Connection, Listener, Options, Transport, TransportClosed
 
@@ -66,7 +67,8 @@ class Server:
     ``grace_period`` how long shutdown waits for calls in flight;
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
-    calls down); ``executor`` runs sync handlers (default: asyncio's).
+    calls down); ``executor`` runs sync handlers (default: the server's own
+    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive).
     """
 
     def __init__(
@@ -102,7 +104,7 @@ class Server:
         self.ping_interval = ping_interval
         self.ping_timeout = ping_timeout
         self.compression = compression
-        self.executor = executor
+        self.executor: Executor = executor if executor is not None else HandlerThreads()
         self.logger = logger if logger is not None else logging.getLogger(__name__)
         self._running: set[RunningServer] = set()
 
@@ -399,6 +401,17 @@ class RunningServer:
         closes = [conn.conn.close(1001, "server shutting down") for conn in self._connections]
         if closes:
             await asyncio.gather(*closes, return_exceptions=True)
+        executor = options.executor
+        stuck = executor.busy() if isinstance(executor, HandlerThreads) else []
+        if stuck:
+            options.logger.warning(
+                "leaving %d blocking %s running in %s: %s (a thread cannot be "
+                "cancelled; it does not keep the process alive)",
+                len(stuck),
+                "handler" if len(stuck) == 1 else "handlers",
+                "its thread" if len(stuck) == 1 else "their threads",
+                ", ".join(stuck),
+            )
         await self._listener.wait_closed()
 
     def _announce(self) -> None:
