@@ -255,12 +255,10 @@ class Request:
         params = self.params
         timeout = self.timeout
         id = self.id
-        if type(params) is RawJSON and type(timeout) is float and type(id) is int:
-            text = params.text
-            if type(text) is str:
-                written = write_call(id, self.method, text, timeout)
-                if written is not None:
-                    return written
+        if type(params) is RawJSON and type(params.text) is str and timeout is not None:
+            written = write_call(id, self.method, params.text, timeout)  # checks the rest
+            if written is not None:
+                return written
         return (
             '{"jsonrpc":"2.0","id":'
             + _encode_id(id)
@@ -271,11 +269,11 @@ class Request:
         ).encode()
 
 
-def write_call(id: int, method: str, params: str, timeout: float) -> bytes | None:
+def write_call(id: Id, method: str, params: str, timeout: float) -> bytes | None:
     """Write a request as the client sends its calls, in one go; None if it is not one.
 
-    ``params`` is an object written compactly, as pydantic writes one (``{}``, or ``{"`` and
-    the members), and ``timeout`` a finite float; other input is None, for
+    ``id`` is an int, ``params`` an object written compactly, as pydantic writes one (``{}``,
+    or ``{"`` and the members), and ``timeout`` a finite float; other input is None, for
     :meth:`Request.serialize` to write the long way. The same text as
     ``Request(id, method, RawJSON(params), timeout).serialize()``, which calls this.
     """

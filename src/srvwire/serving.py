@@ -148,27 +148,23 @@ class CallRunner:
         error = DeadlineExceeded(
             f"the deadline for {name} passed before the handler finished", service=name
         )
-        if type(work) is Call:
-            if self.session.answering(work):  # else its reply is built: let it go out
-                self.cancel(work, error)
-            return
-        work.context._mark_cancelled(error)
-        if work.task is not None and not work.task_cancelled:
-            work.task_cancelled = True
-            work.task.cancel()
+        if type(work) is Call and not self.session.answering(work):
+            return  # its reply is written: let it go out
+        self.cancel(work, error)
 
-    def cancel(self, call: Call[ServiceEntry], error: RPCError | None) -> None:
-        """Cancel ``call``; with ``error`` it answers that error, without it stays silent.
+    def cancel(self, work: Work, error: RPCError | None) -> None:
+        """Cancel a call or notification; with ``error`` a call answers that error, without it
+        stays silent.
 
-        A call whose task has not started is only marked: it answers when it starts. Its task
-        is cancelled once at most, since the call takes one cancellation back before replying.
+        A call whose task has not started is only marked: it answers when it starts. A task is
+        cancelled once at most, since the call takes one cancellation back before replying.
         """
-        context: Context | None = call.context
+        context: Context | None = work.context
         if context is not None:  # None only before the reader has begun it
             context._mark_cancelled(error)
-        task = call.task
-        if task is not None and not call.task_cancelled and (call.started or error is None):
-            call.task_cancelled = True
+        task = work.task
+        if task is not None and not work.task_cancelled and (work.started or error is None):
+            work.task_cancelled = True
             task.cancel()
 
     @staticmethod

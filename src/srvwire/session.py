@@ -162,8 +162,9 @@ class Call(Generic[E]):
 class NotificationCall(Generic[E]):
     """A notification to run; tell the session with :meth:`ServerSession.done` when it ends.
 
-    ``in_batch``: it came in a batch. ``context``, ``task`` and ``task_cancelled`` belong to
-    whoever runs it, as a :class:`Call`'s do.
+    ``in_batch``: it came in a batch. ``context``, ``task``, ``started`` and ``task_cancelled``
+    belong to whoever runs it, as a :class:`Call`'s do; it has nothing to answer, so it counts
+    as started from the first.
     """
 
     entry: E
@@ -172,6 +173,7 @@ class NotificationCall(Generic[E]):
     in_batch: bool = False
     context: Any = None
     task: Any = None
+    started: bool = True
     task_cancelled: bool = False
 
 
