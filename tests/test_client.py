@@ -1429,3 +1429,27 @@ def test_a_refusal_lists_ten_problems_and_counts_them_all() -> None:
     assert [e["path"] for e in data["errors"]] == [f"names[{i}]" for i in range(10)]
     assert data["error_count"] == 25
     assert "(and 24 more)" in caught.value.message
+
+
+async def test_an_injected_resolver_gives_typed_replies_for_types_no_file_defines(
+    transport: Transport,
+) -> None:
+    from conftest import build
+
+    made_here = build("int64 x\n---\nint64 twice\n", "Twice", package="made_here")
+    srv = Server()
+    srv.add_service("/twice", made_here, lambda request: {"twice": 2 * request.x})
+    resolved: list[str] = []
+
+    def resolve(type_name: str) -> type[Service]:
+        resolved.append(type_name)
+        return made_here
+
+    async with (
+        serve(srv, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, type_resolver=resolve) as client,
+    ):
+        reply = await client.call("/twice", {"x": 21})
+        assert type(reply) is made_here.Response and reply.twice == 42
+        await client.call("/twice", {"x": 1})
+    assert resolved == ["made_here/srv/Twice"]  # asked once, then kept

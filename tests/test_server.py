@@ -1149,15 +1149,19 @@ async def test_serving_until_a_signal_reports_the_bound_url(
 
 
 async def test_serve_forever_stops_when_cancelled_and_restores_signal_handlers(
-    server: Server, caplog: pytest.LogCaptureFixture
+    server: Server, caplog: pytest.LogCaptureFixture, transport: Transport
 ) -> None:
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     bound: asyncio.Future[RunningServer] = asyncio.get_running_loop().create_future()
     caplog.set_level(logging.INFO, "srvwire.server")
-    task = asyncio.create_task(server.serve_forever("127.0.0.1", 0, ready=bound.set_result))
+    task = asyncio.create_task(
+        server.serve_forever("127.0.0.1", 0, ready=bound.set_result, transport=transport)
+    )
     running = await bound
+    assert running.transport is transport
     assert f"serving 2 services on {running.url}" in caplog.messages
-    assert running.url == f"ws://127.0.0.1:{running.port}" and running.port > 0
+    scheme = "memory" if transport.name == "memory" else "ws"
+    assert running.url == f"{scheme}://127.0.0.1:{running.port}" and running.port > 0
     w = await open_wire(running)
     assert (await w.call(request("subtract", [4, 1])))["result"] == {"difference": 3}
     task.cancel()
@@ -1571,6 +1575,7 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
     server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
 ) -> None:
     # A handler that answers without waiting cannot be interrupted: its deadline needs no timer.
+    # One that waits gets one, disarmed once it has answered.
     armed = record_armed_timers(monkeypatch)
 
     async def waits(request: Any) -> Any:
@@ -1584,7 +1589,8 @@ async def test_only_a_handler_that_waits_is_bounded_by_a_deadline_timer(
         assert (await w.request("/echo", {"text": "a", **meta}))["result"] == {"text": "a"}
         assert armed == []
         assert (await w.request("/waits", {"text": "b", **meta}))["result"] == {"text": "b"}
-        assert len(armed) == 1
+        (timer,) = armed
+        assert timer.cancelled()
         await w.ws.close()
 
 
@@ -1701,25 +1707,6 @@ async def test_the_first_reason_wins_over_a_deadline_that_passes_later(
         await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}})
         assert error(await w.recv_reply()) == (1, -32002, "CANCELLED")
         assert finished_cleanup == [True]
-        await w.ws.close()
-
-
-async def test_a_deadline_timer_is_disarmed_once_the_call_is_answered(
-    server: Server, monkeypatch: pytest.MonkeyPatch, transport: Transport
-) -> None:
-    armed = record_armed_timers(monkeypatch)
-
-    async def waits(request: Any) -> Any:
-        await asyncio.sleep(0)
-        return {"text": request.text}
-
-    server.add_service("/waits", Echo, waits)
-    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
-        w = await open_wire(running)
-        reply = await w.request("/waits", {"text": "in time", **deadline(30)}, id=1)
-        assert reply["result"] == {"text": "in time"}
-        (timer,) = armed
-        assert timer.cancelled()
         await w.ws.close()
 
 
@@ -2007,3 +1994,17 @@ async def test_sigterm_ends_the_process_even_with_a_blocking_handler_stuck(
         if process.returncode is None:
             process.kill()
             await process.wait()
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ({"max_in_flight": 0}, "max_in_flight must be at least 1, not 0"),
+        ({"max_batch": 0}, "max_batch must be at least 1, not 0"),
+        ({"notification_timeout": -1}, "notification_timeout must be a number of seconds > 0"),
+        ({"grace_period": -1}, "grace_period must not be negative, not -1"),
+    ],
+)
+def test_bad_server_options_are_refused_at_once(option: dict[str, Any], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        Server(**option)
