@@ -1,4 +1,4 @@
-"""The interface packages bundled with srvwire: all load, with ROS 2's fields, all documented."""
+"""The tutorial's services and the first bundled ROS 2 types: their fields, every one documented."""
 
 from __future__ import annotations
 
@@ -111,17 +111,9 @@ def described(fields: tuple[FieldSpec, ...]) -> list[Field]:
     return [(str(field.type), field.name, field.default) for field in fields]
 
 
-def test_the_bundle_holds_exactly_these_types(loader: InterfaceLoader) -> None:
-    assert loader.types() == sorted([*SERVICES, *STANDARD_MESSAGES])
-    assert list(loader.packages()) == [
-        "advanced_communication_tutorials",
-        "builtin_interfaces",
-        "example_interfaces",
-        "geometry_msgs",
-        "sensor_msgs",
-        "std_msgs",
-        "std_srvs",
-    ]
+def test_the_bundle_holds_these_types(loader: InterfaceLoader) -> None:
+    # The exact list of every bundled package and type is in test_bundled_interfaces.py.
+    assert set([*SERVICES, *STANDARD_MESSAGES]) <= set(loader.types())
 
 
 @pytest.mark.parametrize("name", sorted([*SERVICES, *STANDARD_MESSAGES]))
