@@ -9,14 +9,18 @@ makes a missing or an extra file fail.
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
 from typing import Any, TypeAlias
 
 import pytest
 
 import srvwire
+from srvwire.errors import InterfaceError, InterfaceNotFoundError
 from srvwire.idl import ArrayKind, FieldSpec, InterfaceKind, MessageSpec, Scalar, TypeSpec, Value
 from srvwire.loader import InterfaceLoader, bundled_interfaces
 from srvwire.models import Action, Message, Service
+from support import ROOT
 
 BUNDLE = bundled_interfaces()
 SEARCH_PATH = [BUNDLE]  # only the bundle, whatever SRVWIRE_INTERFACE_PATH holds
@@ -472,3 +476,45 @@ def test_a_fibonacci_goal_result_and_feedback_hold_what_they_are_given() -> None
     assert fibonacci.Feedback(sequence=[0, 1, 1]).model_dump() == {"sequence": [0, 1, 1]}
     result = fibonacci.Result.model_validate_json('{"sequence": [0, 1, 1, 2, 3]}')
     assert result.model_dump() == {"sequence": [0, 1, 1, 2, 3]}
+
+
+# --- what docs/interfaces.md says of the bundle -----------------------------------------------
+
+
+def documented_packages() -> dict[str, dict[str, list[str]]]:
+    """Read the list under "Bundled packages": each package's types, by kind."""
+    page = (ROOT / "docs" / "interfaces.md").read_text(encoding="utf-8")
+    section = page.split("\n## Bundled packages\n", 1)[1].split("\n### ", 1)[0]
+    listed: dict[str, dict[str, list[str]]] = {}
+    for item in re.findall(r"^\* `(\w+)`: (.*?)(?=^\* |\n\n)", section, re.M | re.S):
+        package, text = item[0], " ".join(item[1].split())
+        listed[package] = {
+            kind: sorted(re.findall(r"\w+", found[0]))
+            for kind, label in (("msg", "Messages"), ("srv", "Services"), ("action", "Actions"))
+            if (found := re.findall(rf"{label}: ([\w, ]+)\.", text))
+        }
+    return listed
+
+
+def test_the_docs_list_every_bundled_package_and_type() -> None:
+    assert documented_packages() == EXPECTED
+
+
+# --- a package of the same name hides the bundled one as a whole ------------------------------
+
+
+def test_a_package_of_the_same_name_hides_the_whole_bundled_one(tmp_path: Path) -> None:
+    twist = tmp_path / "geometry_msgs" / "msg" / "Twist.msg"
+    twist.parent.mkdir(parents=True)
+    twist.write_text("# Only a linear speed.\nfloat64 speed\n", encoding="utf-8")
+    loader = InterfaceLoader([tmp_path, BUNDLE])
+    assert loader.packages()["geometry_msgs"] == tmp_path / "geometry_msgs"
+    assert loader.types("geometry_msgs") == ["geometry_msgs/msg/Twist"]
+    assert list(loader.load_message("geometry_msgs/msg/Twist").model_fields) == ["speed"]
+    with pytest.raises(InterfaceNotFoundError):
+        loader.load_message("geometry_msgs/msg/Pose")
+    with pytest.raises(InterfaceError):  # it nests a geometry_msgs type the overlay lacks
+        loader.load_message("nav_msgs/msg/Odometry")
+    # The other bundled packages are still there, whole.
+    assert loader.load_message("std_msgs/msg/Header").type_name == "std_msgs/msg/Header"
+    assert loader.types("sensor_msgs") == InterfaceLoader(SEARCH_PATH).types("sensor_msgs")
