@@ -264,12 +264,14 @@ def test_every_part_has_its_constants_as_class_attributes(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", ON_DISK)
-def test_every_file_says_what_it_is_for(name: str) -> None:
+def test_every_file_and_field_says_what_it_is_for(name: str) -> None:
     cls = load(name)
     text = InterfaceLoader(SEARCH_PATH).path_of(name).read_text(encoding="utf-8")
     assert text.startswith("# "), f"{name} does not open with a comment saying what it is"
     undocumented = [part.type_name for part in parts_of(cls) if not part.spec.doc]
     assert undocumented == []
+    bare = [field.name for part in parts_of(cls) for field in part.spec.fields if not field.doc]
+    assert bare == [], f"{name}: fields without a comment"
 
 
 # --- well-known constants and defaults --------------------------------------------------------
