@@ -11,6 +11,7 @@ a folder outside the clone, as they would on a robot.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import sysconfig
@@ -119,3 +120,23 @@ def test_the_installed_package_loads_a_bundled_type_from_the_wheel(installed: In
     assert Path(interfaces).is_relative_to(installed.venv)
     assert (Path(interfaces) / "example_interfaces" / "srv" / "AddTwoInts.srv").is_file()
     assert request == "a=2 b=3"
+
+
+def test_the_readme_is_the_wheels_description(installed: Installed) -> None:
+    with zipfile.ZipFile(installed.wheel) as wheel:
+        [name] = [name for name in wheel.namelist() if name.endswith(".dist-info/METADATA")]
+        metadata = wheel.read(name).decode()
+    headers, _, description = metadata.partition("\n\n")
+    assert "Description-Content-Type: text/markdown" in headers.splitlines()
+    assert description.strip() == (ROOT / "README.md").read_text(encoding="utf-8").strip()
+
+
+def test_the_readme_reads_on_a_package_index() -> None:
+    # It opens with the two commands; its links work where the description is shown away from
+    # the repository (an index page): every one is absolute, none points into the clone.
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert readme.startswith("# srvwire\n\n```sh\nmake demo   # ")
+    assert readme.split("```")[1].splitlines()[2].startswith("make test   # ")
+    targets = re.findall(r"\]\(([^)]+)\)", readme) + re.findall(r"^\[[^]]+\]:\s*(\S+)", readme)
+    assert targets
+    assert [target for target in targets if not target.startswith("https://")] == []
