@@ -128,6 +128,7 @@ def chromium(url: str, *args: str) -> str:
                 "--disable-background-networking",
                 "--disable-component-update",
                 "--disable-sync",
+                "--disable-dev-shm-usage",  # a container's /dev/shm is often too small
                 "--host-resolver-rules=MAP * ~NOTFOUND",  # no host name resolves: offline
                 f"--user-data-dir={profile}",
                 "--window-size=1280,900",
@@ -202,33 +203,35 @@ def test_the_resource_scanner_sees_fonts_and_scripts() -> None:
 # --- the site opened from disk in Chromium ---------------------------------------------------
 
 
-def test_the_index_opened_from_disk_reaches_every_page(site: Path) -> None:
-    index = site / "index.html"
-    dom = rendered(index)
-    assert "md-nav" in dom  # the theme's navigation, after its scripts ran
-    assert [url for url in resources(dom) if is_external(url)] == []
-    hrefs = links(dom)
-    assert [href for href in hrefs if not target(index, href).is_file()] == []
-    reached = {target(index, href) for href in hrefs}
+@pytest.fixture(scope="module")
+def index(site: Path) -> str:
+    """The index page's DOM, opened from disk with a search query (``?q=``), which the theme
+    runs once it has loaded its search index."""
+    return rendered(site / "index.html", "?q=deadline")
+
+
+def test_the_index_opened_from_disk_reaches_every_page(site: Path, index: str) -> None:
+    assert "md-nav" in index  # the theme's navigation, after its scripts ran
+    assert [url for url in resources(index) if is_external(url)] == []
+    hrefs = links(index)
+    assert [href for href in hrefs if not target(site / "index.html", href).is_file()] == []
+    reached = {target(site / "index.html", href) for href in hrefs}
     nav = yaml.safe_load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"))["nav"]
     listed = list(nav_pages(nav))
     missing = [page for page in listed if (site / page).with_suffix(".html") not in reached]
     assert missing == []
 
 
-def test_search_works_from_disk(site: Path) -> None:
-    # The theme opens search with the query of ?q= once its index is loaded; the results are
-    # then in the page. From file:// this takes the offline plugin's search_index.js and
+def test_search_works_from_disk(site: Path, index: str) -> None:
+    # From file:// search takes the offline plugin's search_index.js, and
     # docs/javascripts/iframe-worker.js, since a page opened from disk may not start a Worker.
-    index = site / "index.html"
-    dom = rendered(index, "?q=deadline")
-    meta = re.search(r'class="md-search-result__meta">([^<]*)<', dom)
+    meta = re.search(r'class="md-search-result__meta">([^<]*)<', index)
     assert meta is not None, "no search results in the page"
     count = re.fullmatch(r"(\d+) matching documents?", meta.group(1))
     assert count is not None and int(count.group(1)) >= 3, meta.group(1)
-    results = re.findall(r'<a href="([^"]+)" class="md-search-result__link"', dom)
+    results = re.findall(r'<a href="([^"]+)" class="md-search-result__link"', index)
     assert results
-    assert [href for href in results if not target(index, href).is_file()] == []
+    assert [href for href in results if not target(site / "index.html", href).is_file()] == []
 
 
 # A script added to a copy of a page: after the page has loaded, it lists the inline code of its
