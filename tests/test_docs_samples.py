@@ -71,6 +71,12 @@ COMMANDS: dict[str, str] = {
     r"pip install \.": "tests/test_install.py installs the wheel that this builds",
     r"pip install -e '\.\[dev\]'": "what the Makefile runs for make test and make demo",
     r"pip wheel --no-deps \. -w dist": "tests/test_install.py builds the wheel this way",
+    r"pip download dist/srvwire-[\w.-]+\.whl -d dist": (
+        "fetches from the package index; tests/test_install.py needs no network"
+    ),
+    r"pip install --no-index --find-links dist srvwire": (
+        "tests/test_install.py installs the wheel with --no-index (its dependencies from this venv)"
+    ),
     r"scp dist/srvwire-[\w.-]+\.whl robot:": "copies a file to another machine",
     r"python3 -m venv ~/srvwire-env": "tests/test_install.py installs into a new venv",
     r"~/srvwire-env/bin/pip install \./srvwire-[\w.-]+\.whl": (

@@ -68,7 +68,10 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Installed]:
     )
     [site] = venv.glob("lib/python*/site-packages")
     (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    pip("--python", str(venv / "bin" / "python"), "install", "--no-deps", "--no-index", str(wheel))
+    target = ("--python", str(venv / "bin" / "python"))
+    # By its path: named as "srvwire", pip would see this venv's editable srvwire through the
+    # .pth line and call it already installed.
+    pip(*target, "install", "--no-deps", "--no-index", str(wheel))
     cwd = root / "elsewhere"
     cwd.mkdir()
     yield Installed(wheel, venv, cwd)
