@@ -78,7 +78,8 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Installed]:
 
 
 def test_the_wheel_holds_the_package_and_the_interface_files(installed: Installed) -> None:
-    names = zipfile.ZipFile(installed.wheel).namelist()
+    with zipfile.ZipFile(installed.wheel) as wheel:
+        names = wheel.namelist()
     assert "srvwire/__init__.py" in names
     assert "srvwire/py.typed" in names
     bundled = ROOT / "interfaces"
