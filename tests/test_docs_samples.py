@@ -11,7 +11,7 @@ Each fenced block of ``docs/*.md`` (every page, so a new page is covered as it l
   test runs: ``srvwire ...`` by tests/test_cli_docs.py, ``python examples/NAME.py`` transcripts
   by tests/test_docs_examples.py, and the others as ``COMMANDS`` says, each with its test or the
   reason it cannot run here;
-* **json** and **toml**: the block parses;
+* **json** and **toml**: the block parses; **javascript** (``js``): ``node --check`` accepts it;
 * **interface**: a block with no language on docs/interfaces.md is an interface file's text,
   and srvwire's parser reads it;
 * **wire**: a ``text`` block of ``> `` and ``< `` lines is a wscat session: each line parses as
@@ -60,7 +60,7 @@ COMMANDS: dict[str, str] = {
     r"MALLOC_TOP_PAD_=\d+ \.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness with the heap kept: minutes long; tests/test_benchmarks.py runs it"
     ),
-    r"(\.venv/bin/)?python examples/robot_state_server\.py": (
+    r"(\.venv/bin/)?python examples/robot_state_server\.py( &)?": (
         "serves until stopped: tests/test_examples.py runs it in a child process"
     ),
     r"\.venv/bin/python examples/robot_command_client\.py": (
@@ -212,6 +212,8 @@ def kind(block: Block) -> str | None:
         return "commands"
     if block.language in {"json", "toml"}:
         return block.language
+    if block.language in {"js", "javascript"}:
+        return "javascript"
     if block.language == "" and block.page.name == "interfaces.md" and block.key not in EXPLAINED:
         return "interface"
     if block.language == "text" and is_wire_session(block):
@@ -225,26 +227,28 @@ def of_kind(name: str) -> list[Block]:
     return [block for block in BLOCKS if kind(block) == name]
 
 
+def hint(block: Block) -> str:
+    """How a block that fits no kind could get a check."""
+    if re.match(r"\$ python examples/\w+\.py$", block.first):
+        return "a transcript: mark it ```console, and tests/test_docs_examples.py runs it"
+    if block.first.startswith("$ "):
+        return "commands: mark it ```console (or ```sh without the prompts)"
+    return "list it in EXPLAINED with the test that checks it, or why nothing can"
+
+
 def test_every_block_is_checked() -> None:
-    unchecked = [f"{block}: ```{block.info}: {block.first}" for block in BLOCKS if not kind(block)]
-    assert unchecked == [], (
-        "give each block a check (tests/test_docs_samples.py's docstring lists the kinds): "
-        "include Python from examples/, mark JSON ```json, or list the block in EXPLAINED"
-    )
+    unchecked = [
+        f"{block}: ```{block.info} {block.first!r}: {hint(block)}"
+        for block in BLOCKS
+        if not kind(block)
+    ]
+    assert unchecked == [], "blocks no test checks (the module's docstring lists the kinds)"
 
 
 def test_the_pages_have_blocks_of_every_kind() -> None:
     kinds = {kind(block) for block in BLOCKS}
-    assert kinds == {
-        "included",
-        "python",
-        "commands",
-        "json",
-        "toml",
-        "interface",
-        "wire",
-        "explained",
-    }
+    expected = {"included", "python", "commands", "json", "toml", "interface", "wire", "explained"}
+    assert expected <= kinds  # each kind's check has something to check
 
 
 def test_every_explanation_and_command_pattern_is_used() -> None:
@@ -308,6 +312,27 @@ def test_a_shell_block_is_valid_bash(block: Block) -> None:
 @pytest.mark.parametrize("block", of_kind("json"), ids=str)
 def test_json_parses(block: Block) -> None:
     json.loads("\n".join(block.body))
+
+
+def node_check(source: str, folder: Path) -> str:
+    """What ``node --check`` says of a script: "" when it is valid JavaScript."""
+    script = folder / "sample.js"
+    script.write_text(source, encoding="utf-8")
+    result = subprocess.run(
+        ["node", "--check", str(script)], capture_output=True, text=True, timeout=30, check=False
+    )
+    return "" if result.returncode == 0 else result.stderr or f"exit {result.returncode}"
+
+
+def test_javascript_is_valid(tmp_path: Path) -> None:
+    # One test for every ```js block (there may be none), after one that must be refused.
+    assert node_check("const a = ;\n", tmp_path) != ""
+    invalid = {
+        str(block): error
+        for block in of_kind("javascript")
+        if (error := node_check("\n".join(block.body) + "\n", tmp_path))
+    }
+    assert invalid == {}
 
 
 @pytest.mark.parametrize("block", of_kind("toml"), ids=str)
