@@ -67,7 +67,9 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Installed]:
         [sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=60
     )
     [site] = venv.glob("lib/python*/site-packages")
-    (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    here = sysconfig.get_paths()
+    folders = dict.fromkeys([here["purelib"], here["platlib"]])  # the same folder in a venv
+    (site / "dependencies.pth").write_text("".join(f"{folder}\n" for folder in folders))
     target = ("--python", str(venv / "bin" / "python"))
     # By its path: named as "srvwire", pip would see this venv's editable srvwire through the
     # .pth line and call it already installed.
