@@ -80,6 +80,8 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Installed]:
 
 
 def test_the_wheel_holds_the_package_and_the_interface_files(installed: Installed) -> None:
+    # Pure Python, the name docs/installation.md shows: one file for every platform.
+    assert installed.wheel.name == f"srvwire-{srvwire.__version__}-py3-none-any.whl"
     with zipfile.ZipFile(installed.wheel) as wheel:
         names = wheel.namelist()
     assert "srvwire/__init__.py" in names
