@@ -148,3 +148,12 @@ def test_the_readme_reads_on_a_package_index() -> None:
     targets = re.findall(r"\]\(([^)]+)\)", readme) + re.findall(r"^\[[^]]+\]:\s*(\S+)", readme)
     assert targets
     assert [target for target in targets if not target.startswith("https://")] == []
+
+
+def test_the_installation_page_names_this_version() -> None:
+    page = (ROOT / "docs" / "installation.md").read_text(encoding="utf-8")
+    version = srvwire.__version__
+    assert set(re.findall(r"srvwire-[\w.]+-py3-none-any\.whl", page)) == {
+        f"srvwire-{version}-py3-none-any.whl"
+    }
+    assert f"srvwire --version          # srvwire {version}\n" in page
