@@ -22,6 +22,14 @@ $(NODE_INSTALLED): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
 	touch $@
 
+# Chromium, in which tests/test_docs_site.py opens the built docs site: the Debian package,
+# installed here when it is missing and make runs as root (as on CI).
+.PHONY: chromium
+chromium:
+	@command -v chromium >/dev/null 2>&1 || [ "$$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1 \
+		|| { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
+	@command -v chromium >/dev/null 2>&1 || { echo 'make test needs Chromium: tests/test_docs_site.py opens the docs site in it; install the Debian package: apt-get install chromium' >&2; exit 1; }
+
 demo: $(INSTALLED)
 	@$(BIN)/python examples/demo.py
 
@@ -35,7 +43,7 @@ typecheck: $(INSTALLED)
 docs: $(INSTALLED)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir site
 
-pytest: $(INSTALLED) $(NODE_INSTALLED)
+pytest: $(INSTALLED) $(NODE_INSTALLED) chromium
 	$(BIN)/pytest
 
 test: lint typecheck docs pytest

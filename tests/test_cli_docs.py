@@ -1,6 +1,7 @@
-"""Every ``srvwire ...`` sample in docs/cli.md runs, and prints what the page shows.
+"""Every ``srvwire ...`` sample in docs/ runs, and prints what the page shows.
 
-The samples are the lines of the page's ``console`` blocks that start with ``$ srvwire `` (the
+Most are in docs/cli.md; every page of docs/ is read, so that a sample on a new page runs too.
+The samples are the lines of a page's ``console`` blocks that start with ``$ srvwire `` (the
 lines after one, up to the next ``$ ``, are its output; a following ``$ echo $?`` gives its exit
 code) and the lines of its ``sh`` blocks that start with ``srvwire ``. Each runs through
 ``main(argv)`` in a folder holding the files the page assumes. Samples that talk to a server
@@ -31,7 +32,7 @@ from srvwire.server import Server
 from support import ROOT
 from test_cli import start_in_thread, write
 
-DOC = ROOT / "docs" / "cli.md"
+PAGES = sorted((ROOT / "docs").glob("*.md"))
 ROBOT_SERVICES = ("/get_robot_state", "/execute_robot_command")
 
 NOT_RUN = {
@@ -59,15 +60,20 @@ OUTPUT_NOT_COMPARED = {
 
 @dataclass(frozen=True)
 class Sample:
-    line: int  # in docs/cli.md
+    page: str  # its file name in docs/
+    line: int
     command: str  # without the leading "$ "
     output: str | None  # None: the page shows none to compare (a sh block)
     exit_code: int | None  # from a following "$ echo $?"; None: 0, or not 0 after an error line
 
 
 def samples() -> list[Sample]:
+    return [sample for page in PAGES for sample in page_samples(page)]
+
+
+def page_samples(page: Path) -> list[Sample]:
     found: list[Sample] = []
-    lines = DOC.read_text(encoding="utf-8").splitlines()
+    lines = page.read_text(encoding="utf-8").splitlines()
     language = None
     for number, line in enumerate(lines):
         fence = re.match(r"^```(\w*)$", line)
@@ -75,7 +81,7 @@ def samples() -> list[Sample]:
             language = None if language is not None else fence.group(1) or "text"
             continue
         if language == "sh" and line.startswith("srvwire "):
-            found.append(Sample(number + 1, line, None, None))
+            found.append(Sample(page.name, number + 1, line, None, None))
         elif language == "console" and line.startswith("$ srvwire "):
             output: list[str] = []
             end = number + 1
@@ -85,7 +91,8 @@ def samples() -> list[Sample]:
             code = None
             if lines[end] == "$ echo $?":
                 code = int(lines[end + 1])
-            found.append(Sample(number + 1, line[2:], "".join(f"{o}\n" for o in output), code))
+            shown = "".join(f"{o}\n" for o in output)
+            found.append(Sample(page.name, number + 1, line[2:], shown, code))
     return found
 
 
@@ -175,7 +182,7 @@ def run(capsys: pytest.CaptureFixture[str], command: str) -> tuple[int, str, str
         return shlex.quote(out.rstrip("\n"))
 
     command = re.sub(r'"\$\((srvwire [^)]*)\)"', substitute, command)
-    argv = shlex.split(command)
+    argv = shlex.split(command, comments=True)  # a "# ..." after a sample explains it
     assert argv[0] == "srvwire"
     argv = argv[1:]
     stdin = sys.stdin
@@ -207,7 +214,7 @@ def expected_pattern(output: str) -> re.Pattern[str]:
 @pytest.mark.parametrize(
     "sample",
     [s for s in samples() if s.command not in NOT_RUN],
-    ids=lambda s: f"line{s.line}",
+    ids=lambda s: f"{s.page}:{s.line}",
 )
 def test_sample(
     capsys: pytest.CaptureFixture[str],
