@@ -1,5 +1,6 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
 from srvwire.dispatch import Context
 from srvwire.errors import (
@@ -14,6 +15,7 @@ from srvwire.errors import (
     InvalidParams,
     InvalidRequest,
     ParseError,
+    PermissionDenied,
     RegistrationError,
     ResourceExhausted,
     RPCError,
@@ -44,6 +46,7 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "Identity",
     "InterfaceError",
     "InterfaceLoader",
     "InterfaceNotFoundError",
@@ -54,6 +57,7 @@ __all__ = [
     "MemoryTransport",
     "Message",
     "ParseError",
+    "PermissionDenied",
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
@@ -66,6 +70,7 @@ __all__ = [
     "ServiceProxy",
     "ServiceUnavailable",
     "SrvwireError",
+    "TokenAuth",
     "Transport",
     "Unauthenticated",
     "__version__",

@@ -36,9 +36,13 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import ipaddress
 import logging
+import os
 import random
-from collections.abc import AsyncIterator, Coroutine, Generator, Iterator, Mapping
+import ssl as _ssl
+import urllib.parse
+from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
 from types import MappingProxyType, TracebackType
 from typing import Any
 
@@ -206,6 +210,8 @@ class Client:
             options.transport,
             options.transport_options,
             open_timeout=options.open_timeout,
+            headers=options.headers,
+            ssl=options.ssl,
         )
         if self._closed:  # close() ran while this dial was under way
             await link.conn.close()
@@ -461,6 +467,23 @@ class ServiceProxy:
         return f"ServiceProxy({self.name!r}, {self.srv_type!r})"
 
 
+def _check_token_transport(url: str) -> None:
+    """Raise ``ValueError`` when ``url`` would carry credentials in the clear to another host."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme.lower() != "ws":
+        return
+    host = (parts.hostname or "").lower()
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        raise ValueError(
+            f"refusing to send credentials over plain ws:// to {host}, where anyone on the way "
+            "can read them: use wss://, or pass allow_plaintext_token=True"
+        )
+
+
 class connect:
     """Connect to the srvwire server at ``url``: the options, held once.
 
@@ -485,9 +508,17 @@ class connect:
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
       :class:`~srvwire.transports.memory.MemoryTransport` a server listens on.
+    * ``token``: a bearer token, sent as ``Authorization: Bearer <token>``; ``headers``:
+      more headers for the opening request (a mapping, or ``(name, value)`` pairs). Neither
+      appears in a ``repr``. A token (or an ``Authorization`` header) is not sent over plain
+      ``ws://`` to a host that is not loopback, where anyone on the way could read it, unless
+      ``allow_plaintext_token=True``.
+    * ``ssl``: for a ``wss://`` URL, how to check the server: an :class:`ssl.SSLContext`, or
+      the path of a CA certificate file to trust (default: the system's CAs).
 
     Raise :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached
-    (without ``reconnect``), and ``ValueError`` for a URL the transport cannot use.
+    (without ``reconnect``), and ``ValueError`` for a URL the transport cannot use, or a token
+    it would send in the clear.
     """
 
     def __init__(
@@ -505,10 +536,25 @@ class connect:
         type_resolver: TypeResolver | None = None,
         logger: LoggerLike | None = None,
         transport: str | Transport = "websockets",
+        token: str | None = None,
+        headers: Mapping[str, str] | Iterable[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | str | os.PathLike[str] | None = None,
+        allow_plaintext_token: bool = False,
     ) -> None:
         self.transport = get_transport(transport)
         self.transport.check_url(url)
         self.url = url
+        pairs = list(headers.items() if isinstance(headers, Mapping) else headers)
+        if token is not None:
+            pairs.append(("Authorization", f"Bearer {token}"))
+        self.headers: tuple[tuple[str, str], ...] = tuple(pairs)
+        if not allow_plaintext_token and any(k.lower() == "authorization" for k, _ in pairs):
+            _check_token_transport(url)
+        self.ssl = (
+            _ssl.create_default_context(cafile=os.fspath(ssl))
+            if isinstance(ssl, str | os.PathLike)
+            else ssl
+        )
         self.timeout = check_timeout(timeout)
         self.open_timeout = check_timeout(open_timeout, "open_timeout")
         self.transport_options = Options(

@@ -55,6 +55,7 @@ EXIT_CODES: Final[Mapping[ErrorCode, ExitCode]] = {
     ErrorCode.UNAVAILABLE: ExitCode.UNAVAILABLE,  # ConnectionLost has this code too
     ErrorCode.RESOURCE_EXHAUSTED: ExitCode.OTHER_RPC_ERROR,
     ErrorCode.UNAUTHENTICATED: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.PERMISSION_DENIED: ExitCode.OTHER_RPC_ERROR,
 }
 """The exit code for an error from a call, by the error's JSON-RPC code."""
 
