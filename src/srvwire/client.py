@@ -467,21 +467,18 @@ class ServiceProxy:
         return f"ServiceProxy({self.name!r}, {self.srv_type!r})"
 
 
-def _check_token_transport(url: str) -> None:
-    """Raise ``ValueError`` when ``url`` would carry credentials in the clear to another host."""
+def plaintext_host(url: str) -> str | None:
+    """The host of a plain ``ws://`` ``url`` that is not loopback (where credentials would
+    travel in the clear), else None."""
     parts = urllib.parse.urlsplit(url)
     if parts.scheme.lower() != "ws":
-        return
+        return None
     host = (parts.hostname or "").lower()
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
     except ValueError:
         loopback = False
-    if not loopback:
-        raise ValueError(
-            f"refusing to send credentials over plain ws:// to {host}, where anyone on the way "
-            "can read them: use wss://, or pass allow_plaintext_token=True"
-        )
+    return None if loopback else host
 
 
 class connect:
@@ -548,8 +545,13 @@ class connect:
         if token is not None:
             pairs.append(("Authorization", f"Bearer {token}"))
         self.headers: tuple[tuple[str, str], ...] = tuple(pairs)
-        if not allow_plaintext_token and any(k.lower() == "authorization" for k, _ in pairs):
-            _check_token_transport(url)
+        exposed = plaintext_host(url)
+        credentials = any(name.lower() == "authorization" for name, _ in pairs)
+        if exposed is not None and credentials and not allow_plaintext_token:
+            raise ValueError(
+                f"refusing to send credentials over plain ws:// to {exposed}, where anyone on "
+                "the way can read them: use wss://, or pass allow_plaintext_token=True"
+            )
         self.ssl = (
             _ssl.create_default_context(cafile=os.fspath(ssl))
             if isinstance(ssl, str | os.PathLike)
