@@ -34,7 +34,7 @@ from srvwire.loader import (
 )
 from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
-from srvwire.transports.base import Transport
+from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
 from srvwire.version import __version__
 
@@ -46,6 +46,7 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "Handshake",
     "Identity",
     "InterfaceError",
     "InterfaceLoader",
