@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import errno
 import json
 import logging
 import ssl
@@ -579,3 +580,50 @@ async def test_a_plain_get_says_what_the_port_is(open_robot: tuple[Robot, Runnin
         "WebSocket client to this URL (for example: srvwire service list --url ws://HOST:PORT, "
         "or wscat -c ws://HOST:PORT). GET /healthz tells whether it is serving.\n"
     )
+
+
+async def test_running_out_of_file_descriptors_is_said_once_per_interval(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    loop = asyncio.get_running_loop()
+    passed_on: list[str] = []
+
+    def previous(_: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        passed_on.append(context["message"])
+
+    loop.set_exception_handler(previous)
+    emfile = OSError(errno.EMFILE, "Too many open files")
+    try:
+        async with serve(Robot().server, "127.0.0.1", 0):
+            # What asyncio's accept loop reports, each time it retries the accept.
+            for _ in range(50):
+                loop.call_exception_handler(
+                    {"message": "socket.accept() out of system resource", "exception": emfile}
+                )
+            loop.call_exception_handler({"message": "something else"})
+        assert loop.get_exception_handler() is previous
+    finally:
+        loop.set_exception_handler(None)
+    said = [r.getMessage() for r in caplog.records if "cannot accept" in r.getMessage()]
+    assert said == [
+        "cannot accept new connections: [Errno 24] Too many open files (0 connections open; "
+        "1 failed accepts since the last line, said at most every 10 s); raise the limit of "
+        "open files (ulimit -n) or lower max_connections"
+    ]
+    assert passed_on == ["something else"]
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"max_connections": 0}, "max_connections must be at least 1, not 0"),
+        (
+            {"auth": "s3cret"},
+            "auth must be an authenticator, such as TokenAuth({token: identity}), not a str",
+        ),
+    ],
+)
+def test_bad_edge_options_are_refused(options: dict[str, Any], message: str) -> None:
+    with pytest.raises((ValueError, TypeError)) as exc:
+        Server(**options)
+    assert str(exc.value) == message

@@ -64,6 +64,10 @@ H = TypeVar("H", bound=Handler)
 # them its own way (srvwire serve) to leave out: record.srvwire_lifecycle is True.
 _LIFECYCLE = {"srvwire_lifecycle": True}
 _LOOP_CHECK_INTERVAL = 1.0  # seconds between checks that a loop we wait on still runs
+ACCEPT_FAILURE_LOG_INTERVAL = 10.0
+"""Seconds: at most one line in this time about connections that cannot be accepted because
+the process is out of file descriptors (asyncio retries the accept every second)."""
+_ACCEPT_FAILED = "socket.accept() out of system resource"  # asyncio's words for it
 
 
 def _running_loop() -> asyncio.AbstractEventLoop | None:
@@ -113,7 +117,10 @@ class Server:
         if max_connections is not None and max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
         if auth is not None and not callable(auth):
-            raise TypeError(f"auth must be an authenticator (a callable), not {auth!r}")
+            raise TypeError(
+                "auth must be an authenticator, such as TokenAuth({token: identity}), "
+                f"not a {type(auth).__name__}"
+            )
         self.origins = tuple(origins)
         EdgePolicy("localhost", origins=self.origins)  # says now what is wrong with one
         self.auth = auth
@@ -383,6 +390,9 @@ class RunningServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._close_task: asyncio.Task[None] | None = None
         self.policy: EdgePolicy | None = None
+        self._accept_failures = 0  # since the last line about them
+        self._accept_failure_logged: float | None = None
+        self._previous_handler: Any = None
         self.tls = False
         self.authenticated = False
         """Whether every connection authenticates: with ``auth``, or a client certificate."""
@@ -406,6 +416,34 @@ class RunningServer:
         self.host = self._listener.host
         self.port = self._listener.port
         self.server._running.add(self)
+        self._previous_handler = self._loop.get_exception_handler()
+        self._loop.set_exception_handler(self._loop_exception)
+
+    def _loop_exception(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """Say "out of file descriptors" at most once per :data:`ACCEPT_FAILURE_LOG_INTERVAL`,
+        with how many times it happened since; pass anything else on to the loop's handler."""
+        if context.get("message") != _ACCEPT_FAILED:
+            if self._previous_handler is not None:
+                self._previous_handler(loop, context)
+            else:
+                loop.default_exception_handler(context)
+            return
+        self._accept_failures += 1
+        now = loop.time()
+        last = self._accept_failure_logged
+        if last is not None and now - last < ACCEPT_FAILURE_LOG_INTERVAL:
+            return
+        self._accept_failure_logged = now
+        count, self._accept_failures = self._accept_failures, 0
+        self.server.logger.error(
+            "cannot accept new connections: %s (%d connections open; %d failed accepts since "
+            "the last line, said at most every %g s); raise the limit of open files "
+            "(ulimit -n) or lower max_connections",
+            context.get("exception"),
+            len(self._connections),
+            count,
+            ACCEPT_FAILURE_LOG_INTERVAL,
+        )
 
     async def _admit(self, handshake: Handshake) -> Admitted | Answered:
         """The gate the transport asks about each opening request."""
@@ -485,6 +523,9 @@ class RunningServer:
                 # The cancelled calls reply at once; do not wait on a peer that does not read.
                 await asyncio.wait(pending, timeout=1.0)
         self._listener.close()  # the open connections stay, to be closed with 1001
+        loop = self._loop
+        if loop is not None and loop.get_exception_handler() == self._loop_exception:
+            loop.set_exception_handler(self._previous_handler)
         closes = [conn.conn.close(1001, "server shutting down") for conn in self._connections]
         if closes:
             await asyncio.gather(*closes, return_exceptions=True)
