@@ -336,10 +336,13 @@ async def test_a_token_lookup_function_and_the_query_string_when_asked() -> None
 def test_tokens_never_show_in_a_repr() -> None:
     handshake = Handshake(headers=[("Authorization", f"Bearer {TOKEN}"), ("Host", "x")])
     options = connect("ws://localhost:1", token=TOKEN)
-    for shown in (repr(TOKENS), repr(handshake), repr(options), repr(options.headers[:0])):
+    for shown in (repr(TOKENS), repr(handshake), repr(options), repr(options.headers)):
         assert TOKEN not in shown
     assert repr(TOKENS) == "<TokenAuth with 2 tokens>"
     assert "('Authorization', '<hidden>')" in repr(handshake)
+    assert repr(options.headers) == "[('Authorization', '<hidden>')]"
+    query = Handshake(path=f"/?access_token={TOKEN}")
+    assert repr(query).startswith("Handshake(GET '/', ")
 
 
 @pytest.mark.parametrize("url", ["ws://robot.example:8765", "ws://10.0.0.7:8765"])

@@ -67,7 +67,7 @@ from srvwire.loader import SearchPath, load_service
 from srvwire.models import error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
-from srvwire.transports.base import Options, Transport
+from srvwire.transports.base import Headers, Options, Transport
 
 __all__ = [
     "DEFAULT_TIMEOUT",
@@ -544,7 +544,7 @@ class connect:
         pairs = list(headers.items() if isinstance(headers, Mapping) else headers)
         if token is not None:
             pairs.append(("Authorization", f"Bearer {token}"))
-        self.headers: tuple[tuple[str, str], ...] = tuple(pairs)
+        self.headers = Headers(pairs)
         exposed = plaintext_host(url)
         credentials = any(name.lower() == "authorization" for name, _ in pairs)
         if exposed is not None and credentials and not allow_plaintext_token:

@@ -38,12 +38,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 __all__ = [
+    "CREDENTIAL_HEADERS",
     "Admitted",
     "Answered",
     "Connection",
     "ConnectionHandler",
     "Gate",
     "Handshake",
+    "Headers",
     "Listener",
     "Options",
     "Transport",
@@ -51,7 +53,8 @@ __all__ = [
     "TransportError",
 ]
 
-_SECRET_HEADERS = frozenset({"authorization", "cookie", "proxy-authorization"})
+CREDENTIAL_HEADERS = frozenset({"authorization", "cookie", "proxy-authorization"})
+"""Headers whose values are credentials: no ``repr`` or log line shows them."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,6 +71,20 @@ class Options:
     ping_interval: float | None = 20.0
     ping_timeout: float | None = 20.0
     compression: str | None = None
+
+
+class Headers(tuple[tuple[str, str], ...]):
+    """Headers as ``(name, value)`` pairs, whose ``repr`` hides the values of credentials."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return repr(
+            [
+                (key, "<hidden>" if key.lower() in CREDENTIAL_HEADERS else value)
+                for key, value in self
+            ]
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,14 +115,10 @@ class Handshake:
         return None
 
     def __repr__(self) -> str:
-        shown = [
-            (key, "<hidden>" if key.lower() in _SECRET_HEADERS else value)
-            for key, value in self.headers
-        ]
         offered = len(self.subprotocols)
         return (
-            f"Handshake({self.method} {self.path!r}, peer={self.peer!r}, tls={self.tls}, "
-            f"headers={shown!r}, {offered} subprotocols offered)"
+            f"Handshake({self.method} {self.path.split('?', 1)[0]!r}, peer={self.peer!r}, "
+            f"tls={self.tls}, headers={Headers(self.headers)!r}, {offered} subprotocols offered)"
         )
 
 

@@ -45,6 +45,7 @@ from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
 from srvwire.transports.base import (
+    CREDENTIAL_HEADERS,
     Admitted,
     Answered,
     Connection,
@@ -95,9 +96,6 @@ def _handshake(ws: ServerConnection, request: Request) -> Handshake:
     )
 
 
-_SECRET_HEADERS = frozenset({"authorization", "cookie", "proxy-authorization"})
-
-
 class _Redacting(logging.LoggerAdapter[logging.Logger]):
     """websockets' own logger, with the credentials of the handshake lines it writes at
     DEBUG level hidden: the values of credential headers, bearer subprotocols and query
@@ -106,7 +104,7 @@ class _Redacting(logging.LoggerAdapter[logging.Logger]):
     def log(self, level: int, msg: object, *args: Any, **kwargs: Any) -> None:
         if len(args) == 2 and msg in ("< %s: %s", "> %s: %s"):
             name = str(args[0]).lower()
-            if name in _SECRET_HEADERS:
+            if name in CREDENTIAL_HEADERS:
                 args = (args[0], "<hidden>")
             elif name == "sec-websocket-protocol" and "srvwire.bearer." in str(args[1]):
                 args = (args[0], "<hidden>")
