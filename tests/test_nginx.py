@@ -184,3 +184,17 @@ async def test_healthz_through_nginx(nginx_in_front: dict[str, Any]) -> None:
         nginx_in_front["port"], "/healthz", upgrade=False, context=nginx_in_front["context"]
     )
     assert (status, body) == (200, "ok\n")
+
+
+def test_without_nginx_the_test_fails_saying_how_to_install_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    with pytest.raises(pytest.fail.Exception) as failed:
+        nginx_binary()
+    assert str(failed.value) == (
+        "nginx is not installed, and this test runs srvwire behind a real nginx: install "
+        "it with 'apt-get update && apt-get install -y nginx' (.ci/run does this when it "
+        "runs as root)"
+    )
