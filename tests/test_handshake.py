@@ -134,3 +134,26 @@ def test_describe_reach() -> None:
     assert describe_reach("0.0.0.0", authenticated=True, tls=True) == (
         "any host that can route to 0.0.0.0 can connect; callers must authenticate; over TLS"
     )
+
+
+async def test_refusals_are_logged_at_most_once_per_interval(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.INFO)
+    now = [100.0]
+    policy = EdgePolicy("127.0.0.1", clock=lambda: now[0])
+    hostile = request(("Host", "localhost"), ("Origin", "https://evil.example"))
+    for _ in range(5):
+        await policy.admit(hostile)
+    now[0] += 1.0
+    await policy.admit(hostile)
+    said = [record.getMessage() for record in caplog.records]
+    reason = (
+        "Origin https://evil.example is not allowed: a page from another site may not "
+        "connect; list it in the origins (srvwire serve --origin ORIGIN) to allow it"
+    )
+    assert said == [
+        f"refused a connection from ('10.0.0.9', 5000): HTTP 403, {reason}",
+        f"refused a connection from ('10.0.0.9', 5000): HTTP 403, {reason} "
+        "(4 more refused since the last line)",
+    ]

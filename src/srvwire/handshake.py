@@ -25,15 +25,18 @@ it as it is. The checks, in order:
    (mutual TLS) is the identity, else there is none.
 
 The subprotocol selected is ``srvwire.v1`` when offered, else none: a token offered as a
-subprotocol is never echoed.
+subprotocol is never echoed. A refusal is logged (at INFO, with its reason, never the
+credentials) at most once per :data:`REFUSAL_LOG_INTERVAL`; the next line says how many were
+refused in between, so a client knocking in a loop cannot fill the log.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import logging
+import time
 import urllib.parse
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from srvwire.auth import SUBPROTOCOL, Authenticator, Identity, as_identity, certificate_subject
@@ -44,6 +47,8 @@ __all__ = ["HEALTH_PATH", "EdgePolicy", "describe_reach", "is_loopback"]
 
 HEALTH_PATH = "/healthz"
 RETRY_AFTER = "5"  # seconds, for a client refused because the server is full or draining
+REFUSAL_LOG_INTERVAL = 1.0
+"""Seconds: at most one log line about refused connections in this time."""
 _DEFAULT_PORTS = {"http": 80, "ws": 80, "https": 443, "wss": 443}
 _LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 
@@ -107,7 +112,8 @@ class EdgePolicy:
     ``host`` is where the server listens; ``origins`` the browser origins allowed besides
     same-host pages (``"null"`` for ``Origin: null``, ``"*"`` for all: dangerous, any web page
     the operator opens can then call the services); ``auth`` the authenticator (None: no
-    authentication); ``max_connections`` the most connections open at once (None: no limit).
+    authentication); ``max_connections`` the most connections open at once (None: no limit);
+    ``clock`` what the log's rate limit reads (seconds).
     """
 
     def __init__(
@@ -118,8 +124,12 @@ class EdgePolicy:
         auth: Authenticator | None = None,
         max_connections: int | None = None,
         logger: logging.Logger | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.host = host
+        self.clock = clock
+        self.refused_unlogged = 0  # refusals since the last line about one
+        self.refusal_logged: float | None = None
         self.loopback = is_loopback(host)
         self.any_origin = False
         self.allow_null = False
@@ -235,7 +245,18 @@ class EdgePolicy:
         self, handshake: Handshake, status: int, reason: str, headers: tuple[Any, ...] = ()
     ) -> Answered:
         if self.log.isEnabledFor(logging.INFO):
-            self.log.info(
-                "refused a connection from %s: HTTP %d, %s", handshake.peer, status, reason
-            )
+            now = self.clock()
+            last = self.refusal_logged
+            if last is not None and now - last < REFUSAL_LOG_INTERVAL:
+                self.refused_unlogged += 1
+            else:
+                self.refusal_logged = now
+                more, self.refused_unlogged = self.refused_unlogged, 0
+                self.log.info(
+                    "refused a connection from %s: HTTP %d, %s%s",
+                    handshake.peer,
+                    status,
+                    reason,
+                    f" ({more} more refused since the last line)" if more else "",
+                )
         return Answered(status, reason + "\n", headers)
