@@ -77,10 +77,6 @@ class Identity:
         object.__setattr__(self, "scopes", frozenset(scopes))
         object.__setattr__(self, "expires", expires)
 
-    def may_use(self, scopes: frozenset[str]) -> bool:
-        """Whether this identity holds every scope of ``scopes``."""
-        return scopes <= self.scopes
-
 
 Authenticator: TypeAlias = Callable[[Handshake], Awaitable["Identity | str"]]
 """Checks an opening request: returns who it is, or raises ``Unauthenticated`` saying why not."""
