@@ -630,3 +630,20 @@ def test_bad_edge_options_are_refused(options: dict[str, Any], message: str) -> 
     with pytest.raises((ValueError, TypeError)) as exc:
         Server(**options)
     assert str(exc.value) == message
+
+
+async def test_serving_a_public_address_without_authentication_warns(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with serve(Robot().server, "0.0.0.0", 0):
+        pass
+    async with serve(Robot(auth=TOKENS).server, "0.0.0.0", 0):
+        pass
+    async with serve(Robot().server, "127.0.0.1", 0):
+        pass
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warned == [
+        "any host that can route to 0.0.0.0 can connect, with no authentication: anyone who "
+        "can reach it can call every service (give the Server an auth=, or listen on "
+        "127.0.0.1)"
+    ]

@@ -40,7 +40,7 @@ from typing import Any, TypeVar
 from srvwire.auth import Authenticator
 from srvwire.dispatch import Handler, ServiceRegistry
 from srvwire.errors import ServiceUnavailable
-from srvwire.handshake import EdgePolicy, describe_reach
+from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
 from srvwire.models import Service
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
@@ -416,6 +416,12 @@ class RunningServer:
         self.host = self._listener.host
         self.port = self._listener.port
         self.server._running.add(self)
+        if not self.authenticated and not is_loopback(host) and self.transport.name != "memory":
+            server.logger.warning(
+                "%s, with no authentication: anyone who can reach it can call every service "
+                "(give the Server an auth=, or listen on 127.0.0.1)",
+                describe_reach(host, authenticated=False, tls=self.tls).split(";")[0],
+            )
         self._previous_handler = self._loop.get_exception_handler()
         self._loop.set_exception_handler(self._loop_exception)
 
