@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import signal
+import ssl
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -13,7 +14,7 @@ import pytest
 import trustme
 
 from conftest import Subtract, subtract
-from srvwire import Identity, Server, TokenAuth
+from srvwire import Identity, Server, TokenAuth, connect
 from srvwire.cli import ExitCode
 from support import scaled
 from test_cli import one_error_line, run, start_in_thread
@@ -192,3 +193,36 @@ def test_call_keeps_a_token_off_plain_ws_to_another_host(
     code, _, err = run(capsys, "call", "/x", "-H", "no colon")
     assert code == ExitCode.USAGE
     assert "not a header: 'no colon'; write 'Name: value'" in one_error_line(err)
+
+
+async def test_serve_with_client_certificates_may_listen_publicly(
+    app: Path, tls_files: tuple[Path, Path, Path], tmp_path: Path
+) -> None:
+    cafile, certfile, keyfile = tls_files
+    clients = trustme.CA()
+    client_ca = tmp_path / "clients.pem"
+    clients.cert_pem.write_to_path(str(client_ca))
+    served = Served(
+        str(app),
+        "--host",
+        "0.0.0.0",
+        "--certfile",
+        str(certfile),
+        "--keyfile",
+        str(keyfile),
+        "--client-ca",
+        str(client_ca),
+    )
+    try:
+        assert served.lines[1] == (
+            "any host that can route to 0.0.0.0 can connect; callers must authenticate; "
+            "over TLS\n"
+        )
+        port = served.url.rsplit(":", 1)[1]
+        context = ssl.create_default_context(cafile=str(cafile))
+        clients.issue_cert("bench", common_name="bench").configure_cert(context)
+        async with connect(f"wss://localhost:{port}", ssl=context) as client:
+            response = await client.call("/add_two_ints", {"a": 1, "b": 2})
+            assert response.sum == 3
+    finally:
+        served.stop()

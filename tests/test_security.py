@@ -647,3 +647,23 @@ async def test_serving_a_public_address_without_authentication_warns(
         "can reach it can call every service (give the Server an auth=, or listen on "
         "127.0.0.1)"
     ]
+
+
+async def test_credentials_that_expire_mid_connection_end_its_calls(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.INFO)
+    robot = Robot(auth=TokenAuth({"t": Identity("op", expires=time.time() + 3600)}))
+    async with serve(robot.server, "127.0.0.1", 0) as running:
+        async with connect(running.url, token="t", timeout=scaled(5)) as client:
+            await client.call("/add", {"minuend": 1, "subtrahend": 1})
+            (served,) = running._connections
+            assert served.expiry is not None
+            loop = asyncio.get_running_loop()
+            assert 3500 < served.expiry.when() - loop.time() <= 3600  # armed for that moment
+            served.expiry.cancel()
+            served.expire()  # what the timer does when the hour is up
+            with pytest.raises(Unauthenticated):
+                await client.call("/add", {"minuend": 1, "subtrahend": 1})
+    assert len(robot.calls) == 1
+    assert "the credentials of the connection from ('127.0.0.1', " in caplog.text
