@@ -215,8 +215,7 @@ async def test_serve_with_client_certificates_may_listen_publicly(
     )
     try:
         assert served.lines[1] == (
-            "any host that can route to 0.0.0.0 can connect; callers must authenticate; "
-            "over TLS\n"
+            "any host that can route to 0.0.0.0 can connect; callers must authenticate; over TLS\n"
         )
         port = served.url.rsplit(":", 1)[1]
         context = ssl.create_default_context(cafile=str(cafile))
