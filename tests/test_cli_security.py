@@ -225,3 +225,22 @@ async def test_serve_with_client_certificates_may_listen_publicly(
             assert response.sum == 3
     finally:
         served.stop()
+
+
+def test_serve_tls_options_that_do_not_fit(
+    capsys: pytest.CaptureFixture[str], app: Path, tmp_path: Path
+) -> None:
+    code, _, err = run(capsys, "serve", str(app), "--port", "0", "--keyfile", "k.pem")
+    assert code == ExitCode.USAGE
+    assert one_error_line(err) == (
+        "--keyfile and --client-ca need --certfile (the server's certificate)"
+    )
+    missing = tmp_path / "missing.pem"
+    code, _, err = run(capsys, "serve", str(app), "--port", "0", "--certfile", str(missing))
+    assert code == ExitCode.FAILURE
+    assert one_error_line(err) == ("cannot use the TLS files: [Errno 2] No such file or directory")
+    code, _, err = run(capsys, "call", "/x", "--url", "wss://localhost:1", "--cacert", str(missing))
+    assert code == ExitCode.USAGE
+    assert one_error_line(err) == (
+        f"cannot use --cacert {missing}: [Errno 2] No such file or directory"
+    )

@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import logging
+import ssl
 from typing import Any
 
 import pytest
 
+from conftest import Subtract
 from srvwire.auth import Identity, TokenAuth, bearer_subprotocol, certificate_subject
+from srvwire.dispatch import ServiceRegistry
+from srvwire.errors import RegistrationError
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
-from srvwire.transports.base import Admitted, Answered, Handshake
+from srvwire.transports.base import Admitted, Answered, Handshake, Options
+from srvwire.transports.memory import MemoryTransport
 
 UPGRADE = (("Upgrade", "websocket"),)
 
@@ -157,3 +162,34 @@ async def test_refusals_are_logged_at_most_once_per_interval(
         f"refused a connection from ('10.0.0.9', 5000): HTTP 403, {reason} "
         "(4 more refused since the last line)",
     ]
+
+
+def test_tokenauth_takes_tokens_or_a_function() -> None:
+    with pytest.raises(ValueError) as empty:
+        TokenAuth({"": "nobody"})
+    assert str(empty.value) == "every token must be a non-empty string"
+    with pytest.raises(TypeError) as other:
+        TokenAuth(42)  # type: ignore[arg-type]
+    assert str(other.value) == "TokenAuth takes a mapping of tokens or a function, not int"
+    assert repr(TokenAuth(lambda token: None)) == "<TokenAuth by a function>"
+    assert repr(TokenAuth({"a": "me"})) == "<TokenAuth with 1 token>"
+
+
+def test_scopes_must_be_a_collection_not_a_string() -> None:
+    with pytest.raises(RegistrationError) as exc:
+        ServiceRegistry().add("/arm", Subtract, lambda request: None, "robot:write")
+    assert str(exc.value) == (
+        "the scopes of /arm must be a collection of names, such as {'robot:write'}, not the "
+        "string 'robot:write'"
+    )
+
+
+async def test_the_memory_transport_has_no_tls() -> None:
+    async def handler(connection: Any) -> None:
+        pass
+
+    with pytest.raises(ValueError) as exc:
+        await MemoryTransport().listen(
+            handler, "localhost", 0, Options(), ssl=ssl.create_default_context()
+        )
+    assert str(exc.value) == "the memory transport has no TLS: pass ssl=None"
