@@ -1335,6 +1335,9 @@ def test_serve_a_file_until_ctrl_c(capsys: pytest.CaptureFixture[str], tmp_path:
         match = re.fullmatch(r"serving 1 service on (ws://127\.0\.0\.1:\d+)\n", first)
         assert match, first
         assert process.stdout.readline() == "  /add_two_ints [example_interfaces/srv/AddTwoInts]\n"
+        assert process.stdout.readline() == (
+            "only programs on this machine can connect (loopback); no authentication; unencrypted\n"
+        )
         url = match.group(1)
         code, out, _ = run(capsys, "call", "/add_two_ints", "{a: 2, b: 3}", "--json", "--url", url)
         assert (code, out) == (ExitCode.OK, '{"sum": 5}\n')

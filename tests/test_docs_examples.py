@@ -52,6 +52,15 @@ SCRIPTS = {
         "server unavailable: not connected to ws://127.0.0.1:PORT\n"
         "sum after reconnecting: 42\n"
     ),
+    "secure_server.py": (
+        "['/status']\n"
+        "hello viewer\n"
+        "permission denied: /motors needs the scope robot:write, which this connection's "
+        "identity does not hold\n"
+        "on\n"
+        "the server refused the connection: HTTP 401: the token is not valid\n"
+        "off\n"
+    ),
 }
 
 PORT = re.compile(r"(ws://[\w.]+):\d+")

@@ -410,3 +410,60 @@ def test_discovery_is_answered_once_per_batch(server: ServerSession[ServiceEntry
         "Invalid Request: rpc.discover is answered once per batch"
     )
     assert "methods" in reply_of(only(send(server, call(3, "rpc.discover"))))["result"]
+
+
+# --- scopes and expired credentials -------------------------------------------------------------
+
+
+def scoped_registry() -> ServiceRegistry:
+    services = registry()
+    services.add("/arm", Subtract, lambda request: None, scopes={"robot:write", "robot:arm"})
+    return services
+
+
+def test_a_call_without_every_scope_is_denied_before_its_params_are_read() -> None:
+    session: ServerSession[ServiceEntry] = ServerSession(
+        scoped_registry(), scopes=frozenset({"robot:write"})
+    )
+    reply = reply_of(only(send(session, call(1, "/arm", {"minuend": "not a number"}))))
+    assert reply["error"] == {
+        "code": -32006,
+        "message": "permission denied: /arm needs the scope robot:arm, which this "
+        "connection's identity does not hold",
+        "data": {"status": "PERMISSION_DENIED", "missing_scopes": ["robot:arm"]},
+    }
+    assert session.in_flight == 0
+    dropped = only(send(session, note("/arm")))
+    assert isinstance(dropped, Dropped) and dropped.reason.startswith("permission denied")
+    allowed: ServerSession[ServiceEntry] = ServerSession(
+        scoped_registry(), scopes=frozenset({"robot:write", "robot:arm", "more"})
+    )
+    assert isinstance(only(send(allowed, call(1, "/arm"))), Call)
+
+
+def test_discovery_and_announcement_list_only_what_the_connection_may_call() -> None:
+    services = scoped_registry()
+    plain: ServerSession[ServiceEntry] = ServerSession(services)
+    names = [s["name"] for s in json.loads(plain.announcement())["params"]["services"]]
+    assert names == ["/echo", "/subtract"]
+    document = reply_of(only(send(plain, call(1, "rpc.discover"))))["result"]
+    assert [m["name"] for m in document["methods"]] == ["/echo", "/subtract"]
+    full: ServerSession[ServiceEntry] = ServerSession(
+        services, scopes=frozenset({"robot:write", "robot:arm"})
+    )
+    document = reply_of(only(send(full, call(1, "rpc.discover"))))["result"]
+    assert [m["name"] for m in document["methods"]] == ["/arm", "/echo", "/subtract"]
+    assert services.services() == services.services(frozenset({"robot:write", "robot:arm"}))
+
+
+def test_expired_credentials_answer_unauthenticated_and_drop_notifications() -> None:
+    session = ServerSession(registry())
+    running = only(send(session, call(1)))
+    session.expire()
+    reply = reply_of(only(send(session, call(2, "/echo"))))
+    assert reply["error"]["code"] == -32005
+    assert reply["error"]["message"] == (
+        "the credentials of this connection expired; reconnect with fresh ones"
+    )
+    assert isinstance(only(send(session, note("/echo"))), Dropped)
+    assert session.answering(running)  # a call already admitted still answers

@@ -1,5 +1,6 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
 from srvwire.dispatch import Context
 from srvwire.errors import (
@@ -14,6 +15,7 @@ from srvwire.errors import (
     InvalidParams,
     InvalidRequest,
     ParseError,
+    PermissionDenied,
     RegistrationError,
     ResourceExhausted,
     RPCError,
@@ -32,7 +34,7 @@ from srvwire.loader import (
 )
 from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
-from srvwire.transports.base import Transport
+from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
 from srvwire.version import __version__
 
@@ -44,6 +46,8 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "Handshake",
+    "Identity",
     "InterfaceError",
     "InterfaceLoader",
     "InterfaceNotFoundError",
@@ -54,6 +58,7 @@ __all__ = [
     "MemoryTransport",
     "Message",
     "ParseError",
+    "PermissionDenied",
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
@@ -66,6 +71,7 @@ __all__ = [
     "ServiceProxy",
     "ServiceUnavailable",
     "SrvwireError",
+    "TokenAuth",
     "Transport",
     "Unauthenticated",
     "__version__",

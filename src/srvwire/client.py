@@ -36,9 +36,13 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import ipaddress
 import logging
+import os
 import random
-from collections.abc import AsyncIterator, Coroutine, Generator, Iterator, Mapping
+import ssl as _ssl
+import urllib.parse
+from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
 from types import MappingProxyType, TracebackType
 from typing import Any
 
@@ -63,7 +67,7 @@ from srvwire.loader import SearchPath, load_service
 from srvwire.models import error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
-from srvwire.transports.base import Options, Transport
+from srvwire.transports.base import Headers, Options, Transport
 
 __all__ = [
     "DEFAULT_TIMEOUT",
@@ -206,6 +210,8 @@ class Client:
             options.transport,
             options.transport_options,
             open_timeout=options.open_timeout,
+            headers=options.headers,
+            ssl=options.ssl,
         )
         if self._closed:  # close() ran while this dial was under way
             await link.conn.close()
@@ -461,6 +467,20 @@ class ServiceProxy:
         return f"ServiceProxy({self.name!r}, {self.srv_type!r})"
 
 
+def plaintext_host(url: str) -> str | None:
+    """The host of a plain ``ws://`` ``url`` that is not loopback (where credentials would
+    travel in the clear), else None."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme.lower() != "ws":
+        return None
+    host = (parts.hostname or "").lower()
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    return None if loopback else host
+
+
 class connect:
     """Connect to the srvwire server at ``url``: the options, held once.
 
@@ -485,9 +505,17 @@ class connect:
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
       :class:`~srvwire.transports.memory.MemoryTransport` a server listens on.
+    * ``token``: a bearer token, sent as ``Authorization: Bearer <token>``; ``headers``:
+      more headers for the opening request (a mapping, or ``(name, value)`` pairs). Neither
+      appears in a ``repr``. A token (or an ``Authorization`` header) is not sent over plain
+      ``ws://`` to a host that is not loopback, where anyone on the way could read it, unless
+      ``allow_plaintext_token=True``.
+    * ``ssl``: for a ``wss://`` URL, how to check the server: an :class:`ssl.SSLContext`, or
+      the path of a CA certificate file to trust (default: the system's CAs).
 
     Raise :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached
-    (without ``reconnect``), and ``ValueError`` for a URL the transport cannot use.
+    (without ``reconnect``), and ``ValueError`` for a URL the transport cannot use, or a token
+    it would send in the clear.
     """
 
     def __init__(
@@ -505,10 +533,30 @@ class connect:
         type_resolver: TypeResolver | None = None,
         logger: LoggerLike | None = None,
         transport: str | Transport = "websockets",
+        token: str | None = None,
+        headers: Mapping[str, str] | Iterable[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | str | os.PathLike[str] | None = None,
+        allow_plaintext_token: bool = False,
     ) -> None:
         self.transport = get_transport(transport)
         self.transport.check_url(url)
         self.url = url
+        pairs = list(headers.items() if isinstance(headers, Mapping) else headers)
+        if token is not None:
+            pairs.append(("Authorization", f"Bearer {token}"))
+        self.headers = Headers(pairs)
+        exposed = plaintext_host(url)
+        credentials = any(name.lower() == "authorization" for name, _ in pairs)
+        if exposed is not None and credentials and not allow_plaintext_token:
+            raise ValueError(
+                f"refusing to send credentials over plain ws:// to {exposed}, where anyone on "
+                "the way can read them: use wss://, or pass allow_plaintext_token=True"
+            )
+        self.ssl = (
+            _ssl.create_default_context(cafile=os.fspath(ssl))
+            if isinstance(ssl, str | os.PathLike)
+            else ssl
+        )
         self.timeout = check_timeout(timeout)
         self.open_timeout = check_timeout(open_timeout, "open_timeout")
         self.transport_options = Options(

@@ -93,6 +93,7 @@ __all__ = [
 Handler = Callable[..., Any]
 """A service handler: ``(request)``, ``(request, response)``, optionally with a context."""
 
+_DISCOVERY_CACHE = 64  # discovery documents kept, one per set of scopes that asked
 _SEGMENT = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _NAME_RULE = (
     "a name is segments of letters, digits and '_', each starting with a letter, joined by '/'"
@@ -127,7 +128,15 @@ class Context:
     A handler receives it through a parameter annotated ``Context`` or named ``context``.
     """
 
-    __slots__ = ("_cancel_error", "_cancelled", "deadline", "peer", "request_id", "service")
+    __slots__ = (
+        "_cancel_error",
+        "_cancelled",
+        "deadline",
+        "identity",
+        "peer",
+        "request_id",
+        "service",
+    )
 
     def __init__(
         self,
@@ -136,6 +145,7 @@ class Context:
         request_id: Id = None,
         peer: Any = None,
         deadline: float | None = None,
+        identity: Any = None,
     ) -> None:
         self.service = service
         """The canonical name of the service called, such as ``/add_two_ints``."""
@@ -145,6 +155,9 @@ class Context:
         """The caller's address, as the socket reports it (``(host, port)`` for TCP)."""
         self.deadline = deadline
         """When the caller stops waiting, on the :func:`time.monotonic` clock; None for never."""
+        self.identity = identity
+        """Who the connection authenticated as (a :class:`~srvwire.auth.Identity`); None when
+        the server has no authentication."""
         self._cancelled = False
         self._cancel_error: RPCError | None = None
 
@@ -240,6 +253,8 @@ class ServiceEntry:
     request_model: type[BaseModel]
     response_model: type[BaseModel]
     field_names: tuple[str, ...]
+    scopes: frozenset[str] = frozenset()
+    """What a connection's identity must hold to call it (empty: anyone who may connect)."""
     _description: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property
@@ -352,11 +367,23 @@ class ServiceRegistry:
 
     def __init__(self) -> None:
         self._entries: dict[str, ServiceEntry] = {}
-        self._discovery: str | None = None
+        self._discovery: dict[frozenset[str] | None, str] = {}  # by the scopes it shows
 
-    def add(self, name: str, srv_type: type[Service], handler: Handler) -> ServiceEntry:
-        """Register ``handler`` for ``srv_type`` under ``name``; raise RegistrationError."""
+    def add(
+        self,
+        name: str,
+        srv_type: type[Service],
+        handler: Handler,
+        scopes: Iterable[str] = (),
+    ) -> ServiceEntry:
+        """Register ``handler`` for ``srv_type`` under ``name``, callable by identities that
+        hold every one of ``scopes``; raise RegistrationError."""
         canonical = normalize_name(name)
+        if isinstance(scopes, str):
+            raise RegistrationError(
+                f"the scopes of {canonical} must be a collection of names, such as "
+                f"{{{scopes!r}}}, not the string {scopes!r}"
+            )
         existing = self._entries.get(canonical)
         if existing is not None:
             raise RegistrationError(
@@ -389,9 +416,10 @@ class ServiceRegistry:
             field_names=tuple(
                 info.alias or field_name for field_name, info in request_model.model_fields.items()
             ),
+            scopes=frozenset(scopes),
         )
         self._entries[canonical] = entry
-        self._discovery = None
+        self._discovery.clear()
         return entry
 
     def remove(self, name: str) -> ServiceEntry:
@@ -400,7 +428,7 @@ class ServiceRegistry:
         entry = self._entries.pop(canonical, None)
         if entry is None:
             raise RegistrationError(f"no service named {canonical} is registered")
-        self._discovery = None
+        self._discovery.clear()
         return entry
 
     def get(self, name: str) -> ServiceEntry | None:
@@ -426,23 +454,32 @@ class ServiceRegistry:
     def __len__(self) -> int:
         return len(self._entries)
 
-    def services(self) -> list[tuple[str, str]]:
-        """Return ``(name, type name)`` of every service, sorted by name."""
-        return [(entry.name, entry.type_name) for entry in self]
+    def visible(self, scopes: frozenset[str] | None = None) -> Iterator[ServiceEntry]:
+        """The services a connection holding ``scopes`` may call (None: every service)."""
+        for entry in self:
+            if scopes is None or entry.scopes <= scopes:
+                yield entry
 
-    def discover(self) -> dict[str, Any]:
-        """Return the OpenRPC 1.3.2 document describing every service."""
+    def services(self, scopes: frozenset[str] | None = None) -> list[tuple[str, str]]:
+        """Return ``(name, type name)`` of every service ``scopes`` may call, sorted by name."""
+        return [(entry.name, entry.type_name) for entry in self.visible(scopes)]
+
+    def discover(self, scopes: frozenset[str] | None = None) -> dict[str, Any]:
+        """Return the OpenRPC 1.3.2 document describing every service ``scopes`` may call."""
         return {
             "openrpc": "1.3.2",
             "info": {"title": "srvwire", "version": __version__},
-            "methods": [entry.describe() for entry in self],
+            "methods": [entry.describe() for entry in self.visible(scopes)],
         }
 
-    def discover_json(self) -> str:
+    def discover_json(self, scopes: frozenset[str] | None = None) -> str:
         """Return :meth:`discover` as JSON text, cached until the services change."""
-        if self._discovery is None:
-            self._discovery = encode_json(self.discover())
-        return self._discovery
+        document = self._discovery.get(scopes)
+        if document is None:
+            if len(self._discovery) >= _DISCOVERY_CACHE:  # as many as sets of scopes seen
+                self._discovery.clear()
+            document = self._discovery[scopes] = encode_json(self.discover(scopes))
+        return document
 
 
 def _invalid_return(

@@ -19,6 +19,7 @@ The tree::
         │   └── ConnectionLost          -32003  (raised by the client only)
         ├── ResourceExhausted           -32004
         ├── Unauthenticated             -32005
+        ├── PermissionDenied            -32006
         └── ServiceError                any code outside -32768..-32000
 
 An :class:`RPCError` is what travels on the wire: it has a ``code``, a ``message``, optional
@@ -44,6 +45,7 @@ __all__ = [
     "InvalidParams",
     "InvalidRequest",
     "ParseError",
+    "PermissionDenied",
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
@@ -71,6 +73,7 @@ class ErrorCode(IntEnum):
     UNAVAILABLE = -32003
     RESOURCE_EXHAUSTED = -32004
     UNAUTHENTICATED = -32005
+    PERMISSION_DENIED = -32006
 
 
 RESERVED_MIN = -32768
@@ -257,10 +260,17 @@ class ResourceExhausted(RPCError):
 
 
 class Unauthenticated(RPCError):
-    """Raised when the server wants credentials it did not get."""
+    """Raised when the server wants credentials it did not get, or they expired."""
 
     code = ErrorCode.UNAUTHENTICATED
     status = "UNAUTHENTICATED"
+
+
+class PermissionDenied(RPCError):
+    """Raised when the connection's identity lacks a scope the service requires."""
+
+    code = ErrorCode.PERMISSION_DENIED
+    status = "PERMISSION_DENIED"
 
 
 class ServiceError(RPCError):
@@ -306,6 +316,7 @@ _BY_CODE: dict[int, type[RPCError]] = {
         ServiceUnavailable,
         ResourceExhausted,
         Unauthenticated,
+        PermissionDenied,
     )
 }
 

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Coroutine
+import ssl as _ssl
+from collections.abc import Coroutine, Sequence
 from typing import Any, Protocol, TypeAlias
 
 from srvwire.errors import (
@@ -83,7 +84,14 @@ class Link:
 
     @classmethod
     async def open(
-        cls, owner: Owner, transport: Transport, options: Options, *, open_timeout: float
+        cls,
+        owner: Owner,
+        transport: Transport,
+        options: Options,
+        *,
+        open_timeout: float,
+        headers: Sequence[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | None = None,
     ) -> tuple[Link, dict[str, str]]:
         """Connect to ``owner.url`` and read the server's first message, its ``$/services``.
 
@@ -95,7 +103,7 @@ class Link:
         url = owner.url
         try:
             async with asyncio.timeout(open_timeout):
-                conn = await transport.connect(url, options)
+                conn = await transport.connect(url, options, headers=headers, ssl=ssl)
                 try:
                     first = await conn.recv()
                 except BaseException:

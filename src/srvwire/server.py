@@ -10,10 +10,14 @@ Invariants:
 
 * **Nothing a client sends stops the server.** A connection that ends cancels that
   connection's calls and nothing more.
-* **Shutdown is graceful and bounded.** :meth:`RunningServer.close` at once stops listening and
-  answers new calls ``UNAVAILABLE``; then it waits up to ``grace_period`` for calls in flight,
-  cancels the rest (they answer ``UNAVAILABLE``), and closes every connection with 1001
+* **Shutdown is graceful and bounded.** :meth:`RunningServer.close` at once refuses new
+  connections (HTTP 503; ``/healthz`` says ``draining``) and answers new calls
+  ``UNAVAILABLE``; then it waits up to ``grace_period`` for calls in flight, cancels the rest
+  (they answer ``UNAVAILABLE``), stops listening, and closes every connection with 1001
   (going away).
+* **Who may connect is decided before the connection opens**, by the server's
+  :class:`~srvwire.handshake.EdgePolicy` (origins, Host, ``max_connections``, ``auth``),
+  which the transport asks about each opening request.
 * **The registry changes on the event loop's thread.** While the server listens,
   :meth:`Server.add_service` and :meth:`Server.remove_service` called from another thread hand
   the change to the loop and wait for it; every connection is then sent ``$/services``.
@@ -26,19 +30,31 @@ import concurrent.futures
 import contextlib
 import logging
 import signal
+import ssl as _ssl
 import threading
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterable
 from concurrent.futures import Executor
 from types import TracebackType
 from typing import Any, TypeVar
 
+from srvwire.auth import Authenticator
 from srvwire.dispatch import Handler, ServiceRegistry
 from srvwire.errors import ServiceUnavailable
+from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
 from srvwire.models import Service
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
 from srvwire.transports import get_transport
-from srvwire.transports.base import Connection, Listener, Options, Transport, TransportClosed
+from srvwire.transports.base import (
+    Admitted,
+    Answered,
+    Connection,
+    Handshake,
+    Listener,
+    Options,
+    Transport,
+    TransportClosed,
+)
 
 __all__ = ["RunningServer", "Server", "serve"]
 
@@ -48,6 +64,10 @@ H = TypeVar("H", bound=Handler)
 # them its own way (srvwire serve) to leave out: record.srvwire_lifecycle is True.
 _LIFECYCLE = {"srvwire_lifecycle": True}
 _LOOP_CHECK_INTERVAL = 1.0  # seconds between checks that a loop we wait on still runs
+ACCEPT_FAILURE_LOG_INTERVAL = 10.0
+"""Seconds: at most one line in this time about connections that cannot be accepted because
+the process is out of file descriptors (asyncio retries the accept every second)."""
+_ACCEPT_FAILED = "socket.accept() out of system resource"  # asyncio's words for it
 
 
 def _running_loop() -> asyncio.AbstractEventLoop | None:
@@ -69,6 +89,12 @@ class Server:
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
     calls down); ``executor`` runs sync handlers (default: the server's own
     :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive).
+
+    At the edge (see :mod:`srvwire.handshake` and docs/security.md): ``origins`` lists the
+    browser origins allowed besides pages of the server's own host (``"null"``, or ``"*"``
+    for all, which lets any web page call the services); ``auth`` authenticates each
+    connection (such as :class:`~srvwire.auth.TokenAuth`; None: no authentication);
+    ``max_connections`` bounds the connections open at once (past it: HTTP 503).
     """
 
     def __init__(
@@ -84,7 +110,21 @@ class Server:
         compression: str | None = None,
         executor: Executor | None = None,
         logger: logging.Logger | None = None,
+        origins: Iterable[str] = (),
+        auth: Authenticator | None = None,
+        max_connections: int | None = 512,
     ) -> None:
+        if max_connections is not None and max_connections < 1:
+            raise ValueError(f"max_connections must be at least 1, not {max_connections}")
+        if auth is not None and not callable(auth):
+            raise TypeError(
+                "auth must be an authenticator, such as TokenAuth({token: identity}), "
+                f"not a {type(auth).__name__}"
+            )
+        self.origins = tuple(origins)
+        EdgePolicy("localhost", origins=self.origins)  # says now what is wrong with one
+        self.auth = auth
+        self.max_connections = max_connections
         if max_in_flight < 1:
             raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
         if max_batch < 1:
@@ -123,16 +163,25 @@ class Server:
 
     # --- services ---------------------------------------------------------------------------
 
-    def add_service(self, name: str, srv_type: type[Service], handler: Handler) -> None:
+    def add_service(
+        self,
+        name: str,
+        srv_type: type[Service],
+        handler: Handler,
+        *,
+        scopes: Iterable[str] = (),
+    ) -> None:
         """Serve ``handler`` for ``srv_type`` under ``name``; tell connected clients.
 
-        Raise :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
+        With ``scopes``, only a connection whose identity holds every one of them may call it
+        (or see it); any other is answered ``PERMISSION_DENIED``. Raise
+        :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
         a type that is not a service type, or a handler that cannot be called as one. Safe to
         call from any thread: while the server listens, the change is made on its event loop.
         """
 
         def add() -> None:
-            self.registry.add(name, srv_type, handler)
+            self.registry.add(name, srv_type, handler, scopes)
             self._services_changed()
 
         self._change_services(add)
@@ -150,11 +199,14 @@ class Server:
 
         self._change_services(remove)
 
-    def service(self, name: str, srv_type: type[Service]) -> Callable[[H], H]:
-        """Decorate a handler to serve it under ``name``; the handler is returned unchanged."""
+    def service(
+        self, name: str, srv_type: type[Service], *, scopes: Iterable[str] = ()
+    ) -> Callable[[H], H]:
+        """Decorate a handler to serve it under ``name`` (see :meth:`add_service`); the
+        handler is returned unchanged."""
 
         def register(handler: H) -> H:
-            self.add_service(name, srv_type, handler)
+            self.add_service(name, srv_type, handler, scopes=scopes)
             return handler
 
         return register
@@ -210,6 +262,7 @@ class Server:
         ready: Callable[[RunningServer], object] | None = None,
         stopping: Callable[[RunningServer], object] | None = None,
         transport: str | Transport = "websockets",
+        ssl: _ssl.SSLContext | None = None,
     ) -> None:
         """Serve until Ctrl-C or SIGTERM, then shut down gracefully; for scripts.
 
@@ -217,7 +270,9 @@ class Server:
         """
         with contextlib.suppress(KeyboardInterrupt):
             asyncio.run(
-                self.serve_forever(host, port, ready=ready, stopping=stopping, transport=transport)
+                self.serve_forever(
+                    host, port, ready=ready, stopping=stopping, transport=transport, ssl=ssl
+                )
             )
 
     async def serve_forever(
@@ -228,6 +283,7 @@ class Server:
         ready: Callable[[RunningServer], object] | None = None,
         stopping: Callable[[RunningServer], object] | None = None,
         transport: str | Transport = "websockets",
+        ssl: _ssl.SSLContext | None = None,
     ) -> None:
         """Serve on ``host``:``port`` until SIGINT or SIGTERM, then shut down gracefully.
 
@@ -250,12 +306,13 @@ class Server:
                     continue
                 replaced.append((signum, previous))
         try:
-            async with serve(self, host, port, transport=transport) as running:
+            async with serve(self, host, port, transport=transport, ssl=ssl) as running:
                 count = len(self.registry)
                 services = "service" if count == 1 else "services"
                 self.logger.info(
                     "serving %d %s on %s", count, services, running.url, extra=_LIFECYCLE
                 )
+                self.logger.info("%s", running.reach, extra=_LIFECYCLE)
                 if ready is not None:
                     ready(running)
                 await stop.wait()
@@ -273,7 +330,9 @@ class serve:
     """Serve ``server`` on ``host``:``port`` (0 picks a free port) over ``transport``.
 
     ``transport`` is ``"websockets"`` (the default) or a :class:`~srvwire.transports.base.Transport`
-    such as a :class:`~srvwire.transports.memory.MemoryTransport`. Use it as
+    such as a :class:`~srvwire.transports.memory.MemoryTransport`; ``ssl`` (an
+    :class:`ssl.SSLContext` with the server's certificate) makes it speak TLS, at ``wss://``.
+    Use it as
     ``async with serve(server) as running: ...`` (closed on exit) or as
     ``running = await serve(server)`` (then ``await running.close()``).
     """
@@ -285,16 +344,18 @@ class serve:
         port: int = 8765,
         *,
         transport: str | Transport = "websockets",
+        ssl: _ssl.SSLContext | None = None,
     ) -> None:
         self._server = server
         self._host = host
         self._port = port
         self._transport = get_transport(transport)
+        self._ssl = ssl
         self._running: RunningServer | None = None
 
     async def _start(self) -> RunningServer:
         running = RunningServer(self._server, self._transport)
-        await running._start(self._host, self._port)
+        await running._start(self._host, self._port, self._ssl)
         self._running = running
         return running
 
@@ -328,13 +389,79 @@ class RunningServer:
         self._listener: Listener | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._close_task: asyncio.Task[None] | None = None
+        self.policy: EdgePolicy | None = None
+        self._accept_failures = 0  # since the last line about them
+        self._accept_failure_logged: float | None = None
+        self._previous_handler: Any = None
+        self.tls = False
+        self.authenticated = False
+        """Whether every connection authenticates: with ``auth``, or a client certificate."""
 
-    async def _start(self, host: str, port: int) -> None:
+    async def _start(self, host: str, port: int, ssl: _ssl.SSLContext | None = None) -> None:
         self._loop = asyncio.get_running_loop()
-        self._listener = await self.transport.listen(self._handle, host, port, self.server.options)
+        server = self.server
+        self.policy = EdgePolicy(
+            host,
+            origins=server.origins,
+            auth=server.auth,
+            max_connections=server.max_connections,
+            logger=server.logger,
+        )
+        self.tls = ssl is not None
+        mutual = ssl is not None and ssl.verify_mode == _ssl.CERT_REQUIRED
+        self.authenticated = server.auth is not None or mutual
+        self._listener = await self.transport.listen(
+            self._handle, host, port, server.options, gate=self._admit, ssl=ssl
+        )
         self.host = self._listener.host
         self.port = self._listener.port
         self.server._running.add(self)
+        if not self.authenticated and not is_loopback(host) and self.transport.name != "memory":
+            server.logger.warning(
+                "%s, with no authentication: anyone who can reach it can call every service "
+                "(give the Server an auth=, or listen on 127.0.0.1)",
+                describe_reach(host, authenticated=False, tls=self.tls).split(";")[0],
+            )
+        self._previous_handler = self._loop.get_exception_handler()
+        self._loop.set_exception_handler(self._loop_exception)
+
+    def _loop_exception(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """Say "out of file descriptors" at most once per :data:`ACCEPT_FAILURE_LOG_INTERVAL`,
+        with how many times it happened since; pass anything else on to the loop's handler."""
+        if context.get("message") != _ACCEPT_FAILED:
+            if self._previous_handler is not None:
+                self._previous_handler(loop, context)
+            else:
+                loop.default_exception_handler(context)
+            return
+        self._accept_failures += 1
+        now = loop.time()
+        last = self._accept_failure_logged
+        if last is not None and now - last < ACCEPT_FAILURE_LOG_INTERVAL:
+            return
+        self._accept_failure_logged = now
+        count, self._accept_failures = self._accept_failures, 0
+        self.server.logger.error(
+            "cannot accept new connections: %s (%d connections open; %d failed accepts since "
+            "the last line, said at most every %g s); raise the limit of open files "
+            "(ulimit -n) or lower max_connections",
+            context.get("exception"),
+            len(self._connections),
+            count,
+            ACCEPT_FAILURE_LOG_INTERVAL,
+        )
+
+    async def _admit(self, handshake: Handshake) -> Admitted | Answered:
+        """The gate the transport asks about each opening request."""
+        assert self.policy is not None
+        return await self.policy.admit(
+            handshake, connections=len(self._connections), draining=self.closing
+        )
+
+    @property
+    def reach(self) -> str:
+        """Who can reach this server, in words (its startup log line says it)."""
+        return describe_reach(self.host, authenticated=self.authenticated, tls=self.tls)
 
     @property
     def url(self) -> str:
@@ -372,11 +499,14 @@ class RunningServer:
         await self._listener.wait_closed()
 
     def _stop_accepting(self) -> None:
-        """The first step of shutdown, at once: no new connection, no new call."""
+        """The first step of shutdown, at once: no new connection, no new call.
+
+        The listener stays open while calls drain, so that a new connection is told 503 and
+        ``/healthz`` says ``draining``; it closes once they have.
+        """
         assert self._listener is not None
         self.closing = True
         self.server._running.discard(self)
-        self._listener.close()  # the open connections stay
         for conn in self._connections:
             conn.session.close()
 
@@ -398,6 +528,10 @@ class RunningServer:
                     )
                 # The cancelled calls reply at once; do not wait on a peer that does not read.
                 await asyncio.wait(pending, timeout=1.0)
+        self._listener.close()  # the open connections stay, to be closed with 1001
+        loop = self._loop
+        if loop is not None and loop.get_exception_handler() == self._loop_exception:
+            loop.set_exception_handler(self._previous_handler)
         closes = [conn.conn.close(1001, "server shutting down") for conn in self._connections]
         if closes:
             await asyncio.gather(*closes, return_exceptions=True)

@@ -72,6 +72,7 @@ class CallRunner:
     __slots__ = (
         "counted",
         "executor",
+        "identity",
         "log",
         "loop",
         "notification_timeout",
@@ -89,10 +90,12 @@ class CallRunner:
         executor: Executor | None,
         logger: logging.Logger,
         notification_timeout: float | None = None,
+        identity: Any = None,
     ) -> None:
         self.session = session
         self.send = send
         self.peer = peer
+        self.identity = identity
         self.executor = executor
         self.log = logger
         self.notification_timeout = notification_timeout
@@ -133,6 +136,7 @@ class CallRunner:
             request_id=work.id if type(work) is Call else None,
             peer=self.peer,
             deadline=None if timeout is None else time.monotonic() + timeout,
+            identity=self.identity,
         )
 
     def arm(self, work: Work) -> asyncio.TimerHandle | None:
@@ -286,6 +290,7 @@ class ServedConnection:
         "drops_level",
         "drops_logged",
         "drops_timer",
+        "expiry",
         "log",
         "loop",
         "reader",
@@ -308,8 +313,10 @@ class ServedConnection:
     ) -> None:
         self.conn = conn
         self.log = logger
+        identity = getattr(conn, "identity", None)
+        scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
         self.session: ServerSession[ServiceEntry] = ServerSession(
-            registry, max_in_flight=max_in_flight, max_batch=max_batch
+            registry, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes
         )
         self.runner = CallRunner(
             self.session,
@@ -318,12 +325,18 @@ class ServedConnection:
             executor=executor,
             logger=logger,
             notification_timeout=notification_timeout,
+            identity=identity,
         )
         self.drops = 0  # notifications dropped and not logged yet
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
         self.drops_timer: asyncio.TimerHandle | None = None  # says the count when it fires
         self.loop = asyncio.get_running_loop()
+        # Credentials that expire: past then, the session answers UNAUTHENTICATED.
+        expires = getattr(identity, "expires", None)
+        self.expiry: asyncio.TimerHandle | None = None
+        if expires is not None:
+            self.expiry = self.loop.call_later(max(0.0, expires - time.time()), self.expire)
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
         self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
@@ -351,6 +364,12 @@ class ServedConnection:
         except TransportClosed:
             pass  # the caller left; its calls are being cancelled
 
+    def expire(self) -> None:
+        """The connection's credentials expired (see :meth:`ServerSession.expire`)."""
+        self.expiry = None
+        self.session.expire()
+        self.log.info("the credentials of the connection from %s expired", self.peer)
+
     def cancel_all(self, error: RPCError | None) -> None:
         """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
 
@@ -362,6 +381,9 @@ class ServedConnection:
         for cancel in self.session.cancel_all(error):
             runner.cancel(cancel.call, cancel.error)
         if error is None:
+            if self.expiry is not None:
+                self.expiry.cancel()
+                self.expiry = None
             for task in list(self.tasks):
                 task.cancel()
             counted = runner.counted

@@ -13,9 +13,14 @@ Server invariants:
   one :meth:`ServerSession.reply` or :meth:`ServerSession.fail` writes for a started
   :class:`Call`, after which the runner says it was :meth:`~ServerSession.sent`. A call that
   ends without a reply (its connection went away) is :meth:`~ServerSession.forget`-ten.
-* **Admission, in this order:** a closing session answers ``UNAVAILABLE``; a method that is not a
-  service is discovery, ``$/cancel`` or ``SERVICE_NOT_FOUND``; past ``max_in_flight`` a call is
-  answered ``RESOURCE_EXHAUSTED``; an id already in flight is ``INVALID_REQUEST``.
+* **Admission, in this order:** a closing session answers ``UNAVAILABLE``; once the
+  connection's credentials have :meth:`~ServerSession.expire`-d, ``UNAUTHENTICATED``; a method
+  that is not a service is discovery, ``$/cancel`` or ``SERVICE_NOT_FOUND``; a service whose
+  ``scopes`` the connection does not all hold is ``PERMISSION_DENIED`` (before its params are
+  read); past ``max_in_flight`` a call is answered ``RESOURCE_EXHAUSTED``; an id already in
+  flight is ``INVALID_REQUEST``.
+* **A connection sees only what it may call**: ``rpc.discover`` and ``$/services`` list the
+  services whose scopes it holds.
 * **In flight** counts calls from admission until their reply has been sent (so replies a
   client does not read count against its limit, and past it the reader's own answers push
   back), and notifications from their start to :meth:`~ServerSession.done`. A batch's calls
@@ -43,9 +48,11 @@ from srvwire.errors import (
     Cancelled,
     InvalidRequest,
     ParseError,
+    PermissionDenied,
     ResourceExhausted,
     RPCError,
     ServiceUnavailable,
+    Unauthenticated,
 )
 from srvwire.protocol import (
     CANCEL_METHOD,
@@ -86,10 +93,13 @@ _PROTOCOL_PREFIX = "$/"
 
 
 class Entry(Protocol):
-    """What the session needs of a service: its canonical name."""
+    """What the session needs of a service: its canonical name, and the scopes it needs."""
 
     @property
     def name(self) -> str: ...
+
+    @property
+    def scopes(self) -> frozenset[str]: ...
 
 
 E = TypeVar("E", bound=Entry)
@@ -106,9 +116,9 @@ class Services(Protocol[E_co]):
         """Return the entry, or raise the ``ServiceNotFound`` to answer."""
         ...
 
-    def services(self) -> list[tuple[str, str]]: ...
+    def services(self, scopes: frozenset[str] | None = None) -> list[tuple[str, str]]: ...
 
-    def discover_json(self) -> str: ...
+    def discover_json(self, scopes: frozenset[str] | None = None) -> str: ...
 
 
 class _Batch:
@@ -195,14 +205,24 @@ class Dropped(Generic[E]):
 
 
 class ServerSession(Generic[E]):
-    """The server's side of one connection: admission, cancellation, batches, shutdown."""
+    """The server's side of one connection: admission, cancellation, batches, shutdown.
+
+    ``scopes`` are those the connection's identity holds (none without one).
+    """
 
     def __init__(
-        self, services: Services[E], *, max_in_flight: int = 256, max_batch: int = 100
+        self,
+        services: Services[E],
+        *,
+        max_in_flight: int = 256,
+        max_batch: int = 100,
+        scopes: frozenset[str] = frozenset(),
     ) -> None:
         self.services = services
         self.max_in_flight = max_in_flight
         self.max_batch = max_batch
+        self.scopes = scopes
+        self.expired = False
         self.calls: dict[Id, Call[E]] = {}
         """Calls in flight that ``$/cancel`` can name, by id."""
         self.anonymous: set[Call[E]] = set()
@@ -269,9 +289,13 @@ class ServerSession(Generic[E]):
         id = request.id
         if self.closing:
             return ErrorResponse(id, ServiceUnavailable("the server is shutting down")).serialize()
+        if self.expired:
+            return ErrorResponse(id, _expired()).serialize()
         entry = self.services.get(request.method)
         if entry is None:
             return self._special(request, batch, events)
+        if not entry.scopes <= self.scopes:
+            return ErrorResponse(id, self._denied(entry)).serialize()
         if self.in_flight >= self.max_in_flight:
             exhausted = ResourceExhausted(
                 f"too many calls in flight on this connection (the limit is {self.max_in_flight})",
@@ -305,7 +329,8 @@ class ServerSession(Generic[E]):
                     )
                     return ErrorResponse(request.id, again).serialize()
                 batch.discovered = True
-            return Response(request.id, RawJSON(self.services.discover_json())).serialize()
+            document = self.services.discover_json(self.scopes)
+            return Response(request.id, RawJSON(document)).serialize()
         if request.method == CANCEL_METHOD:
             cancel = self._cancel(request.params)
             if cancel is not None:
@@ -324,12 +349,26 @@ class ServerSession(Generic[E]):
         entry = self.services.get(method)
         if entry is None or self.closing:
             return None
+        if self.expired:
+            return Dropped(entry, _expired().message)
+        if not entry.scopes <= self.scopes:
+            return Dropped(entry, self._denied(entry).message)
         if note.error is not None:
             return Dropped(entry, str(note.error))
         if self.in_flight >= self.max_in_flight:
             return Dropped(entry, "too many calls in flight", busy=True)
         self.in_flight += 1
         return NotificationCall(entry, note.params, note.timeout)
+
+    def _denied(self, entry: E) -> PermissionDenied:
+        missing = sorted(entry.scopes - self.scopes)
+        return PermissionDenied(
+            f"permission denied: {entry.name} needs the "
+            f"{'scope' if len(missing) == 1 else 'scopes'} {', '.join(missing)}, "
+            "which this connection's identity does not hold",
+            {"missing_scopes": missing},
+            service=entry.name,
+        )
 
     def _cancel(self, params: Any) -> CancelCall[E] | None:
         """``$/cancel``: the call with ``params["id"]``, if it is still in flight."""
@@ -399,7 +438,12 @@ class ServerSession(Generic[E]):
 
     def announcement(self) -> bytes:
         """The ``$/services`` notification: the first message, and the one after each change."""
-        return services_notification(self.services.services()).serialize()
+        return services_notification(self.services.services(self.scopes)).serialize()
+
+    def expire(self) -> None:
+        """The connection's credentials expired: from now on every call is answered
+        ``UNAUTHENTICATED`` (the calls in flight finish)."""
+        self.expired = True
 
     def close(self) -> None:
         """Stop admitting: from now on every new call is answered ``UNAVAILABLE``."""
@@ -416,6 +460,10 @@ class ServerSession(Generic[E]):
             self.anonymous.clear()
             self.in_flight -= len(cancels)
         return cancels
+
+
+def _expired() -> Unauthenticated:
+    return Unauthenticated("the credentials of this connection expired; reconnect with fresh ones")
 
 
 # --- the client's side ---------------------------------------------------------------------------

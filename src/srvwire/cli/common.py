@@ -16,15 +16,17 @@ import contextlib
 import enum
 import os
 import re
+import ssl
 from collections.abc import AsyncIterator, Mapping, Sequence
 from pathlib import Path
 from typing import Final, NoReturn, TypeAlias
 
-from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect
+from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect, plaintext_host
 from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
 from srvwire.loader import InterfaceLoader, default_search_path
 
 URL_ENV_VAR = "SRVWIRE_URL"
+TOKEN_ENV_VAR = "SRVWIRE_TOKEN"
 
 _HOST_PORT = re.compile(r"^(?:\[[0-9A-Fa-f:.]+\]|[^:/\[\]]+):\d+$")
 
@@ -55,6 +57,7 @@ EXIT_CODES: Final[Mapping[ErrorCode, ExitCode]] = {
     ErrorCode.UNAVAILABLE: ExitCode.UNAVAILABLE,  # ConnectionLost has this code too
     ErrorCode.RESOURCE_EXHAUSTED: ExitCode.OTHER_RPC_ERROR,
     ErrorCode.UNAUTHENTICATED: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.PERMISSION_DENIED: ExitCode.OTHER_RPC_ERROR,
 }
 """The exit code for an error from a call, by the error's JSON-RPC code."""
 
@@ -156,7 +159,56 @@ def remote_options() -> Parser:
         metavar="SECONDS",
         help=f"deadline for connecting and for each call (default: {DEFAULT_TIMEOUT:g})",
     )
+    remote.add_argument(
+        "--token",
+        help=f"bearer token to authenticate with (default: ${TOKEN_ENV_VAR}); sent as "
+        "'Authorization: Bearer TOKEN', never over plain ws:// to another host",
+    )
+    remote.add_argument(
+        "-H",
+        "--header",
+        action="append",
+        default=[],
+        type=header,
+        metavar="'NAME: VALUE'",
+        help="send this header with the opening request (repeatable)",
+    )
+    remote.add_argument(
+        "--cacert",
+        type=Path,
+        metavar="FILE",
+        help="trust the server certificates this CA file signed (wss://)",
+    )
+    remote.add_argument(
+        "--insecure",
+        action="store_true",
+        help="do NOT check the server's TLS certificate: anyone on the way can pretend to be "
+        "the server (for a test bench only)",
+    )
     return remote
+
+
+def header(text: str) -> tuple[str, str]:
+    name, colon, value = text.partition(":")
+    if not colon or not name.strip() or name != name.strip():
+        raise argparse.ArgumentTypeError(f"not a header: {text!r}; write 'Name: value'")
+    return name, value.strip()
+
+
+def client_tls(args: argparse.Namespace) -> ssl.SSLContext | None:
+    """The client's TLS context from ``--cacert`` and ``--insecure``, or None (the system's)."""
+    cacert: Path | None = getattr(args, "cacert", None)
+    if getattr(args, "insecure", False):
+        context = ssl.create_default_context()
+        context.check_hostname = False
+        context.verify_mode = ssl.CERT_NONE
+        return context
+    if cacert is None:
+        return None
+    try:
+        return ssl.create_default_context(cafile=os.fspath(cacert))
+    except (OSError, ssl.SSLError) as exc:
+        raise CommandError(f"cannot use --cacert {cacert}: {exc}", ExitCode.USAGE) from None
 
 
 def local_options() -> Parser:
@@ -257,14 +309,30 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
     """
     url = server_url(args)
     source = "--url" if args.url is not None else f"${URL_ENV_VAR}"
+    token: str | None = getattr(args, "token", None) or os.environ.get(TOKEN_ENV_VAR) or None
+    headers: list[tuple[str, str]] = getattr(args, "header", [])
+    exposed = plaintext_host(url)
+    if exposed is not None and (token or any(k.lower() == "authorization" for k, _ in headers)):
+        raise CommandError(
+            f"refusing to send credentials over plain ws:// to {exposed}, where anyone on the "
+            "way can read them: use wss://",
+            ExitCode.USAGE,
+        )
     entered = False
     try:
-        async with connect(
+        options = connect(
             url,
             timeout=args.timeout,
             open_timeout=args.timeout,
             search_path=[*getattr(args, "path", []), *default_search_path()],
-        ) as client:
+            token=token,
+            headers=headers,
+            ssl=client_tls(args),
+        )
+    except ValueError as exc:
+        raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
+    try:
+        async with options as client:
             entered = True
             yield client
     except ValueError as exc:

@@ -1,8 +1,10 @@
 """``srvwire serve``: run the services of a :class:`~srvwire.server.Server` defined in user code.
 
 TARGET is ``module[:attr]`` or ``file.py[:attr]``; the attribute defaults to ``server``, then
-``app``. The first line printed is always ``serving N services on URL``. Ctrl-C or SIGTERM stops
-the server gracefully and exits with 0.
+``app``. The first line printed is always ``serving N services on URL``; the services follow, then
+a line saying who can reach the server. Ctrl-C or SIGTERM stops the server gracefully and exits
+with 0. It refuses to listen on an address other than loopback when nobody has to authenticate
+(no ``auth`` on the Server, no ``--client-ca``), unless ``--allow-unauthenticated``.
 """
 
 from __future__ import annotations
@@ -13,12 +15,14 @@ import importlib.util
 import logging
 import os
 import re
+import ssl
 import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, plural, port
+from srvwire.handshake import EdgePolicy, is_loopback
 from srvwire.server import RunningServer, Server
 
 _ATTRIBUTE_PATH = re.compile(r"^[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*$")
@@ -33,7 +37,9 @@ def register(commands: Commands) -> None:
         "examples:\n"
         "  srvwire serve my_app.services:server\n"
         "  srvwire serve path/to/app.py --port 9000\n"
-        "  srvwire serve examples/robot_state_server.py:build_server --factory\n\n"
+        "  srvwire serve examples/robot_state_server.py:build_server --factory\n"
+        "  srvwire serve app.py --certfile cert.pem --keyfile key.pem --client-ca clients.pem "
+        "--host 0.0.0.0\n\n"
         "TARGET is MODULE[:ATTR] or FILE.py[:ATTR]; ATTR defaults to 'server', then 'app'.\n"
         "Ctrl-C stops the server gracefully.",
     )
@@ -53,6 +59,33 @@ def register(commands: Commands) -> None:
         help="port to listen on; 0 picks a free one (default: 8765)",
     )
     serve.add_argument(
+        "--origin",
+        action="append",
+        default=[],
+        metavar="ORIGIN",
+        help="also allow browser pages from ORIGIN, such as https://app.example.com "
+        "(repeatable; 'null' for file:// pages; '*' for any page, which is dangerous)",
+    )
+    serve.add_argument(
+        "--certfile", type=Path, metavar="FILE", help="serve TLS (wss://) with this certificate"
+    )
+    serve.add_argument(
+        "--keyfile", type=Path, metavar="FILE", help="the private key of --certfile (PEM)"
+    )
+    serve.add_argument(
+        "--client-ca",
+        type=Path,
+        metavar="FILE",
+        help="require a client certificate signed by these CAs (mutual TLS); its subject "
+        "becomes the connection's identity",
+    )
+    serve.add_argument(
+        "--allow-unauthenticated",
+        action="store_true",
+        help="listen on an address other than loopback even though nobody has to "
+        "authenticate (only on a network you trust)",
+    )
+    serve.add_argument(
         "--log-level",
         type=str.lower,
         choices=["debug", "info", "warning", "error"],
@@ -64,6 +97,23 @@ def register(commands: Commands) -> None:
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     server = _load_target(args.target, factory=args.factory)
+    if args.origin:
+        try:
+            EdgePolicy(args.host, origins=args.origin)
+        except ValueError as exc:
+            raise CommandError(f"bad --origin: {exc}", ExitCode.USAGE) from None
+        server.origins = (*server.origins, *args.origin)
+    context = _tls_context(args)
+    mutual = context is not None and context.verify_mode == ssl.CERT_REQUIRED
+    if not is_loopback(args.host) and server.auth is None and not mutual:
+        if not args.allow_unauthenticated:
+            raise CommandError(
+                f"refusing to listen on {args.host} without authentication: any host that can "
+                "reach it could call every service. Give the Server an authenticator "
+                "(Server(auth=srvwire.TokenAuth(...))), require client certificates "
+                "(--client-ca), or pass --allow-unauthenticated on a network you trust",
+                ExitCode.USAGE,
+            )
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     handler.addFilter(_printed_already)
@@ -77,13 +127,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print(f"serving {plural(len(services), 'service')} on {running.url}", flush=True)
         for name, type_name in services:
             print(f"  {name} [{type_name}]", flush=True)
+        print(running.reach, flush=True)
 
     def stopping(running: RunningServer) -> None:
         print("shutting down", flush=True)
 
     try:
         # run() stops on SIGINT or SIGTERM, and takes a KeyboardInterrupt where it cannot.
-        server.run(args.host, args.port, ready=ready, stopping=stopping)
+        server.run(args.host, args.port, ready=ready, stopping=stopping, ssl=context)
     except BrokenPipeError:
         raise  # stdout was closed, which is not a listening problem
     except OSError as exc:
@@ -93,6 +144,26 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         package_logger.setLevel(previous_level)
     print("stopped", flush=True)
     return ExitCode.OK
+
+
+def _tls_context(args: argparse.Namespace) -> ssl.SSLContext | None:
+    """The server's TLS context from ``--certfile``/``--keyfile``/``--client-ca``, or None."""
+    if args.certfile is None:
+        if args.keyfile is not None or args.client_ca is not None:
+            raise CommandError(
+                "--keyfile and --client-ca need --certfile (the server's certificate)",
+                ExitCode.USAGE,
+            )
+        return None
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    try:
+        context.load_cert_chain(args.certfile, args.keyfile)
+        if args.client_ca is not None:
+            context.verify_mode = ssl.CERT_REQUIRED
+            context.load_verify_locations(args.client_ca)
+    except (OSError, ssl.SSLError) as exc:
+        raise CommandError(f"cannot use the TLS files: {exc}") from None
+    return context
 
 
 def _printed_already(record: logging.LogRecord) -> bool:

@@ -22,24 +22,39 @@ Rules every transport keeps:
   (``None``: it dropped without a close frame). :meth:`Connection.close` is idempotent and
   waits for the closing handshake, within the transport's own bound. A transport maps its
   library's exceptions to these in one place, with ``raise ... from``.
+* **Who may connect is the server's decision, not the transport's.** A listener given a
+  ``gate`` hands it each opening request as a :class:`Handshake` before the connection is
+  accepted (for a WebSocket: before the upgrade) and carries out its answer: an
+  :class:`Admitted` connection gets the identity on :attr:`Connection.identity`; a
+  :class:`Answered` one gets that HTTP response instead, and the handler never runs.
 """
 
 from __future__ import annotations
 
 import abc
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+import ssl as _ssl
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 __all__ = [
+    "CREDENTIAL_HEADERS",
+    "Admitted",
+    "Answered",
     "Connection",
     "ConnectionHandler",
+    "Gate",
+    "Handshake",
+    "Headers",
     "Listener",
     "Options",
     "Transport",
     "TransportClosed",
     "TransportError",
 ]
+
+CREDENTIAL_HEADERS = frozenset({"authorization", "cookie", "proxy-authorization"})
+"""Headers whose values are credentials: no ``repr`` or log line shows them."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,6 +71,78 @@ class Options:
     ping_interval: float | None = 20.0
     ping_timeout: float | None = 20.0
     compression: str | None = None
+
+
+class Headers(tuple[tuple[str, str], ...]):
+    """Headers as ``(name, value)`` pairs, whose ``repr`` hides the values of credentials."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return repr(
+            [
+                (key, "<hidden>" if key.lower() in CREDENTIAL_HEADERS else value)
+                for key, value in self
+            ]
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Handshake:
+    """An opening request as a transport received it, for the server to admit or refuse.
+
+    ``headers`` are ``(name, value)`` pairs as they came (a name may repeat); ``peer`` is who
+    connected, as :attr:`Connection.remote_address` names it; ``tls`` whether the connection
+    is encrypted; ``client_certificate`` the peer's certificate as :meth:`ssl.SSLSocket.getpeercert`
+    returns it (None without mutual TLS); ``subprotocols`` what the client offered. Its
+    ``repr`` leaves out the values of credential headers, so it can be logged.
+    """
+
+    path: str = "/"
+    headers: Sequence[tuple[str, str]] = ()
+    peer: Any = None
+    method: str = "GET"
+    tls: bool = False
+    client_certificate: dict[str, Any] | None = None
+    subprotocols: Sequence[str] = ()
+
+    def header(self, name: str) -> str | None:
+        """The first value of the header ``name`` (any case), or None."""
+        wanted = name.lower()
+        for key, value in self.headers:
+            if key.lower() == wanted:
+                return value
+        return None
+
+    def __repr__(self) -> str:
+        offered = len(self.subprotocols)
+        return (
+            f"Handshake({self.method} {self.path.split('?', 1)[0]!r}, peer={self.peer!r}, "
+            f"tls={self.tls}, headers={Headers(self.headers)!r}, {offered} subprotocols offered)"
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Admitted:
+    """The server admits the connection: who it is, and the subprotocol to select (or None)."""
+
+    identity: Any = None
+    subprotocol: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Answered:
+    """The server answers the opening request with a plain HTTP response instead of a
+    connection: a refusal, or the health check. ``status`` is the HTTP status, ``reason`` the
+    body, a line for a person; ``headers`` extra response headers."""
+
+    status: int
+    reason: str
+    headers: tuple[tuple[str, str], ...] = field(default=())
+
+
+Gate = Callable[[Handshake], Awaitable[Admitted | Answered]]
+"""What a listener asks about each opening request (see the module's rules)."""
 
 
 class TransportError(OSError):
@@ -94,6 +181,10 @@ class Connection(abc.ABC):
 
     remote_address: Any
     """Who is at the other end, as the transport names it (a ``(host, port)`` for TCP)."""
+
+    identity: Any
+    """Who the server's gate admitted (:attr:`Admitted.identity`); None on a client, or
+    without a gate."""
 
     @abc.abstractmethod
     async def recv(self) -> str | bytes:
@@ -157,16 +248,34 @@ class Transport(abc.ABC):
 
     @abc.abstractmethod
     async def listen(
-        self, handler: ConnectionHandler, host: str, port: int, options: Options
+        self,
+        handler: ConnectionHandler,
+        host: str,
+        port: int,
+        options: Options,
+        *,
+        gate: Gate | None = None,
+        ssl: _ssl.SSLContext | None = None,
     ) -> Listener:
         """Accept connections on ``host``:``port`` (0: any free port) and run ``handler``.
 
-        Raise :class:`OSError` when the address cannot be used.
+        ``gate`` admits or refuses each opening request (None: every one is admitted);
+        ``ssl`` makes the listener speak TLS, where the transport can. Raise
+        :class:`OSError` when the address cannot be used.
         """
 
     @abc.abstractmethod
-    async def connect(self, url: str, options: Options) -> Connection:
-        """Open a connection to ``url``; raise :class:`TransportError` when that fails."""
+    async def connect(
+        self,
+        url: str,
+        options: Options,
+        *,
+        headers: Sequence[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | None = None,
+    ) -> Connection:
+        """Open a connection to ``url``, sending ``headers`` with the opening request and
+        checking the server with ``ssl`` (for a TLS URL); raise :class:`TransportError` when
+        that fails, saying why (a refusal: its status and reason)."""
 
     @abc.abstractmethod
     def check_url(self, url: str) -> None:

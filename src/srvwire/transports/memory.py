@@ -28,6 +28,10 @@ It keeps the rules of :mod:`srvwire.transports.base` as the WebSocket transport 
   end closes with 1011; when it is cancelled, the connection drops.
 * There is no keepalive: an in-process peer cannot go silent while its event loop runs, so
   ``ping_interval`` and ``ping_timeout`` are ignored, and so is ``compression``.
+* A listener's gate sees each connection as a WebSocket upgrade of ``/`` with
+  ``Host: host:port`` and the headers the client gave (so a test can send a token and call a
+  scoped service in memory); a refusal fails ``connect`` with its status and reason. There is
+  no TLS (``ssl`` is refused) and no HTTP besides, so no health check.
 """
 
 from __future__ import annotations
@@ -35,13 +39,18 @@ from __future__ import annotations
 import asyncio
 import errno
 import logging
+import ssl as _ssl
 import urllib.parse
 from collections import deque
+from collections.abc import Sequence
 from typing import Any
 
 from srvwire.transports.base import (
+    Admitted,
     Connection,
     ConnectionHandler,
+    Gate,
+    Handshake,
     Listener,
     Options,
     Transport,
@@ -92,11 +101,13 @@ class MemoryConnection(Connection):
         "_receiver",
         "_unread",
         "_writable",
+        "identity",
         "remote_address",
     )
 
     def __init__(self, remote_address: Any, max_message_size: int | None, high_water: int) -> None:
         self.remote_address = remote_address
+        self.identity: Any = None
         self._peer = self
         self._limit = max_message_size
         self._high = high_water
@@ -199,11 +210,13 @@ class MemoryListener(Listener):
         host: str,
         port: int,
         options: Options,
+        gate: Gate | None = None,
     ) -> None:
         self.host = host
         self.port = port
         self.url = f"memory://{_netloc(host, port)}"
         self._options = options
+        self._gate = gate
         self._transport = transport
         self._handler = handler
         self._tasks: set[asyncio.Task[None]] = set()
@@ -255,8 +268,17 @@ class MemoryTransport(Transport):
         self._connections = 0
 
     async def listen(
-        self, handler: ConnectionHandler, host: str, port: int, options: Options
+        self,
+        handler: ConnectionHandler,
+        host: str,
+        port: int,
+        options: Options,
+        *,
+        gate: Gate | None = None,
+        ssl: _ssl.SSLContext | None = None,
     ) -> MemoryListener:
+        if ssl is not None:
+            raise ValueError("the memory transport has no TLS: pass ssl=None")
         if port == 0:
             while (host.lower(), self._next_port) in self._listeners:
                 self._next_port += 1
@@ -265,11 +287,18 @@ class MemoryTransport(Transport):
         address = (host.lower(), port)
         if address in self._listeners:
             raise OSError(errno.EADDRINUSE, f"memory://{_netloc(host, port)} is already in use")
-        listener = MemoryListener(self, handler, host, port, options)
+        listener = MemoryListener(self, handler, host, port, options, gate)
         self._listeners[address] = listener
         return listener
 
-    async def connect(self, url: str, options: Options) -> MemoryConnection:
+    async def connect(
+        self,
+        url: str,
+        options: Options,
+        *,
+        headers: Sequence[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | None = None,
+    ) -> MemoryConnection:
         try:
             host, port = _parse(url)
         except ValueError as exc:
@@ -278,12 +307,26 @@ class MemoryTransport(Transport):
         if listener is None:
             raise TransportError(f"nothing listens at memory://{_netloc(host, port)}")
         self._connections += 1
+        peer = ("memory", self._connections)
+        identity = None
+        if listener._gate is not None:
+            handshake = Handshake(
+                path=urllib.parse.urlsplit(url).path or "/",
+                headers=[("Host", _netloc(host, port)), ("Upgrade", "websocket"), *headers],
+                peer=peer,
+            )
+            answer = await listener._gate(handshake)
+            if not isinstance(answer, Admitted):
+                raise TransportError(
+                    f"the server refused the connection: HTTP {answer.status}: "
+                    + answer.reason.strip()
+                )
+            identity = answer.identity
         client = MemoryConnection(
             (listener.host, listener.port), options.max_message_size, self.high_water
         )
-        server = MemoryConnection(
-            ("memory", self._connections), listener._options.max_message_size, self.high_water
-        )
+        server = MemoryConnection(peer, listener._options.max_message_size, self.high_water)
+        server.identity = identity
         client._peer = server
         server._peer = client
         listener._accept(server)

@@ -13,20 +13,45 @@ Exceptions are mapped here and nowhere else:
 * ``OSError`` and ``WebSocketException`` while connecting -> :class:`TransportError`, with the
   same text;
 * ``InvalidURI`` from :meth:`WebSocketsTransport.check_url` -> ``ValueError``.
+
+A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
+that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
+and, through ``select_subprotocol``, its subprotocol. A client's refusal says the HTTP status
+and the server's reason, and a TLS handshake that fails says whether the server may not speak
+TLS.
 """
 
 from __future__ import annotations
 
+import logging
+import ssl as _ssl
+import weakref
+from collections.abc import Sequence
+from typing import Any
+
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import Server, ServerConnection, serve
-from websockets.exceptions import ConnectionClosed, InvalidURI, WebSocketException
+from websockets.exceptions import (
+    ConnectionClosed,
+    InvalidMessage,
+    InvalidStatus,
+    InvalidURI,
+    WebSocketException,
+)
 from websockets.frames import Close
+from websockets.http11 import Request, Response
 from websockets.protocol import State
+from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
 from srvwire.transports.base import (
+    CREDENTIAL_HEADERS,
+    Admitted,
+    Answered,
     Connection,
     ConnectionHandler,
+    Gate,
+    Handshake,
     Listener,
     Options,
     Transport,
@@ -45,19 +70,82 @@ def _closed(exc: ConnectionClosed) -> TransportClosed:
     return TransportClosed(frame.code, frame.reason)
 
 
-def _url(host: str, port: int) -> str:
-    """Return the ``ws://`` URL of ``host``:``port``, with an IPv6 host in brackets."""
-    return f"ws://[{host}]:{port}" if ":" in host else f"ws://{host}:{port}"
+def _url(host: str, port: int, tls: bool = False) -> str:
+    """Return the ``ws://`` (``wss://``) URL of ``host``:``port``, an IPv6 host in brackets."""
+    scheme = "wss" if tls else "ws"
+    return f"{scheme}://[{host}]:{port}" if ":" in host else f"{scheme}://{host}:{port}"
+
+
+def _handshake(ws: ServerConnection, request: Request) -> Handshake:
+    """The opening request as srvwire's gate reads it."""
+    ssl_object = ws.transport.get_extra_info("ssl_object")
+    certificate = ssl_object.getpeercert() if ssl_object is not None else None
+    offered = [
+        name.strip()
+        for value in request.headers.get_all("Sec-WebSocket-Protocol")
+        for name in value.split(",")
+        if name.strip()
+    ]
+    return Handshake(
+        path=request.path,
+        headers=list(request.headers.raw_items()),
+        peer=ws.remote_address,
+        tls=ssl_object is not None,
+        client_certificate=certificate or None,
+        subprotocols=offered,
+    )
+
+
+class _Redacting(logging.LoggerAdapter[logging.Logger]):
+    """websockets' own logger, with the credentials of the handshake lines it writes at
+    DEBUG level hidden: the values of credential headers, bearer subprotocols and query
+    strings (where a token may travel)."""
+
+    def log(self, level: int, msg: object, *args: Any, **kwargs: Any) -> None:
+        if len(args) == 2 and msg in ("< %s: %s", "> %s: %s"):
+            name = str(args[0]).lower()
+            if name in CREDENTIAL_HEADERS:
+                args = (args[0], "<hidden>")
+            elif name == "sec-websocket-protocol" and "srvwire.bearer." in str(args[1]):
+                args = (args[0], "<hidden>")
+        elif len(args) == 3 and msg in ("< %s %s %s", "> %s %s %s") and "?" in str(args[1]):
+            args = (args[0], str(args[1]).split("?", 1)[0] + "?<hidden>", args[2])
+        super().log(level, msg, *args, **kwargs)
+
+
+def _refusal(exc: Exception, url: str) -> TransportError:
+    """Say why opening a connection to ``url`` failed, as a person can act on it."""
+    tls = url.lower().startswith("wss:")
+    if isinstance(exc, InvalidStatus):
+        body = exc.response.body.decode("utf-8", "replace").strip()
+        status = exc.response.status_code
+        return TransportError(
+            f"the server refused the connection: HTTP {status}" + (f": {body}" if body else "")
+        )
+    if isinstance(exc, _ssl.SSLCertVerificationError):
+        return TransportError(f"the server's TLS certificate is not trusted: {exc.verify_message}")
+    if tls and isinstance(exc, _ssl.SSLError | ConnectionResetError | EOFError):
+        detail = str(exc) or type(exc).__name__
+        return TransportError(
+            f"the TLS handshake failed; the server may not speak TLS (try ws://): {detail}"
+        )
+    if not tls and isinstance(exc, InvalidMessage):
+        return TransportError(
+            "the server closed the connection during the opening handshake; "
+            f"it may speak TLS (try wss://): {exc}"
+        )
+    return TransportError(str(exc) or type(exc).__name__)
 
 
 class WebSocketsConnection(Connection):
     """One WebSocket connection, server or client side."""
 
-    __slots__ = ("_ws", "remote_address")
+    __slots__ = ("_ws", "identity", "remote_address")
 
-    def __init__(self, ws: ServerConnection | ClientConnection) -> None:
+    def __init__(self, ws: ServerConnection | ClientConnection, identity: object = None) -> None:
         self._ws = ws
         self.remote_address = ws.remote_address
+        self.identity = identity
 
     async def recv(self) -> str | bytes:
         try:
@@ -102,12 +190,12 @@ class WebSocketsListener(Listener):
     the address its first socket bound; ``port`` is the port really bound.
     """
 
-    def __init__(self, server: Server, host: str | None = None) -> None:
+    def __init__(self, server: Server, host: str | None = None, tls: bool = False) -> None:
         self._server = server
         address = server.sockets[0].getsockname()
         self.host = host or address[0]
         self.port = address[1]
-        self.url = _url(self.host, self.port)
+        self.url = _url(self.host, self.port, tls)
 
     def close(self) -> None:
         self._server.close(close_connections=False)
@@ -122,11 +210,45 @@ class WebSocketsTransport(Transport):
     name = "websockets"
 
     async def listen(
-        self, handler: ConnectionHandler, host: str, port: int, options: Options
+        self,
+        handler: ConnectionHandler,
+        host: str,
+        port: int,
+        options: Options,
+        *,
+        gate: Gate | None = None,
+        ssl: _ssl.SSLContext | None = None,
     ) -> WebSocketsListener:
+        # What the gate said of each connection, from process_request to the handler.
+        admitted: weakref.WeakKeyDictionary[ServerConnection, Admitted] = (
+            weakref.WeakKeyDictionary()
+        )
+
+        async def process_request(ws: ServerConnection, request: Request) -> Response | None:
+            if gate is None:
+                return None
+            answer = await gate(_handshake(ws, request))
+            if isinstance(answer, Admitted):
+                admitted[ws] = answer
+                return None
+            assert isinstance(answer, Answered)
+            response = ws.respond(answer.status, answer.reason)
+            for name, value in answer.headers:
+                response.headers[name] = value
+            return response
+
+        def select_subprotocol(
+            ws: ServerConnection, offered: Sequence[Subprotocol]
+        ) -> Subprotocol | None:
+            answer = admitted.get(ws)
+            chosen = None if answer is None else answer.subprotocol
+            return Subprotocol(chosen) if chosen is not None and chosen in offered else None
+
         async def handle(ws: ServerConnection) -> None:
             # When this returns, websockets closes with 1000; when it raises, with 1011.
-            await handler(WebSocketsConnection(ws))
+            answer = admitted.pop(ws, None)
+            identity = None if answer is None else answer.identity
+            await handler(WebSocketsConnection(ws, identity))
 
         server = await serve(
             handle,
@@ -136,11 +258,23 @@ class WebSocketsTransport(Transport):
             max_size=options.max_message_size,
             ping_interval=options.ping_interval,
             ping_timeout=options.ping_timeout,
+            process_request=process_request,
+            select_subprotocol=select_subprotocol,
+            ssl=ssl,
+            logger=_Redacting(logging.getLogger("websockets.server")),
         )
-        return WebSocketsListener(server, host)
+        return WebSocketsListener(server, host, tls=ssl is not None)
 
-    async def connect(self, url: str, options: Options) -> WebSocketsConnection:
+    async def connect(
+        self,
+        url: str,
+        options: Options,
+        *,
+        headers: Sequence[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | None = None,
+    ) -> WebSocketsConnection:
         # The caller bounds the whole opening; websockets' own timeout would be a second bound.
+        tls: dict[str, Any] = {"ssl": ssl} if ssl is not None and url[:4].lower() == "wss:" else {}
         try:
             ws = await connect(
                 url,
@@ -149,9 +283,12 @@ class WebSocketsTransport(Transport):
                 ping_timeout=options.ping_timeout,
                 compression=options.compression,
                 open_timeout=None,
+                additional_headers=list(headers) or None,
+                **tls,
+                logger=_Redacting(logging.getLogger("websockets.client")),
             )
-        except (OSError, WebSocketException) as exc:
-            raise TransportError(str(exc)) from exc
+        except (OSError, EOFError, WebSocketException) as exc:
+            raise _refusal(exc, url) from exc
         return WebSocketsConnection(ws)
 
     def check_url(self, url: str) -> None:
