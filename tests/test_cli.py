@@ -783,16 +783,18 @@ def test_call_nested_types(capsys: pytest.CaptureFixture[str], remote: Remote) -
     )
 
 
-def test_call_a_type_not_on_the_local_path_sends_plain_values(
+def test_call_a_type_not_on_the_local_path_is_typed_from_the_server(
     capsys: pytest.CaptureFixture[str], remote: Remote
 ) -> None:
     code, out, err = call(capsys, remote, "/measure", "{segment: {start: {x: -3}}}")
     assert (code, err) == (ExitCode.OK, "")
     assert out == (
-        "requester: making request: demo.srv.Measure_Request(segment={'start': {'x': -3}})\n"
+        "requester: making request: demo.srv.Measure_Request(segment=demo.msg.Segment("
+        "start=demo.msg.Vec(x=-3.0, y=1.5), ends=[demo.msg.Vec(x=0.0, y=1.5), "
+        "demo.msg.Vec(x=0.0, y=1.5)], label='a # b'))\n"
         "\n"
         "response:\n"
-        "demo.srv.Measure_Response(length=4.5, direction={'x': 1.0, 'y': 0.0})\n"
+        "demo.srv.Measure_Response(length=4.5, direction=demo.msg.Vec(x=1.0, y=0.0))\n"
     )
 
 
@@ -910,14 +912,15 @@ def test_call_invalid_values_checked_locally_exit_6(
     )
 
 
-def test_call_invalid_params_from_the_server_exit_6(
+def test_call_invalid_params_of_a_type_the_server_described_exit_6(
     capsys: pytest.CaptureFixture[str], remote: Remote
 ) -> None:
+    # demo/srv/Measure is not on the local path: the server's description types it here.
     code, _, err = call(capsys, remote, "/measure", "{segment: {start: {x: far}}}")
     assert code == ExitCode.INVALID_PARAMS
     assert one_error_line(err).startswith(
-        "InvalidParams: INVALID_PARAMS (-32602) [/measure]: invalid params for /measure: "
-        "segment.start.x: "
+        "InvalidParams: INVALID_PARAMS (-32602) [/measure]: VALUES do not fit demo/srv/Measure "
+        "(checked locally, not sent): segment.start.x: "
     )
 
 

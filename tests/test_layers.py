@@ -26,6 +26,7 @@ LAYERS: dict[str, int] = {
     "session": 2,
     "transports.memory": 2,
     "transports.websockets": 2,
+    "typeregistry": 2,
     "loader": 3,
     "codegen": 3,
     "dispatch": 3,

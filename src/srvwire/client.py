@@ -45,6 +45,8 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from srvwire.calls import (
+    MessageResolver,
+    ServiceCodec,
     ServiceInfo,
     ServiceTypes,
     SrvType,
@@ -52,15 +54,17 @@ from srvwire.calls import (
     check_timeout,
     encode_request,
 )
+from srvwire.dispatch import service_not_found
 from srvwire.errors import (
     ConnectionLost,
     InternalError,
     RPCError,
+    ServiceNotFound,
     ServiceUnavailable,
 )
 from srvwire.link import Link, LoggerLike
-from srvwire.loader import SearchPath, load_service
-from srvwire.models import error_data, summarize_errors
+from srvwire.loader import SearchPath, load_message, load_service
+from srvwire.models import Service, error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Options, Transport
@@ -108,7 +112,8 @@ class Client:
         self.url = options.url
         self.timeout = options.timeout
         self.logger: LoggerLike = options._log()
-        self._types = ServiceTypes(options.type_resolver, self.logger)
+        self._types = ServiceTypes(options.type_resolver, options.message_resolver)
+        self._description: tuple[Link, dict[str, dict[str, str]]] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
         self._link: Link | None = None
         self._supervisor: asyncio.Task[None] | None = None
@@ -248,6 +253,7 @@ class Client:
         """
         if self._link is link:
             self._services = services
+            self._description = None
             self._pulse()
 
     def forget(self, link: Link) -> bool:
@@ -308,7 +314,12 @@ class Client:
         link = self._link
         if link is None:
             raise self._not_connected(method)
-        codec = self._types.service(method, srv_type, self._services.get(method))
+        advertised = self._services.get(method)
+        codec = self._types.known(srv_type, advertised)
+        if codec is None:
+            named = srv_type if isinstance(srv_type, str) else advertised
+            if named is not None:  # not advertised: the server will say it has no such service
+                codec = await self._type_of(link, method, named, deadline, budget)
         params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
@@ -365,11 +376,68 @@ class Client:
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
     ) -> list[ServiceInfo]:
         """Ask the server for every service it offers (``rpc.discover``), sorted by name."""
+        methods = await self._discover(timeout)
+        found = [
+            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
+            for entry in methods
+            if isinstance(entry, dict)
+            and isinstance(entry.get("name"), str)
+            and isinstance(entry.get("x-srvwire-type"), str)
+        ]
+        return sorted(found, key=lambda info: info.name)
+
+    async def definitions(
+        self,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> dict[str, str]:
+        """Ask the server for the definition text of every type it serves, by full name.
+
+        The services' types and every message they nest (``rpc.discover``'s
+        ``x-srvwire-definitions``), sorted by name: what ``srvwire service describe`` prints.
+        """
+        texts: dict[str, str] = {}
+        for entry in await self._discover(timeout):
+            texts.update(_definitions_of(entry))
+        return dict(sorted(texts.items()))
+
+    async def service_type(
+        self,
+        name: str,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> type[Service]:
+        """Return the class of the service ``name``'s type, as :meth:`call` finds it.
+
+        From the local search path first, else built from the server's description (see
+        :func:`connect`). Raise :class:`~srvwire.errors.ServiceNotFound` when the server does
+        not advertise ``name``, and :class:`~srvwire.errors.InterfaceError` when the type can
+        be found in neither place.
+        """
+        method = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        deadline = asyncio.get_running_loop().time() + budget
+        link = self._link
+        if link is None:
+            raise self._not_connected(method)
+        advertised = self._services.get(method)
+        if advertised is None:
+            raise service_not_found(method, self._services)
+        codec = self._types.known(None, advertised) or await self._type_of(
+            link, method, advertised, deadline, budget
+        )
+        return codec.service
+
+    async def _discover(self, timeout: float | None) -> list[Any]:  # noqa: ASYNC109
+        """Ask for ``rpc.discover`` and return its ``methods``."""
         budget = self.timeout if timeout is None else check_timeout(timeout)
         deadline = asyncio.get_running_loop().time() + budget
         link = self._link
         if link is None:
             raise self._not_connected(DISCOVER_METHOD)
+        return await self._methods(link, deadline, budget)
+
+    async def _methods(self, link: Link, deadline: float, budget: float) -> list[Any]:
         reply = await link.roundtrip(DISCOVER_METHOD, None, deadline, budget)
         try:
             document = reply.decode()
@@ -381,14 +449,27 @@ class Client:
                 "rpc.discover did not return an OpenRPC document with 'methods'",
                 service=DISCOVER_METHOD,
             )
-        found = [
-            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
-            for entry in methods
-            if isinstance(entry, dict)
-            and isinstance(entry.get("name"), str)
-            and isinstance(entry.get("x-srvwire-type"), str)
-        ]
-        return sorted(found, key=lambda info: info.name)
+        return methods
+
+    async def _type_of(
+        self, link: Link, method: str, name: str, deadline: float, budget: float
+    ) -> ServiceCodec:
+        """Find the type ``name`` of ``method``: locally, else from the server's description.
+
+        The description is asked for once per connection (again after ``$/services`` says the
+        services changed), and only when a type is not on the local search path.
+        """
+        codec = self._types.local(name)
+        if codec is not None:
+            return codec
+        described = self._description
+        if described is None or described[0] is not link:
+            try:
+                methods = await self._methods(link, deadline, budget)
+            except (ServiceNotFound, InternalError):  # a server that does not describe types
+                methods = []
+            described = self._description = (link, _described(methods))
+        return self._types.remote(method, name, described[1].get(method), f"server {self.url}")
 
     def _not_connected(self, method: str) -> ConnectionLost:
         why = "the client is closed" if self._closed else f"not connected to {self.url}"
@@ -411,6 +492,25 @@ class Client:
                     {"url": self.url, "timeout": budget},
                     service=method,
                 ) from None
+
+
+def _definitions_of(entry: Any) -> dict[str, str]:
+    """The definition texts one ``rpc.discover`` method object carries, by full name."""
+    texts = entry.get("x-srvwire-definitions") if isinstance(entry, dict) else None
+    if not isinstance(texts, dict):
+        return {}
+    return {k: v for k, v in texts.items() if isinstance(k, str) and isinstance(v, str)}
+
+
+def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
+    """Map each method of an ``rpc.discover`` document to the definitions it carries."""
+    return {
+        canonical_name(entry["name"]): _definitions_of(entry)
+        for entry in methods
+        if isinstance(entry, dict)
+        and isinstance(entry.get("name"), str)
+        and "x-srvwire-definitions" in entry
+    }
 
 
 class ServiceProxy:
@@ -521,6 +621,9 @@ class connect:
         self.search_path = search_path
         self.type_resolver: TypeResolver = type_resolver or functools.partial(
             load_service, search_path=search_path
+        )
+        self.message_resolver: MessageResolver = functools.partial(
+            load_message, search_path=search_path
         )
         self.logger = logger
         self._client: Client | None = None

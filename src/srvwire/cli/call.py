@@ -35,7 +35,7 @@ from srvwire.cli.common import (
     positive_int,
     remote_options,
 )
-from srvwire.errors import InterfaceError, InvalidParams
+from srvwire.errors import InvalidParams
 from srvwire.models import Service, summarize_errors
 from srvwire.protocol import canonical_name
 
@@ -178,7 +178,7 @@ async def _call(
         if advertised is not None:
             if srv_type is None:
                 type_name = advertised
-                srv_type = _try_load_service(args, advertised)
+                srv_type = await client.service_type(name, timeout=args.timeout)
             elif advertised != type_name:
                 raise CommandError(
                     f"{name} is a {advertised} service, not {type_name}", ExitCode.USAGE
@@ -205,15 +205,6 @@ async def _call(
                 print(f"\nresponse:\n{shown}", flush=True)
             done += 1
     return ExitCode.OK
-
-
-def _try_load_service(args: argparse.Namespace, type_name: str) -> type[Service] | None:
-    """Load a type the server advertised; None (plain dicts) when it is not on the search path."""
-    try:
-        return interface_loader(args).load_service(type_name)
-    except InterfaceError as exc:
-        logger.debug("cannot load %s here (%s); sending a plain mapping", type_name, exc)
-        return None
 
 
 def _validate_request(name: str, srv_type: type[Service], values: dict[str, Any]) -> Any:

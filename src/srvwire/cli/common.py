@@ -22,7 +22,7 @@ from typing import Final, NoReturn, TypeAlias
 
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect
 from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
-from srvwire.loader import InterfaceLoader, default_search_path
+from srvwire.loader import InterfaceLoader
 
 URL_ENV_VAR = "SRVWIRE_URL"
 
@@ -210,7 +210,7 @@ def port(text: str) -> int:
 def interface_loader(args: argparse.Namespace) -> InterfaceLoader:
     """A loader for the ``--path`` folders, then the default search path."""
     extra: list[Path] = args.path
-    return InterfaceLoader([*extra, *default_search_path()])
+    return InterfaceLoader(extra)
 
 
 def resolve_type(loader: InterfaceLoader, name: str) -> str:
@@ -263,7 +263,7 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
             url,
             timeout=args.timeout,
             open_timeout=args.timeout,
-            search_path=[*getattr(args, "path", []), *default_search_path()],
+            search_path=getattr(args, "path", []),
         ) as client:
             entered = True
             yield client
