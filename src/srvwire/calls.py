@@ -18,7 +18,7 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticSerializationError
 
 from srvwire.errors import InterfaceError, InterfaceNotFoundError, InvalidParams
-from srvwire.idl import TypeSpec
+from srvwire.idl import MessageSpec, TypeSpec
 from srvwire.models import (
     Message,
     ModelDecoder,
@@ -233,6 +233,11 @@ class ServiceTypes:
             )
         spec = parse_service(text, parts[0], parts[2], path=source)
         nested = _RemoteMessages(definitions or {}, source, self._resolve_message, self._types)
+        messages = [other for other in definitions or {} if other.split("/")[1:2] == ["msg"]]
+        for other in messages:  # first compare: nothing is built from a conflicting description
+            nested.check(other)
+        for other in messages:
+            nested.load(other)
         service = self._types.intern(spec, source, lambda: build_service(spec, nested))
         codec = self._by_name[name] = self._codec(service)
         return codec
@@ -261,7 +266,25 @@ class _RemoteMessages:
         self.chain: list[str] = []
 
     def __call__(self, type_: TypeSpec) -> type[Message]:
-        name = type_.qualified_name
+        return self.load(type_.qualified_name)
+
+    def spec(self, name: str, text: str) -> MessageSpec:
+        package, _, short = name.split("/")
+        return parse_message(text, package, short, path=self.source)
+
+    def check(self, name: str) -> None:
+        """Compare the server's ``name`` with the local file or the process's class, if any."""
+        spec = self.spec(name, self.definitions[name])
+        local: type[Message] | None = None
+        try:
+            local = self.local(name)
+        except InterfaceNotFoundError:
+            if self.types.get(name) is None:
+                return
+        self.types.intern(spec, self.source, lambda: local)
+
+    def load(self, name: str) -> type[Message]:
+        """Return the process's class of the message ``name``, checked against the server's."""
         text = self.definitions.get(name)
         if text is None:  # the server did not describe it: the local one, or an error
             return self.local(name)
@@ -270,8 +293,7 @@ class _RemoteMessages:
             raise InterfaceError(
                 f"the {self.source} describes a message that nests itself: {cycle}"
             )
-        package, _, short = name.split("/")
-        spec = parse_message(text, package, short, path=self.source)
+        spec = self.spec(name, text)
 
         def build() -> type[Message]:
             try:

@@ -1,0 +1,191 @@
+"""A user's own types work from a client that has no interface files: reflection and one class.
+
+The server runs in another process with its own search path (a package ``my_robot`` that nests
+types from itself, ``std_msgs`` and ``geometry_msgs``); the client has the default path only and
+no environment variable. Its calls are typed from the server's description, its requests are
+checked before sending, and a type it has too is its own class.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+
+import pytest
+
+import srvwire
+from srvwire.errors import InterfaceConflictError, InvalidParams
+from srvwire.loader import ENV_VAR, InterfaceLoader, bundled_interfaces
+from srvwire.typeregistry import process_types
+from support import scaled
+
+BATTERY = "# The battery, as the robot reports it.\nfloat32 voltage\nuint8 percent 100\n"
+STATUS = (
+    "# What the robot says about itself.\n"
+    "std_msgs/Header header\n"
+    "geometry_msgs/Pose pose\n"
+    "BatteryState battery\n"
+    "string[] faults\n"
+)
+GET_STATUS = "string robot  # which robot\n---\nRobotStatus status\nbool ok\n"
+
+APP = """
+import srvwire
+
+loader = srvwire.InterfaceLoader([{folder!r}])
+GetStatus = loader.load_service("my_robot/srv/GetStatus")
+server = srvwire.Server()
+
+
+@server.service("/get_status", GetStatus)
+def get_status(request):
+    response = GetStatus.Response(ok=request.robot == "r1")
+    response.status.header.frame_id = request.robot
+    response.status.pose.position.x = 1.5
+    response.status.battery.voltage = 24.0
+    return response
+"""
+
+
+def write(root: Path, relative: str, text: str) -> Path:
+    path = root / relative
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def robot_package(root: Path, battery: str = BATTERY) -> Path:
+    write(root, "my_robot/msg/BatteryState.msg", battery)
+    write(root, "my_robot/msg/RobotStatus.msg", STATUS)
+    write(root, "my_robot/srv/GetStatus.srv", GET_STATUS)
+    return root
+
+
+@pytest.fixture
+def no_path_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(ENV_VAR, raising=False)
+
+
+@pytest.fixture(scope="module")
+def robot_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """``srvwire serve`` in another process, its own search path holding ``my_robot``.
+
+    One for the module: the classes a client builds from it are the process's from then on,
+    recorded with its URL.
+    """
+    tmp_path = tmp_path_factory.mktemp("robot")
+    yield from serving(tmp_path, robot_package(tmp_path / "server_interfaces"))
+
+
+def serving(tmp_path: Path, interfaces: Path) -> Iterator[str]:
+    app = write(tmp_path, "robot_app.py", APP.format(folder=str(interfaces)))
+    env = {k: v for k, v in os.environ.items() if k != ENV_VAR}
+    with subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", f"{app}:server", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    ) as process:
+        try:
+            assert process.stdout is not None and process.stderr is not None
+            first = process.stdout.readline()
+            assert first.startswith("serving 1 service on ws://"), first + process.stderr.read()
+            yield first.split(" on ")[1].strip()
+        finally:
+            process.kill()
+
+
+@pytest.fixture
+async def client(robot_server: str, no_path_variable: None) -> AsyncIterator[srvwire.Client]:
+    async with srvwire.connect(robot_server, timeout=scaled(10)) as value:
+        yield value
+
+
+async def test_a_type_only_the_server_has_is_typed_from_its_description(
+    client: srvwire.Client, robot_server: str
+) -> None:
+    response = await client.call("/get_status", {"robot": "r1"})
+    assert type(response).__name__ == "GetStatus_Response"
+    assert response.ok is True
+    status = response.status
+    assert type(status).type_name == "my_robot/msg/RobotStatus"
+    assert (status.header.frame_id, status.pose.position.x) == ("r1", 1.5)
+    assert (status.battery.voltage, status.battery.percent) == (24.0, 100)
+    # The nested types the client has itself are its own classes.
+    assert type(status.header) is srvwire.load_message("std_msgs/msg/Header")
+    assert type(status.pose) is srvwire.load_message("geometry_msgs/msg/Pose")
+    # The server's comments came along.
+    assert type(status.battery).__doc__ == "The battery, as the robot reports it."
+    # Where each class came from.
+    assert process_types().get("my_robot/msg/RobotStatus").source == f"server {robot_server}"
+    header = process_types().get("std_msgs/msg/Header")
+    assert header.source == str(bundled_interfaces() / "std_msgs/msg/Header.msg")
+
+
+async def test_a_request_is_checked_before_it_is_sent(client: srvwire.Client) -> None:
+    with pytest.raises(InvalidParams) as excinfo:
+        await client.call("/get_status", {"robot": 7})
+    assert excinfo.value.message == (
+        "invalid params for /get_status: robot: Input should be a valid string "
+        "(checked by the client; nothing was sent)"
+    )
+
+
+async def test_one_class_whichever_way_it_was_obtained(
+    client: srvwire.Client, tmp_path: Path
+) -> None:
+    # 1. load_message with the default search path.
+    Header = srvwire.load_message("std_msgs/Header")
+    # 2. another loader, whose search path holds its own copy of the same files.
+    copy = tmp_path / "copy"
+    shutil.copytree(bundled_interfaces() / "geometry_msgs", copy / "geometry_msgs")
+    Pose = InterfaceLoader([copy]).load_message("geometry_msgs/Pose")
+    assert InterfaceLoader([copy]).path_of("geometry_msgs/Pose").is_relative_to(copy)
+    # 3. reflection: the server's description of /get_status.
+    GetStatus = await client.service_type("/get_status")
+    RobotStatus = type(GetStatus.Response().status)
+    status = RobotStatus(header=Header(frame_id="base"), pose=Pose())
+    assert status.header.frame_id == "base"
+    assert GetStatus.Response(status=status, ok=True).status is status
+    # The same type from the loader of a folder that holds my_robot too is that class.
+    assert (
+        InterfaceLoader([robot_package(tmp_path / "mine")]).load_message("my_robot/RobotStatus")
+        is RobotStatus
+    )
+
+
+async def test_a_local_file_that_differs_from_the_server_is_an_error(
+    client: srvwire.Client, robot_server: str, tmp_path: Path
+) -> None:
+    await client.call("/get_status", {"robot": "r1"})  # the server's BatteryState, interned
+    other = robot_package(tmp_path / "other", battery="float64 voltage\n")
+    with pytest.raises(InterfaceConflictError) as excinfo:
+        InterfaceLoader([other]).load_message("my_robot/BatteryState")
+    assert str(excinfo.value) == (
+        f"two different definitions of my_robot/msg/BatteryState: server {robot_server} and "
+        f"{other / 'my_robot/msg/BatteryState.msg'} (declaration 1: 'float32 voltage' against "
+        "'float64 voltage'); a type name has one definition per process"
+    )
+
+
+async def test_a_nested_type_the_server_defines_differently_is_an_error(
+    tmp_path: Path, no_path_variable: None
+) -> None:
+    interfaces = robot_package(tmp_path / "interfaces")
+    header = "uint32 seq\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+    write(interfaces, "std_msgs/msg/Header.msg", header)
+    for url in serving(tmp_path, interfaces):
+        async with srvwire.connect(url, timeout=scaled(10)) as client:
+            with pytest.raises(InterfaceConflictError) as excinfo:
+                await client.call("/get_status", {"robot": "r1"})
+    assert str(excinfo.value) == (
+        "two different definitions of std_msgs/msg/Header: "
+        f"{bundled_interfaces() / 'std_msgs/msg/Header.msg'} and server {url} (declaration 1: "
+        "'builtin_interfaces/Time stamp' against 'uint32 seq'); a type name has one definition "
+        "per process"
+    )
