@@ -1241,6 +1241,66 @@ def test_service_type_unknown_exits_5(capsys: pytest.CaptureFixture[str], remote
     )
 
 
+def test_service_describe_prints_the_servers_definition(
+    capsys: pytest.CaptureFixture[str], remote: Remote, packages: Path
+) -> None:
+    # demo/srv/Measure is not on the local path: what is printed is the server's.
+    _, local, _ = run(capsys, "interface", "show", "demo/srv/Measure", "--path", str(packages))
+    code, out, err = service(capsys, remote, "describe", "measure")
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == "/measure [demo/srv/Measure]\n" + local
+    assert "\tdemo/Vec[2] ends\n\t\tfloat64 x\n" in out
+
+
+def test_service_describe_unknown_exits_5(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = service(capsys, remote, "describe", "/measur")
+    assert (code, out) == (ExitCode.SERVICE_NOT_FOUND, "")
+    assert one_error_line(err) == (
+        "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/measur]: no service named /measur; "
+        "did you mean /measure?"
+    )
+
+
+@pytest.mark.parametrize("wanted", ["demo/msg/Segment", "demo/Segment"])
+def test_interface_show_url_prints_the_servers_definition(
+    capsys: pytest.CaptureFixture[str], remote: Remote, packages: Path, wanted: str
+) -> None:
+    _, local, _ = run(capsys, "interface", "show", "demo/Segment", "--path", str(packages))
+    code, out, err = run(capsys, "interface", "show", wanted, "--url", remote.url, "--all-comments")
+    _, local_all, _ = run(
+        capsys, "interface", "show", "demo/Segment", "--path", str(packages), "--all-comments"
+    )
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == local_all
+    code, out, _ = run(capsys, "interface", "show", wanted, "--url", remote.url)
+    assert (code, out) == (ExitCode.OK, local)
+
+
+def test_interface_show_url_of_a_type_the_server_does_not_serve(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = run(capsys, "interface", "show", "demo/Segmnt", "--url", remote.url)
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert err.startswith(
+        f"srvwire: error: the server {remote.url} describes no type 'demo/Segmnt' (of "
+    )
+    assert err.endswith(" types); did you mean demo/msg/Segment, demo/msg/Vec?\n")
+
+
+def test_interface_show_prints_nothing_of_a_type_it_cannot_build(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    path = write(packages, "demo/msg/Broken.msg", "# Fine so far.\nint32 a\ndemo/Missing m\n")
+    code, out, err = run(capsys, "interface", "show", "demo/Broken", "--path", str(packages))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert err == (
+        f"srvwire: error: {path}:3:1: unknown type 'demo/Missing' of field 'm': no message "
+        "'Missing' in package 'demo'\n"
+    )
+
+
 @pytest.mark.parametrize("srv_type", ["std_srvs/srv/Trigger", "std_srvs/Trigger"])
 def test_service_find(capsys: pytest.CaptureFixture[str], remote: Remote, srv_type: str) -> None:
     code, out, _ = service(capsys, remote, "find", srv_type)

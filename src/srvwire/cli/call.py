@@ -28,7 +28,6 @@ from srvwire.cli.common import (
     Commands,
     ExitCode,
     add_command,
-    interface_loader,
     local_options,
     open_client,
     positive_float,
@@ -36,6 +35,7 @@ from srvwire.cli.common import (
     remote_options,
 )
 from srvwire.errors import InvalidParams
+from srvwire.loader import InterfaceLoader
 from srvwire.models import Service, summarize_errors
 from srvwire.protocol import canonical_name
 
@@ -100,7 +100,9 @@ def _cmd_call(args: argparse.Namespace) -> int:
     if values_arg is None and type_arg is not None and not _TYPE_SHAPE.match(type_arg):
         type_arg, values_arg = None, type_arg
     values = _parse_values(values_arg)
-    srv_type = interface_loader(args).load_service(type_arg) if type_arg is not None else None
+    # The process's classes: the client types the call's nested messages with them too.
+    loader = InterfaceLoader(args.path)
+    srv_type = loader.load_service(type_arg) if type_arg is not None else None
     count: int | None = args.count if args.count is not None else None if args.rate else 1
     try:
         return asyncio.run(_call(args, srv_type, values, count))

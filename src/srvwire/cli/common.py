@@ -23,6 +23,7 @@ from typing import Final, NoReturn, TypeAlias
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect
 from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
 from srvwire.loader import InterfaceLoader
+from srvwire.typeregistry import TypeRegistry
 
 URL_ENV_VAR = "SRVWIRE_URL"
 
@@ -208,9 +209,13 @@ def port(text: str) -> int:
 
 
 def interface_loader(args: argparse.Namespace) -> InterfaceLoader:
-    """A loader for the ``--path`` folders, then the default search path."""
+    """A loader for the ``--path`` folders, then the default search path.
+
+    Its classes are its own (a :class:`~srvwire.typeregistry.TypeRegistry` of its own): a
+    command that reads files does not record them as the process's.
+    """
     extra: list[Path] = args.path
-    return InterfaceLoader(extra)
+    return InterfaceLoader(extra, types=TypeRegistry())
 
 
 def resolve_type(loader: InterfaceLoader, name: str) -> str:
