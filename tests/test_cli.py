@@ -1351,6 +1351,54 @@ def test_gen_one_module_per_package(capsys: pytest.CaptureFixture[str], packages
     assert import_file(folder / "std_srvs.py").Empty.type_name == "std_srvs/srv/Empty"
 
 
+def test_gen_into_a_folder_imports_nested_types_from_sibling_modules(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "my_robot/msg/Battery.msg", "float32 voltage\n")
+    status = "std_msgs/Header header\ngeometry_msgs/Pose pose\nBattery battery\n"
+    write(interfaces, "my_robot/msg/RobotStatus.msg", status)
+    write(interfaces, "my_robot/srv/GetStatus.srv", "---\nRobotStatus status\n")
+    folder = tmp_path / "robot_types"
+    code, out, err = run(capsys, "gen", "my_robot", "-o", str(folder), "--path", str(interfaces))
+    assert (code, err) == (ExitCode.OK, "")
+    # The nested packages are written too, with the messages needed.
+    assert out == (
+        f"wrote {folder / 'my_robot.py'} (3 interfaces)\n"
+        f"wrote {folder / 'builtin_interfaces.py'} (1 interface)\n"
+        f"wrote {folder / 'geometry_msgs.py'} (3 interfaces)\n"
+        f"wrote {folder / 'std_msgs.py'} (1 interface)\n"
+    )
+    source = (folder / "my_robot.py").read_text(encoding="utf-8")
+    assert "from . import geometry_msgs, std_msgs\n" in source
+    assert "class Header" not in source and "    header: std_msgs.Header = " in source
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        my_robot = importlib.import_module("robot_types.my_robot")
+        std_msgs = importlib.import_module("robot_types.std_msgs")
+        geometry_msgs = importlib.import_module("robot_types.geometry_msgs")
+        built = my_robot.RobotStatus(
+            header=std_msgs.Header(frame_id="base"), pose=geometry_msgs.Pose()
+        )
+        assert built.header.frame_id == "base"
+        assert my_robot.RobotStatus.model_fields["header"].annotation is std_msgs.Header
+        assert my_robot.GetStatus.Response().status.battery.voltage == 0.0
+    finally:
+        for name in [name for name in sys.modules if name.startswith("robot_types")]:
+            del sys.modules[name]
+    # Lint-clean as written, and ruff format leaves them as they are; run inside the folder,
+    # isolated, so srvwire is a third-party package there, as in a user's project.
+    for arguments in (["check", "--select", "E,F,W,I,B,UP,RUF"], ["format", "--check"]):
+        linted = subprocess.run(
+            [sys.executable, "-m", "ruff", *arguments, "--isolated", "--line-length", "100", "."],
+            cwd=folder,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert linted.returncode == 0, linted.stdout
+
+
 def test_gen_unknown_package_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     target = tmp_path / "out.py"
     code, out, err = run(capsys, "gen", "std_srv", "-o", str(target))
