@@ -18,8 +18,11 @@ from pathlib import Path
 import pytest
 
 import srvwire
-from srvwire.errors import InterfaceConflictError, InvalidParams
+from srvwire.dispatch import ServiceRegistry
+from srvwire.errors import InterfaceConflictError, InvalidParams, RegistrationError
 from srvwire.loader import ENV_VAR, InterfaceLoader, bundled_interfaces
+from srvwire.models import build_message, build_service
+from srvwire.parser import parse_message, parse_service
 from srvwire.typeregistry import process_types
 from support import scaled
 
@@ -188,4 +191,79 @@ async def test_a_nested_type_the_server_defines_differently_is_an_error(
         f"{bundled_interfaces() / 'std_msgs/msg/Header.msg'} and server {url} (declaration 1: "
         "'builtin_interfaces/Time stamp' against 'uint32 seq'); a type name has one definition "
         "per process"
+    )
+
+
+# --- in one process: the server's own classes -------------------------------------------------
+
+LIMITS = "# Speed limits.\nfloat64 max_speed 1.0\n"
+SET_LIMITS = "Limits limits\n---\nbool ok\n"
+
+
+def limits_server() -> tuple[srvwire.Server, type[srvwire.Service]]:
+    """A server whose type is built from text: no file on any search path defines it."""
+    Limits = build_message(parse_message(LIMITS, "inproc_robot", "Limits"))
+    spec = parse_service(SET_LIMITS, "inproc_robot", "SetLimits")
+    SetLimits = build_service(spec, lambda type_: Limits)
+    server = srvwire.Server()
+    server.add_service(
+        "/set_limits", SetLimits, lambda request: {"ok": request.limits.max_speed < 5}
+    )
+    return server, SetLimits
+
+
+async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
+    monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    server, SetLimits = limits_server()
+    described: list[object] = []
+    discover_json = ServiceRegistry.discover_json
+
+    def counted(registry: ServiceRegistry) -> str:
+        described.append(registry)
+        return discover_json(registry)
+
+    monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
+    transport = srvwire.MemoryTransport()
+    async with (
+        srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
+        srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        reply = await client.call("/set_limits", {"limits": {"max_speed": 2}})
+        assert type(reply) is SetLimits.Response and reply.ok is True
+        request = SetLimits.Request(limits={"max_speed": 9})
+        assert (await client.call("/set_limits", request)).ok is False
+        with pytest.raises(InvalidParams, match=r"checked by the client; nothing was sent"):
+            await client.call("/set_limits", {"limits": {"max_speed": "fast"}})
+        assert await client.service_type("/set_limits") is SetLimits
+        definitions = await client.definitions()
+    assert len(described) == 2  # once for the calls, once for definitions()
+    assert definitions == {
+        "inproc_robot/msg/Limits": LIMITS,
+        "inproc_robot/srv/SetLimits": SET_LIMITS,
+    }
+
+
+def test_rpc_discover_carries_every_definition_text() -> None:
+    server, _ = limits_server()
+    [method] = server.registry.discover()["methods"]
+    assert method["x-srvwire-type"] == "inproc_robot/srv/SetLimits"
+    assert method["x-srvwire-definitions"] == {
+        "inproc_robot/srv/SetLimits": SET_LIMITS,
+        "inproc_robot/msg/Limits": LIMITS,
+    }
+
+
+def test_registering_another_definition_under_a_known_name_is_refused() -> None:
+    limits_server()  # the process's inproc_robot/msg/Limits
+    Limits = build_message(parse_message("float32 max_speed\n", "inproc_robot", "Limits"))
+    spec = parse_service(SET_LIMITS, "inproc_robot", "SetLimits")
+    server = srvwire.Server()
+    with pytest.raises(RegistrationError) as excinfo:
+        server.add_service("/other", build_service(spec, lambda type_: Limits), lambda r: {})
+    assert str(excinfo.value) == (
+        "cannot register /other: two different definitions of inproc_robot/msg/Limits: the "
+        "class inproc_robot.msg.Limits given for /set_limits and the class "
+        "inproc_robot.msg.Limits given for /other (declaration 1: 'float64 max_speed 1.0' "
+        "against 'float32 max_speed'); a type name has one definition per process"
     )

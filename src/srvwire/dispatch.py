@@ -382,7 +382,7 @@ def definitions(srv_type: type[Service]) -> dict[str, str]:
     return texts
 
 
-def _adopt(srv_type: type[Service], types: TypeRegistry) -> type[Service]:
+def _adopt(srv_type: type[Service], types: TypeRegistry, service: str) -> None:
     """Record the classes a registered service uses as the process's, where they have specs.
 
     So a client in the same process that builds them from this server's description gets these
@@ -390,13 +390,15 @@ def _adopt(srv_type: type[Service], types: TypeRegistry) -> type[Service]:
     """
     classes: list[Any] = [srv_type, *nested_messages(srv_type)]
     for cls in classes:
-        if getattr(cls, "spec", None) is None or not hasattr(cls, "type_name"):
+        spec = getattr(cls, "spec", None)
+        if spec is None or not hasattr(cls, "type_name"):
             continue
+        path = getattr(spec, "path", None)
+        source = path or f"the class {cls.__module__}.{cls.__qualname__} given for {service}"
         try:
-            types.adopt(cls, f"the class {cls.__module__}.{cls.__qualname__}")
+            types.adopt(cls, source)
         except InterfaceConflictError as exc:
-            raise RegistrationError(f"cannot register {cls.type_name}: {exc}") from None
-    return srv_type
+            raise RegistrationError(f"cannot register {service}: {exc}") from None
 
 
 def service_not_found(name: str, names: Iterable[str]) -> ServiceNotFound:
@@ -440,7 +442,7 @@ class ServiceRegistry:
                 f"not {srv_type!r}"
             )
         is_async, takes_response, context_param = _introspect(canonical, handler)
-        _adopt(srv_type, self.types)
+        _adopt(srv_type, self.types, canonical)
         entry = ServiceEntry(
             name=canonical,
             srv_type=srv_type,
