@@ -7,6 +7,7 @@ from srvwire.errors import (
     ConnectionLost,
     DeadlineExceeded,
     ErrorCode,
+    InterfaceConflictError,
     InterfaceError,
     InterfaceNotFoundError,
     InterfaceSyntaxError,
@@ -34,6 +35,7 @@ from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Transport
 from srvwire.transports.memory import MemoryTransport
+from srvwire.typeregistry import TypeRegistry
 from srvwire.version import __version__
 
 __all__ = [
@@ -44,6 +46,7 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "InterfaceConflictError",
     "InterfaceError",
     "InterfaceLoader",
     "InterfaceNotFoundError",
@@ -67,6 +70,7 @@ __all__ = [
     "ServiceUnavailable",
     "SrvwireError",
     "Transport",
+    "TypeRegistry",
     "Unauthenticated",
     "__version__",
     "connect",

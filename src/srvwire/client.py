@@ -6,8 +6,9 @@
 * the current :class:`~srvwire.link.Link`, one per open connection: the transport's
   connection, the :class:`~srvwire.session.ClientSession` that numbers requests and routes
   replies, and the reader task that feeds it;
-* its :class:`~srvwire.calls.ServiceTypes`: the type of each service, from ``srv_type`` or
-  resolved by the advertised name (by default with the interface loader), and its decoder;
+* its :class:`~srvwire.calls.ServiceTypes`: the type of each service, from ``srv_type``, or
+  by the advertised name from the local search path, else from the server's description
+  (``rpc.discover``), and its decoder;
 * the supervisor that re-dials with backoff when ``reconnect=True``;
 * the call itself (:meth:`Client.call`): encode once, send and wait under one deadline, decode
   in the caller's task.
@@ -26,10 +27,12 @@ Invariants:
 * **Options and payload never share a namespace.** A request is one positional value (a model
   or a mapping), so every field name is free; :class:`ServiceProxy` takes fields as keywords
   and holds its options itself.
-* **Typed when the type is known.** With a type, a mapping is validated locally
-  (:class:`~srvwire.errors.InvalidParams` before anything is sent) and the result is the typed
-  ``Response``; without one, the mapping is sent as it is and the result is the plain ``dict``
-  the server returned.
+* **Always typed.** Every advertised service has a type: the local one, else the one the
+  server describes. A mapping is validated locally (:class:`~srvwire.errors.InvalidParams`
+  before anything is sent) and the result is the typed ``Response``. A type found in neither
+  place is an :class:`~srvwire.errors.InterfaceError`, never plain dicts. Only a service the
+  server does not advertise is called with the mapping as it is (and a srvwire server answers
+  ``ServiceNotFound``).
 """
 
 from __future__ import annotations
@@ -291,9 +294,9 @@ class Client:
         """Call the service ``name`` with ``request`` and return its response.
 
         ``request`` is a ``Request`` model or a mapping of its fields (left out: every field
-        takes its default). The result is the typed ``Response`` when the service type is
-        known (``srv_type``, or the type the server advertised, resolved here), else the plain
-        dict the server sent. For fields as keywords, use :meth:`proxy`.
+        takes its default). The result is the typed ``Response`` of the service's type:
+        ``srv_type``, or the type the server advertised, found as :func:`connect` says (local
+        first, then the server's description). For fields as keywords, use :meth:`proxy`.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -302,7 +305,9 @@ class Client:
 
         Raise the :class:`~srvwire.errors.RPCError` subclass that matches the failure:
         ``DeadlineExceeded``, ``ConnectionLost``, ``InvalidParams`` (also locally, before
-        sending), ``ServiceNotFound``, ``InternalError``, ``ServiceError``, and so on.
+        sending), ``ServiceNotFound``, ``InternalError``, ``ServiceError``, and so on; and
+        :class:`~srvwire.errors.InterfaceError` when the type can be found neither locally nor
+        from the server (:class:`~srvwire.errors.InterfaceConflictError` when the two differ).
         """
         method = canonical_name(name)
         budget = self.timeout if timeout is None else check_timeout(timeout)
@@ -578,13 +583,33 @@ class connect:
     * ``reconnect``: re-dial in the background (with backoff) when the connection drops or
       cannot be opened; see :meth:`Client.call`'s ``wait_for_ready``. Opening then never
       raises for an unreachable server.
-    * ``search_path``: where to load service types by name (default: the loader's).
-    * ``type_resolver``: a function from a type name to its service class, instead of the
-      loader (``search_path`` is then unused).
+    * ``search_path``: folders of interface packages searched for types by name, before the
+      default search path (``SRVWIRE_INTERFACE_PATH``, then the bundled packages).
+    * ``type_resolver``: a function from a service type name to its class, instead of the
+      loader; it raises :class:`~srvwire.errors.InterfaceNotFoundError` for a name it does
+      not know.
     * ``logger``: where to log (default: the ``srvwire.client`` logger).
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
       :class:`~srvwire.transports.memory.MemoryTransport` a server listens on.
+
+    **Where a call's types come from.** Every call is typed: its request is validated here and
+    its reply is the type's ``Response`` class. The type is the ``srv_type`` a call gives, else
+    the one the server advertises for the service, found in this order:
+
+    1. *local first*: ``type_resolver``, or the search path;
+    2. *then the server*: a type the local path does not have is built from the definition
+       texts the server gives in ``rpc.discover`` (asked once per connection, when first
+       needed). The messages it nests are taken from the local path when they are there.
+
+    A service type found locally is used without asking the server. When the description is
+    read, every type in it is compared with the local file or the process's class of the same
+    name (through the process's :class:`~srvwire.typeregistry.TypeRegistry`): one the server
+    defines as the local file does is the local class, and one it defines differently is an
+    :class:`~srvwire.errors.InterfaceConflictError` that names both sources (the file, and
+    ``server ws://...``). A type found in neither place is an
+    :class:`~srvwire.errors.InterfaceNotFoundError` that says so. No environment variable or
+    option turns a call's result into plain dicts.
 
     Raise :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached
     (without ``reconnect``), and ``ValueError`` for a URL the transport cannot use.
