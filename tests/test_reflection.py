@@ -15,11 +15,17 @@ import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
+import pydantic
 import pytest
 
 import srvwire
 from srvwire.dispatch import ServiceRegistry
-from srvwire.errors import InterfaceConflictError, InvalidParams, RegistrationError
+from srvwire.errors import (
+    InterfaceConflictError,
+    InterfaceNotFoundError,
+    InvalidParams,
+    RegistrationError,
+)
 from srvwire.loader import ENV_VAR, InterfaceLoader, bundled_interfaces
 from srvwire.models import build_message, build_service
 from srvwire.parser import parse_message, parse_service
@@ -266,4 +272,28 @@ def test_registering_another_definition_under_a_known_name_is_refused() -> None:
         "class inproc_robot.msg.Limits given for /set_limits and the class "
         "inproc_robot.msg.Limits given for /other (declaration 1: 'float64 max_speed 1.0' "
         "against 'float32 max_speed'); a type name has one definition per process"
+    )
+
+
+async def test_a_type_written_by_hand_and_not_described_is_an_error() -> None:
+    class Point(pydantic.BaseModel):
+        x: int = 0
+
+    class Custom:  # a service type with no interface file behind it
+        Request = Point
+        Response = Point
+
+    server = srvwire.Server()
+    server.add_service("/custom", Custom, lambda request: request)
+    transport = srvwire.MemoryTransport()
+    async with (
+        srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
+        srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        assert client.services == {"/custom": "Custom"}
+        with pytest.raises(InterfaceNotFoundError) as excinfo:
+            await client.call("/custom", {"x": 1})
+    assert str(excinfo.value) == (
+        f"cannot type the calls of /custom: Custom is not on the local search path, and the "
+        f"server {running.url} does not describe it"
     )

@@ -206,6 +206,8 @@ class ServiceTypes:
 
     def local(self, name: str) -> ServiceCodec | None:
         """Return the type ``name`` from the local search path, or None when it is not there."""
+        if len(name.split("/")) != 3:  # not a file's name (a class written by hand): not here
+            return None
         try:
             service = self._resolve(name)
         except InterfaceNotFoundError:
