@@ -14,6 +14,7 @@ import subprocess
 import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import pydantic
 import pytest
@@ -29,7 +30,7 @@ from srvwire.errors import (
 from srvwire.loader import ENV_VAR, InterfaceLoader, bundled_interfaces
 from srvwire.models import build_message, build_service
 from srvwire.parser import parse_message, parse_service
-from srvwire.typeregistry import process_types
+from srvwire.typeregistry import TypeRegistry, process_types
 from support import scaled
 
 BATTERY = "# The battery, as the robot reports it.\nfloat32 voltage\nuint8 percent 100\n"
@@ -296,4 +297,31 @@ async def test_a_type_written_by_hand_and_not_described_is_an_error() -> None:
     assert str(excinfo.value) == (
         f"cannot type the calls of /custom: Custom is not on the local search path, and the "
         f"server {running.url} does not describe it"
+    )
+
+
+def test_a_description_with_bad_names_or_text_is_an_interface_error() -> None:
+    from srvwire.calls import ServiceTypes
+    from srvwire.errors import InterfaceError
+
+    def nowhere(name: str) -> Any:
+        raise InterfaceNotFoundError(name, f"no {name} here")
+
+    types = ServiceTypes(nowhere, nowhere, TypeRegistry())
+    good = {"odd_pkg/srv/Go": "int32 a\n---\n", "odd/msg/too/many": "x", "nameless": "y"}
+    assert types.remote("/go", "odd_pkg/srv/Go", good, "server ws://x").service.type_name == (
+        "odd_pkg/srv/Go"
+    )
+    broken = {"odd_pkg/srv/Stop": "int32 a\n---\nodd_pkg/Loop l\n", "odd_pkg/msg/Loop": "Loop l\n"}
+    with pytest.raises(InterfaceError) as excinfo:
+        types.remote("/stop", "odd_pkg/srv/Stop", broken, "server ws://x")
+    assert str(excinfo.value) == (
+        "the server ws://x describes a message that nests itself: odd_pkg/msg/Loop -> "
+        "odd_pkg/msg/Loop"
+    )
+    with pytest.raises(InterfaceError) as excinfo:
+        types.remote("/bad", "odd_pkg/srv/Bad", {"odd_pkg/srv/Bad": "int32\n"}, "server ws://x")
+    assert str(excinfo.value) == (
+        "server ws://x:2:1: a service needs a '---' line between the request and the response; "
+        "found none"
     )

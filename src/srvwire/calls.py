@@ -235,7 +235,7 @@ class ServiceTypes:
             )
         spec = parse_service(text, parts[0], parts[2], path=source)
         nested = _RemoteMessages(definitions or {}, source, self._resolve_message, self._types)
-        messages = [other for other in definitions or {} if other.split("/")[1:2] == ["msg"]]
+        messages = [other for other in definitions or {} if _is_message_name(other)]
         for other in messages:  # first compare: nothing is built from a conflicting description
             nested.check(other)
         for other in messages:
@@ -249,6 +249,11 @@ class ServiceTypes:
         if codec is None:
             codec = self._by_class[service] = ServiceCodec(service)
         return codec
+
+
+def _is_message_name(name: str) -> bool:
+    parts = name.split("/")
+    return len(parts) == 3 and parts[1] == "msg"
 
 
 class _RemoteMessages:
