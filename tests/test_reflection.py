@@ -251,6 +251,33 @@ async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
     }
 
 
+async def test_the_description_is_asked_again_after_the_services_change(
+    monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    server, _ = limits_server()
+    described: list[object] = []
+    discover_json = ServiceRegistry.discover_json
+
+    def counted(registry: ServiceRegistry) -> str:
+        described.append(registry)
+        return discover_json(registry)
+
+    monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
+    Reset = build_service(parse_service("---\nbool done\n", "inproc_robot", "Reset"))
+    transport = srvwire.MemoryTransport()
+    async with (
+        srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
+        srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        await client.call("/set_limits", {})
+        await client.call("/set_limits", {})
+        assert len(described) == 1
+        server.add_service("/reset", Reset, lambda request: {"done": True})
+        await client.wait_for_service("/reset")
+        assert type(await client.call("/reset")) is Reset.Response
+        assert len(described) == 2
+
+
 def test_rpc_discover_carries_every_definition_text() -> None:
     server, _ = limits_server()
     [method] = server.registry.discover()["methods"]
