@@ -8,6 +8,7 @@ checked before sending, and a type it has too is its own class.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import shutil
 import subprocess
@@ -269,7 +270,8 @@ async def test_the_description_is_asked_again_after_the_services_change(
         srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
         srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
     ):
-        await client.call("/set_limits", {})
+        # Calls that need the description at the same time share one answer.
+        await asyncio.gather(*(client.call("/set_limits", {}) for _ in range(5)))
         await client.call("/set_limits", {})
         assert len(described) == 1
         server.add_service("/reset", Reset, lambda request: {"done": True})

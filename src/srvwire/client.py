@@ -60,6 +60,7 @@ from srvwire.calls import (
 from srvwire.dispatch import service_not_found
 from srvwire.errors import (
     ConnectionLost,
+    DeadlineExceeded,
     InternalError,
     RPCError,
     ServiceNotFound,
@@ -117,6 +118,7 @@ class Client:
         self.logger: LoggerLike = options._log()
         self._types = ServiceTypes(options.type_resolver, options.message_resolver)
         self._description: tuple[Link, dict[str, dict[str, str]]] | None = None
+        self._describing = asyncio.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
         self._link: Link | None = None
         self._supervisor: asyncio.Task[None] | None = None
@@ -467,14 +469,28 @@ class Client:
         codec = self._types.local(name)
         if codec is not None:
             return codec
-        described = self._description
-        if described is None or described[0] is not link:
-            try:
-                methods = await self._methods(link, deadline, budget)
-            except (ServiceNotFound, InternalError):  # a server that does not describe types
-                methods = []
-            described = self._description = (link, _described(methods))
-        return self._types.remote(method, name, described[1].get(method), f"server {self.url}")
+        try:  # one caller asks; those who need it meanwhile wait for that answer
+            async with asyncio.timeout_at(deadline):
+                await self._describing.acquire()
+        except TimeoutError:
+            raise DeadlineExceeded(
+                f"no response within {budget:g} s", {"timeout": budget}, service=method
+            ) from None
+        try:
+            codec = self._types.known(name, None)
+            if codec is not None:  # built by the caller this one waited for
+                return codec
+            described = self._description
+            if described is None or described[0] is not link:
+                try:
+                    methods = await self._methods(link, deadline, budget)
+                except (ServiceNotFound, InternalError):  # a server that does not describe types
+                    methods = []
+                described = self._description = (link, _described(methods))
+            source = f"server {self.url}"
+            return self._types.remote(method, name, described[1].get(method), source)
+        finally:
+            self._describing.release()
 
     def _not_connected(self, method: str) -> ConnectionLost:
         why = "the client is closed" if self._closed else f"not connected to {self.url}"
