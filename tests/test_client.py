@@ -332,6 +332,26 @@ async def test_a_type_found_neither_here_nor_on_the_server_is_an_error() -> None
         await unknown.stop()
 
 
+async def test_a_call_waiting_for_the_description_another_asked_for_keeps_its_deadline() -> None:
+    silent = FakePeer([{"name": "/echo", "type": "nowhere_msgs/srv/Echo"}])  # never answers
+    await silent.start()
+    try:
+        async with connect(silent.url, timeout=scaled(5)) as client:
+            first = asyncio.create_task(client.call("/echo", {}))
+            assert (await silent.next())["method"] == "rpc.discover"  # the first one asked
+            with pytest.raises(DeadlineExceeded) as excinfo:
+                await client.call("/echo", {}, timeout=0.05)
+            assert (excinfo.value.message, excinfo.value.service) == (
+                "no response within 0.05 s",
+                "/echo",
+            )
+            assert silent.received.empty()  # it waited for the first one's answer
+            first.cancel()
+            await asyncio.gather(first, return_exceptions=True)
+    finally:
+        await silent.stop()
+
+
 async def test_a_lone_surrogate_is_refused_before_sending() -> None:
     # A str with a lone surrogate ("\ud800"; os.fsdecode(b"\x80") gives "\udc80") validates as
     # a ROS string but cannot be written as UTF-8 JSON: the client says which field, sends nothing.
