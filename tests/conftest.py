@@ -156,4 +156,4 @@ async def wire(running: RunningServer) -> AsyncIterator[Wire]:
 @pytest.fixture(scope="session")
 def ros_interfaces() -> InterfaceLoader:
     """A loader over ROS 2's own test interfaces (the package ``ros_test_interfaces``)."""
-    return InterfaceLoader([ros_test_interfaces().parent])
+    return InterfaceLoader([ros_test_interfaces().parent], use_default_path=False)

@@ -783,16 +783,18 @@ def test_call_nested_types(capsys: pytest.CaptureFixture[str], remote: Remote) -
     )
 
 
-def test_call_a_type_not_on_the_local_path_sends_plain_values(
+def test_call_a_type_not_on_the_local_path_is_typed_from_the_server(
     capsys: pytest.CaptureFixture[str], remote: Remote
 ) -> None:
     code, out, err = call(capsys, remote, "/measure", "{segment: {start: {x: -3}}}")
     assert (code, err) == (ExitCode.OK, "")
     assert out == (
-        "requester: making request: demo.srv.Measure_Request(segment={'start': {'x': -3}})\n"
+        "requester: making request: demo.srv.Measure_Request(segment=demo.msg.Segment("
+        "start=demo.msg.Vec(x=-3.0, y=1.5), ends=[demo.msg.Vec(x=0.0, y=1.5), "
+        "demo.msg.Vec(x=0.0, y=1.5)], label='a # b'))\n"
         "\n"
         "response:\n"
-        "demo.srv.Measure_Response(length=4.5, direction={'x': 1.0, 'y': 0.0})\n"
+        "demo.srv.Measure_Response(length=4.5, direction=demo.msg.Vec(x=1.0, y=0.0))\n"
     )
 
 
@@ -910,14 +912,15 @@ def test_call_invalid_values_checked_locally_exit_6(
     )
 
 
-def test_call_invalid_params_from_the_server_exit_6(
+def test_call_invalid_params_of_a_type_the_server_described_exit_6(
     capsys: pytest.CaptureFixture[str], remote: Remote
 ) -> None:
+    # demo/srv/Measure is not on the local path: the server's description types it here.
     code, _, err = call(capsys, remote, "/measure", "{segment: {start: {x: far}}}")
     assert code == ExitCode.INVALID_PARAMS
     assert one_error_line(err).startswith(
-        "InvalidParams: INVALID_PARAMS (-32602) [/measure]: invalid params for /measure: "
-        "segment.start.x: "
+        "InvalidParams: INVALID_PARAMS (-32602) [/measure]: VALUES do not fit demo/srv/Measure "
+        "(checked locally, not sent): segment.start.x: "
     )
 
 
@@ -1238,6 +1241,66 @@ def test_service_type_unknown_exits_5(capsys: pytest.CaptureFixture[str], remote
     )
 
 
+def test_service_describe_prints_the_servers_definition(
+    capsys: pytest.CaptureFixture[str], remote: Remote, packages: Path
+) -> None:
+    # demo/srv/Measure is not on the local path: what is printed is the server's.
+    _, local, _ = run(capsys, "interface", "show", "demo/srv/Measure", "--path", str(packages))
+    code, out, err = service(capsys, remote, "describe", "measure")
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == "/measure [demo/srv/Measure]\n" + local
+    assert "\tdemo/Vec[2] ends\n\t\tfloat64 x\n" in out
+
+
+def test_service_describe_unknown_exits_5(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = service(capsys, remote, "describe", "/measur")
+    assert (code, out) == (ExitCode.SERVICE_NOT_FOUND, "")
+    assert one_error_line(err) == (
+        "ServiceNotFound: SERVICE_NOT_FOUND (-32601) [/measur]: no service named /measur; "
+        "did you mean /measure?"
+    )
+
+
+@pytest.mark.parametrize("wanted", ["demo/msg/Segment", "demo/Segment"])
+def test_interface_show_url_prints_the_servers_definition(
+    capsys: pytest.CaptureFixture[str], remote: Remote, packages: Path, wanted: str
+) -> None:
+    _, local, _ = run(capsys, "interface", "show", "demo/Segment", "--path", str(packages))
+    code, out, err = run(capsys, "interface", "show", wanted, "--url", remote.url, "--all-comments")
+    _, local_all, _ = run(
+        capsys, "interface", "show", "demo/Segment", "--path", str(packages), "--all-comments"
+    )
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == local_all
+    code, out, _ = run(capsys, "interface", "show", wanted, "--url", remote.url)
+    assert (code, out) == (ExitCode.OK, local)
+
+
+def test_interface_show_url_of_a_type_the_server_does_not_serve(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    code, out, err = run(capsys, "interface", "show", "demo/Segmnt", "--url", remote.url)
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert err.startswith(
+        f"srvwire: error: the server {remote.url} describes no type 'demo/Segmnt' (of "
+    )
+    assert err.endswith(" types); did you mean demo/msg/Segment, demo/msg/Vec?\n")
+
+
+def test_interface_show_prints_nothing_of_a_type_it_cannot_build(
+    capsys: pytest.CaptureFixture[str], packages: Path
+) -> None:
+    path = write(packages, "demo/msg/Broken.msg", "# Fine so far.\nint32 a\ndemo/Missing m\n")
+    code, out, err = run(capsys, "interface", "show", "demo/Broken", "--path", str(packages))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert err == (
+        f"srvwire: error: {path}:3:1: unknown type 'demo/Missing' of field 'm': no message "
+        "'Missing' in package 'demo'\n"
+    )
+
+
 @pytest.mark.parametrize("srv_type", ["std_srvs/srv/Trigger", "std_srvs/Trigger"])
 def test_service_find(capsys: pytest.CaptureFixture[str], remote: Remote, srv_type: str) -> None:
     code, out, _ = service(capsys, remote, "find", srv_type)
@@ -1286,6 +1349,54 @@ def test_gen_one_module_per_package(capsys: pytest.CaptureFixture[str], packages
     demo = import_file(folder / "demo.py")
     assert demo.Measure.Request().segment.start.y == 1.5
     assert import_file(folder / "std_srvs.py").Empty.type_name == "std_srvs/srv/Empty"
+
+
+def test_gen_into_a_folder_imports_nested_types_from_sibling_modules(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "my_robot/msg/Battery.msg", "float32 voltage\n")
+    status = "std_msgs/Header header\ngeometry_msgs/Pose pose\nBattery battery\n"
+    write(interfaces, "my_robot/msg/RobotStatus.msg", status)
+    write(interfaces, "my_robot/srv/GetStatus.srv", "---\nRobotStatus status\n")
+    folder = tmp_path / "robot_types"
+    code, out, err = run(capsys, "gen", "my_robot", "-o", str(folder), "--path", str(interfaces))
+    assert (code, err) == (ExitCode.OK, "")
+    # The nested packages are written too, with the messages needed.
+    assert out == (
+        f"wrote {folder / 'my_robot.py'} (3 interfaces)\n"
+        f"wrote {folder / 'builtin_interfaces.py'} (1 interface)\n"
+        f"wrote {folder / 'geometry_msgs.py'} (3 interfaces)\n"
+        f"wrote {folder / 'std_msgs.py'} (1 interface)\n"
+    )
+    source = (folder / "my_robot.py").read_text(encoding="utf-8")
+    assert "from . import geometry_msgs, std_msgs\n" in source
+    assert "class Header" not in source and "    header: std_msgs.Header = " in source
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        my_robot = importlib.import_module("robot_types.my_robot")
+        std_msgs = importlib.import_module("robot_types.std_msgs")
+        geometry_msgs = importlib.import_module("robot_types.geometry_msgs")
+        built = my_robot.RobotStatus(
+            header=std_msgs.Header(frame_id="base"), pose=geometry_msgs.Pose()
+        )
+        assert built.header.frame_id == "base"
+        assert my_robot.RobotStatus.model_fields["header"].annotation is std_msgs.Header
+        assert my_robot.GetStatus.Response().status.battery.voltage == 0.0
+    finally:
+        for name in [name for name in sys.modules if name.startswith("robot_types")]:
+            del sys.modules[name]
+    # Lint-clean as written, and ruff format leaves them as they are; run inside the folder,
+    # isolated, so srvwire is a third-party package there, as in a user's project.
+    for arguments in (["check", "--select", "E,F,W,I,B,UP,RUF"], ["format", "--check"]):
+        linted = subprocess.run(
+            [sys.executable, "-m", "ruff", *arguments, "--isolated", "--line-length", "100", "."],
+            cwd=folder,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert linted.returncode == 0, linted.stdout
 
 
 def test_gen_unknown_package_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

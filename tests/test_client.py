@@ -308,30 +308,56 @@ async def test_a_request_of_the_wrong_type_is_a_type_error(client: Client) -> No
         await client.proxy(ADD)({"a": 1}, b=2)
 
 
-async def test_a_type_that_cannot_be_loaded_means_plain_dicts() -> None:
+async def test_a_type_found_neither_here_nor_on_the_server_is_an_error() -> None:
     unknown = FakePeer([{"name": "/echo", "type": "nowhere_msgs/srv/Echo"}])
 
-    async def echo(ws: ServerConnection, message: dict[str, Any]) -> None:
-        params = {k: v for k, v in message["params"].items() if k != "_meta"}
-        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": params}))
+    async def describe_nothing(ws: ServerConnection, message: dict[str, Any]) -> None:
+        result = {"openrpc": "1.3.2", "methods": [{"name": "/echo"}]}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": result}))
 
-    unknown.reply = echo
+    unknown.reply = describe_nothing
     await unknown.start()
     try:
-        async with connect(unknown.url) as client:
-            assert await client.call("/echo", {"x": [1, 2]}) == {"x": [1, 2]}
-            assert await client.call("/echo", {"word": "hi"}) == {"word": "hi"}
-            with pytest.raises(InterfaceNotFoundError):
-                await client.call("/echo", srv_type="nowhere_msgs/srv/Echo")
+        async with connect(unknown.url, timeout=scaled(5)) as client:
+            for srv_type in (None, "nowhere_msgs/srv/Echo"):
+                with pytest.raises(InterfaceNotFoundError) as excinfo:
+                    await client.call("/echo", {"x": [1, 2]}, srv_type=srv_type)
+                assert str(excinfo.value) == (
+                    "cannot type the calls of /echo: nowhere_msgs/srv/Echo is not on the local "
+                    f"search path, and the server {unknown.url} does not describe types"
+                )
+            # The client asked for the description, once per connection, and sent no call.
+            assert (await unknown.next())["method"] == "rpc.discover"
+            assert unknown.received.empty()
     finally:
         await unknown.stop()
+
+
+async def test_a_call_waiting_for_the_description_another_asked_for_keeps_its_deadline() -> None:
+    silent = FakePeer([{"name": "/echo", "type": "nowhere_msgs/srv/Echo"}])  # never answers
+    await silent.start()
+    try:
+        async with connect(silent.url, timeout=scaled(5)) as client:
+            first = asyncio.create_task(client.call("/echo", {}))
+            assert (await silent.next())["method"] == "rpc.discover"  # the first one asked
+            with pytest.raises(DeadlineExceeded) as excinfo:
+                await client.call("/echo", {}, timeout=0.05)
+            assert (excinfo.value.message, excinfo.value.service) == (
+                "no response within 0.05 s",
+                "/echo",
+            )
+            assert silent.received.empty()  # it waited for the first one's answer
+            first.cancel()
+            await asyncio.gather(first, return_exceptions=True)
+    finally:
+        await silent.stop()
 
 
 async def test_a_lone_surrogate_is_refused_before_sending() -> None:
     # A str with a lone surrogate ("\ud800"; os.fsdecode(b"\x80") gives "\udc80") validates as
     # a ROS string but cannot be written as UTF-8 JSON: the client says which field, sends nothing.
     state_type = "advanced_communication_tutorials/srv/RobotStateQuery"
-    peer = FakePeer([{"name": "/state", "type": state_type}, {"name": "/echo", "type": "no/srv/X"}])
+    peer = FakePeer([{"name": "/state", "type": state_type}])  # /echo is not advertised
 
     async def echo(ws: ServerConnection, message: dict[str, Any]) -> None:
         params = {k: v for k, v in message["params"].items() if k != "_meta"}
@@ -361,7 +387,7 @@ async def test_a_lone_surrogate_is_refused_before_sending() -> None:
                     f"invalid params for /state: query_type: {expected[0]['message']} "
                     "(checked by the client; nothing was sent)"
                 )
-            with pytest.raises(InvalidParams) as untyped:  # no type: a plain dict, same check
+            with pytest.raises(InvalidParams) as untyped:  # not advertised: a plain dict too
                 await client.call("/echo", {"names": ["ok", bad]})
             assert [(e["path"], e["type"]) for e in untyped.value.errors] == [
                 ("names[1]", "string_unicode")
@@ -773,10 +799,10 @@ async def test_a_reply_as_srvwire_servers_write_it_is_never_parsed_apart_from_it
     assert client.in_flight == 0
 
 
-async def test_an_untyped_call_gets_the_dict_from_a_reply_routed_unparsed(
+async def test_a_call_to_an_unadvertised_service_gets_the_dict_from_a_reply_routed_unparsed(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    unknown = FakePeer([{"name": "/echo", "type": "nowhere_msgs/srv/Echo"}])
+    unknown = FakePeer([])  # a peer that answers a service it does not advertise: no type
 
     async def echo(ws: ServerConnection, message: dict[str, Any]) -> None:
         params = {k: v for k, v in message["params"].items() if k != "_meta"}

@@ -529,7 +529,7 @@ def ruff(tmp_path: Path, *arguments: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_generated_modules_are_ruff_clean_and_formatted(tmp_path: Path) -> None:
-    loader = InterfaceLoader([bundled_interfaces()])
+    loader = InterfaceLoader([bundled_interfaces()], use_default_path=False)
     kinds = {"msg": loader.message_spec, "srv": loader.service_spec, "action": loader.action_spec}
 
     def bundled_spec(type_: TypeSpec) -> MessageSpec:

@@ -43,7 +43,7 @@ def loader(tmp_path_factory: pytest.TempPathFactory) -> InterfaceLoader:
     # A copy rather than a symlink: it works wherever the tests run, Windows included.
     root = tmp_path_factory.mktemp("ros_corpus")
     shutil.copytree(ros_test_interfaces(), root / "test_msgs")
-    return InterfaceLoader([root])
+    return InterfaceLoader([root], use_default_path=False)
 
 
 def spec_parts(loader: InterfaceLoader, name: str) -> list[MessageSpec]:

@@ -43,6 +43,11 @@ RUN_ELSEWHERE = {
 SCRIPTS = {
     "quickstart.py": "2 + 3 = 5\n",
     "field_names.py": '{"from":3,"to":0}\n',
+    "one_class_per_type.py": (
+        "GetStatus_Response: ok=True frame=base\n"
+        "built from three sources: map\n"
+        "same Header class: True\n"
+    ),
     "handling_errors.py": (
         "sum: 3\n"
         "invalid request: b: Input should be a valid integer\n"

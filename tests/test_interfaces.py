@@ -104,7 +104,7 @@ DEFAULT_INSTANCES: dict[str, dict[str, Any]] = {
 
 @pytest.fixture(scope="module")
 def loader() -> InterfaceLoader:
-    return InterfaceLoader([bundled_interfaces()])
+    return InterfaceLoader([bundled_interfaces()], use_default_path=False)
 
 
 def described(fields: tuple[FieldSpec, ...]) -> list[Field]:

@@ -27,6 +27,7 @@ LAYERS: dict[str, int] = {
     "auth": 2,
     "transports.memory": 2,
     "transports.websockets": 2,
+    "typeregistry": 2,
     "loader": 3,
     "codegen": 3,
     "dispatch": 3,

@@ -11,7 +11,12 @@ import pytest
 
 import srvwire.loader as loader_module
 from srvwire import parser
-from srvwire.errors import InterfaceError, InterfaceNotFoundError, InterfaceSyntaxError
+from srvwire.errors import (
+    InterfaceConflictError,
+    InterfaceError,
+    InterfaceNotFoundError,
+    InterfaceSyntaxError,
+)
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
 from srvwire.loader import (
     ENV_VAR,
@@ -22,6 +27,7 @@ from srvwire.loader import (
     load_message,
     load_service,
 )
+from srvwire.typeregistry import TypeRegistry
 from support import ROOT
 
 Spec = MessageSpec | ServiceSpec | ActionSpec
@@ -51,6 +57,15 @@ def dump(instance: Any) -> dict[str, Any]:
     return data
 
 
+@pytest.fixture(autouse=True)
+def own_types(monkeypatch: pytest.MonkeyPatch) -> TypeRegistry:
+    """The classes of one test: its ``demo`` package differs from the next test's."""
+    types = TypeRegistry()
+    monkeypatch.setattr(loader_module, "process_types", lambda: types)
+    loader_module._shared_loader.cache_clear()
+    return types
+
+
 @pytest.fixture
 def root(tmp_path: Path) -> Path:
     """A search-path folder holding the package ``demo``."""
@@ -65,7 +80,7 @@ def root(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def loader(root: Path) -> InterfaceLoader:
-    return InterfaceLoader([root])
+    return InterfaceLoader([root], use_default_path=False)
 
 
 def message_of(excinfo: pytest.ExceptionInfo[BaseException]) -> str:
@@ -101,7 +116,7 @@ def test_bundled_interfaces_without_any_copy(
     module = write(tmp_path, "src/srvwire/loader.py", "")
     monkeypatch.setattr(loader_module, "__file__", str(module))
     assert bundled_interfaces() == module.parent / "interfaces"
-    assert InterfaceLoader([bundled_interfaces()]).packages() == {}
+    assert InterfaceLoader([bundled_interfaces()], use_default_path=False).packages() == {}
 
 
 def test_default_search_path_without_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -132,13 +147,13 @@ def test_search_path_entries_become_absolute_paths(
     root: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(root.parent)
-    loader = InterfaceLoader(["root", root / "missing"])
+    loader = InterfaceLoader(["root", root / "missing"], use_default_path=False)
     assert loader.search_path == (root, root / "missing")
     assert repr(loader) == f"InterfaceLoader([{root}, {root / 'missing'}])"
 
 
 def test_a_lone_path_is_one_folder(root: Path) -> None:
-    assert InterfaceLoader(str(root)).search_path == (root,)
+    assert InterfaceLoader(str(root), use_default_path=False).search_path == (root,)
 
 
 # --- packages and types ---------------------------------------------------------------------
@@ -150,7 +165,9 @@ def test_packages_are_folders_with_interface_subfolders(root: Path, tmp_path: Pa
     write(root, "only_actions/action/Spin.action", "---\n---\n")
     write(root, "stray.msg", "int32 a\n")
     (root / "empty_pkg" / "msg").mkdir(parents=True)
-    loader = InterfaceLoader([tmp_path / "missing", root, root / "stray.msg"])
+    loader = InterfaceLoader(
+        [tmp_path / "missing", root, root / "stray.msg"], use_default_path=False
+    )
     assert loader.packages() == {
         "demo": root / "demo",
         "empty_pkg": root / "empty_pkg",
@@ -163,7 +180,7 @@ def test_earlier_folders_overlay_later_ones_package_by_package(root: Path, tmp_p
     overlay = tmp_path / "overlay"
     write(overlay, "demo/msg/Pose2D.msg", "int32 overlaid\n")
     write(overlay, "extra/msg/Extra.msg", "int32 a\n")
-    loader = InterfaceLoader([overlay, root])
+    loader = InterfaceLoader([overlay, root], use_default_path=False)
     assert loader.packages() == {
         "demo": overlay / "demo",
         "extra": overlay / "extra",
@@ -171,7 +188,7 @@ def test_earlier_folders_overlay_later_ones_package_by_package(root: Path, tmp_p
     # The overlay's demo hides the underlay's as a whole: no file of the underlay shows through.
     assert loader.types("demo") == ["demo/msg/Pose2D"]
     assert dump(loader.load_message("demo/Pose2D")()) == {"overlaid": 0}
-    assert InterfaceLoader([root, overlay]).types("demo") == [
+    assert InterfaceLoader([root, overlay], use_default_path=False).types("demo") == [
         "demo/action/Go",
         "demo/msg/Pose2D",
         "demo/msg/Thing",
@@ -183,7 +200,7 @@ def test_earlier_folders_overlay_later_ones_package_by_package(root: Path, tmp_p
 def test_types_lists_full_names_sorted(loader: InterfaceLoader, root: Path) -> None:
     write(root, "another/srv/Zed.srv", "---\n")
     write(root, "another/msg/Alpha.msg", "")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     assert loader.types("another") == ["another/msg/Alpha", "another/srv/Zed"]
     assert loader.types() == [
         "another/msg/Alpha",
@@ -287,7 +304,7 @@ def test_asking_for_the_wrong_kind(
 def test_an_unknown_package_lists_close_package_names(root: Path) -> None:
     write(root, "demo_extra/msg/X.msg", "")
     write(root, "unrelated/msg/X.msg", "")
-    loader = InterfaceLoader([root, root / "second"])
+    loader = InterfaceLoader([root, root / "second"], use_default_path=False)
     with pytest.raises(InterfaceNotFoundError) as excinfo:
         loader.load_message("demo_ex/Pose2D")
     error = excinfo.value
@@ -309,7 +326,7 @@ def test_an_unknown_package_with_nothing_close(loader: InterfaceLoader, root: Pa
 
 def test_an_empty_search_path_says_so() -> None:
     with pytest.raises(InterfaceNotFoundError) as excinfo:
-        InterfaceLoader([]).load_service("std_srvs/Trigger")
+        InterfaceLoader([], use_default_path=False).load_service("std_srvs/Trigger")
     assert message_of(excinfo) == "no interface package 'std_srvs': the search path is empty"
 
 
@@ -357,7 +374,7 @@ def test_an_unknown_type_suggests_the_same_name_in_other_packages(root: Path) ->
     write(root, "geometry/msg/Pose2D.msg", POSE2D)
     write(root, "nav/msg/Pose2DStamped.msg", "Pose2D pose\n")
     write(root, "nav/srv/Pose2D.srv", "---\n")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     with pytest.raises(InterfaceNotFoundError) as excinfo:
         loader.load_message("nav/msg/Pose2D")
     # Close names in the package first, then the very name in other packages.
@@ -367,7 +384,7 @@ def test_an_unknown_type_suggests_the_same_name_in_other_packages(root: Path) ->
         "geometry/msg/Pose2D",
     )
     write(root, "bare/msg/Other.msg", "")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     with pytest.raises(InterfaceNotFoundError) as excinfo:
         loader.load_message("bare/Pose2D")
     assert message_of(excinfo) == (
@@ -390,7 +407,7 @@ def test_a_parse_error_names_the_file(loader: InterfaceLoader, root: Path) -> No
 
 def test_a_file_name_that_is_not_a_type_name(root: Path) -> None:
     path = write(root, "demo/msg/lower_case.msg", "int32 a\n")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     assert "demo/msg/lower_case" in loader.types("demo")
     with pytest.raises(InterfaceSyntaxError) as excinfo:
         loader.load_message("demo/lower_case")
@@ -400,7 +417,7 @@ def test_a_file_name_that_is_not_a_type_name(root: Path) -> None:
 
 def test_a_folder_name_that_is_not_a_package_name(root: Path) -> None:
     path = write(root, "Demo-Pkg/msg/Thing.msg", "int32 a\n")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     assert "Demo-Pkg" in loader.packages()
     with pytest.raises(InterfaceSyntaxError) as excinfo:
         loader.load_message("Demo-Pkg/Thing")
@@ -438,7 +455,7 @@ def test_nested_types_resolve_across_packages(root: Path) -> None:
     write(root, "robot/msg/Waypoint.msg", "demo/Pose2D pose\nLabel label\nLabel[] more\n")
     write(root, "robot/msg/Label.msg", 'string text "here"\n')
     write(root, "robot/srv/Visit.srv", "Waypoint[<=4] route\n---\ndemo/Pose2D reached\n")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     waypoint = loader.load_message("robot/Waypoint")
     assert dump(waypoint()) == {
         "pose": {"x": 0.0, "y": 0.0, "theta": 0.5},
@@ -457,7 +474,7 @@ def test_nested_types_resolve_across_packages(root: Path) -> None:
 
 def test_nested_types_resolve_into_the_bundled_packages(root: Path) -> None:
     write(root, "robot/srv/Place.srv", "geometry_msgs/Pose pose\nstd_msgs/Header header\n---\n")
-    loader = InterfaceLoader([root, bundled_interfaces()])
+    loader = InterfaceLoader([root, bundled_interfaces()], use_default_path=False)
     request = dump(loader.load_service("robot/Place").Request())
     assert request == {
         "pose": {
@@ -524,7 +541,7 @@ def test_a_cycle_across_packages(root: Path) -> None:
     write(root, "right/msg/B.msg", "int8 pad\nright/C c\n")
     closing = write(root, "right/msg/C.msg", "# back to the start\nleft/A[<=2] a\n")
     write(root, "right/srv/UsesA.srv", "---\nleft/A a\n")
-    loader = InterfaceLoader([root])
+    loader = InterfaceLoader([root], use_default_path=False)
     with pytest.raises(InterfaceSyntaxError) as excinfo:
         loader.load_message("left/A")
     assert message_of(excinfo) == (
@@ -556,7 +573,7 @@ def test_a_type_used_twice_is_not_a_cycle(loader: InterfaceLoader, root: Path) -
 
 
 def test_creating_a_loader_reads_nothing(tmp_path: Path) -> None:
-    loader = InterfaceLoader([tmp_path / "does" / "not" / "exist"])
+    loader = InterfaceLoader([tmp_path / "does" / "not" / "exist"], use_default_path=False)
     assert loader.packages() == {}
     assert loader.types() == []
 
@@ -602,9 +619,13 @@ def test_specs_and_classes_are_built_once(loader: InterfaceLoader) -> None:
     assert loader.load_service("demo/Move") is loader.load("demo/srv/Move")
     assert loader.load_action("demo/Go") is loader.load_action("demo/action/Go")
     assert loader.load("demo/Pose2D") is loader.load_message("demo/msg/Pose2D")
-    # Another loader builds its own classes.
+    # Another loader finds the same definitions: the process has one class per type.
     other = InterfaceLoader(loader.search_path)
-    assert other.load_message("demo/Pose2D") is not loader.load_message("demo/Pose2D")
+    assert other.load_message("demo/Pose2D") is loader.load_message("demo/Pose2D")
+    assert other.load_service("demo/Move") is loader.load_service("demo/Move")
+    # A registry of its own is a world of its own.
+    alone = InterfaceLoader(loader.search_path, types=TypeRegistry())
+    assert alone.load_message("demo/Pose2D") is not loader.load_message("demo/Pose2D")
 
 
 def test_spec_returns_whichever_kind_a_name_denotes(loader: InterfaceLoader) -> None:
@@ -630,7 +651,7 @@ def test_new_files_appear_in_a_new_loader(loader: InterfaceLoader, root: Path) -
     write(root, "late_pkg/msg/Late.msg", "int32 a\n")
     assert "demo/msg/Late" not in loader.types("demo")
     assert "late_pkg" not in loader.packages()
-    fresh = InterfaceLoader([root])
+    fresh = InterfaceLoader([root], use_default_path=False)
     assert "demo/msg/Late" in fresh.types("demo")
     assert "late_pkg" in fresh.packages()
 
@@ -651,8 +672,10 @@ def test_module_functions_share_one_loader_per_search_path(root: Path, tmp_path:
     other = tmp_path / "other"
     write(other, "demo/srv/Move.srv", MOVE)
     write(other, "demo/msg/Pose2D.msg", POSE2D)
-    assert load_service("demo/Move", [other]) is not move
-    assert load_service("demo/Move", [other, root]) is not load_service("demo/Move", [other])
+    # The same definitions in another folder: the same classes, from another shared loader.
+    assert load_service("demo/Move", [other]) is move
+    assert loader_module._loader_for([other]) is not loader_module._loader_for([root])
+    assert loader_module._loader_for([other]) is loader_module._loader_for((str(other),))
 
 
 def test_module_functions_read_the_variable_at_each_call(
@@ -664,7 +687,14 @@ def test_module_functions_read_the_variable_at_each_call(
     first = load_message("demo/Pose2D")
     assert dump(first()) == {"x": 0.0, "y": 0.0, "theta": 0.5}
     monkeypatch.setenv(ENV_VAR, os.pathsep.join([str(other), str(root)]))
-    assert dump(load_message("demo/Pose2D")()) == {"only": 0}
+    # The variable selected the other folder, whose Pose2D is another definition.
+    with pytest.raises(InterfaceConflictError) as excinfo:
+        load_message("demo/Pose2D")
+    assert str(excinfo.value) == (
+        f"two different definitions of demo/msg/Pose2D: {root / 'demo/msg/Pose2D.msg'} and "
+        f"{other / 'demo/msg/Pose2D.msg'} (declaration 1: 'float64 x' against 'int64 only'); "
+        "a type name has one definition per process"
+    )
     monkeypatch.setenv(ENV_VAR, str(root))
     assert load_message("demo/Pose2D") is first
     assert load_message("demo/Pose2D", [root, bundled_interfaces()]) is first
@@ -676,3 +706,46 @@ def test_module_functions_load_the_bundled_interfaces(monkeypatch: pytest.Monkey
     assert trigger is load_service("std_srvs/srv/Trigger")
     assert trigger.type_name == "std_srvs/srv/Trigger"
     assert dump(trigger.Response()) == {"success": False, "message": ""}
+
+
+def test_a_search_path_adds_to_the_default_path(
+    root: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    loader = InterfaceLoader([root])
+    assert loader.search_path == (root, bundled_interfaces())
+    assert loader.load_message("std_msgs/Header").type_name == "std_msgs/msg/Header"
+    assert loader.load_message("demo/Pose2D").type_name == "demo/msg/Pose2D"
+
+
+def test_use_default_path_false_searches_only_the_folders_given(root: Path) -> None:
+    loader = InterfaceLoader([root], use_default_path=False)
+    assert loader.search_path == (root,)
+    with pytest.raises(InterfaceNotFoundError) as excinfo:
+        loader.load_message("std_msgs/Header")
+    assert message_of(excinfo) == f"no interface package 'std_msgs' in {root}"
+
+
+def test_a_package_that_hides_a_bundled_one_is_named_in_the_error(tmp_path: Path) -> None:
+    overlay = tmp_path / "overlay"
+    write(overlay, "std_msgs/msg/Mine.msg", "int32 a\n")
+    loader = InterfaceLoader([overlay])
+    with pytest.raises(InterfaceNotFoundError) as excinfo:
+        loader.load_message("std_msgs/Header")
+    assert message_of(excinfo) == (
+        f"no message 'Header' in package 'std_msgs' ({overlay / 'std_msgs'} hides the bundled "
+        f"package 'std_msgs' in {bundled_interfaces()}, which has it: a package is taken whole "
+        "from the first folder that holds it)"
+    )
+
+
+def test_a_nested_type_hidden_by_an_overlay_says_where(tmp_path: Path) -> None:
+    overlay = tmp_path / "overlay"
+    write(overlay, "std_msgs/msg/Mine.msg", "int32 a\n")
+    path = write(overlay, "robot/msg/Status.msg", "std_msgs/Header header\n")
+    with pytest.raises(InterfaceSyntaxError) as excinfo:
+        InterfaceLoader([overlay]).load_message("robot/Status")
+    assert str(excinfo.value).startswith(
+        f"{path}:1:1: unknown type 'std_msgs/Header' of field 'header': no message 'Header' in "
+        f"package 'std_msgs' ({overlay / 'std_msgs'} hides the bundled package"
+    )

@@ -99,8 +99,11 @@ async def test_a_typed_call(srvwire_client):
     assert (type(response).__name__, response.sum) == ("AddTwoInts_Response", 5)
 
 
-async def test_a_service_of_the_projects_own(srvwire_client):
-    assert (await srvwire_client.call("/divide", {"dividend": 7, "divisor": 2})).quotient == 3
+async def test_a_service_of_the_projects_own(srvwire_client, srvwire_server):
+    # calculator/srv/Divide is on no search path: the client gets the server's own class.
+    response = await srvwire_client.call("/divide", {"dividend": 7, "divisor": 2})
+    assert response.quotient == 3
+    assert type(response) is srvwire_server.registry.get("/divide").srv_type.Response
     with pytest.raises(srvwire.InvalidParams):
         await srvwire_client.call("/divide", {"dividend": "seven", "divisor": 1})
 
@@ -208,7 +211,8 @@ async def test_checked_and_cleared(srvwire_client, srvwire_handler_errors):
     await divide_by_zero(srvwire_client)
     [record] = srvwire_handler_errors
     assert record.exc_info[0] is ZeroDivisionError
-    assert record.getMessage() == "handler for /divide raised an exception (request id 1)"
+    # Request 1 asked for the server's description: calculator/srv/Divide is not on the path.
+    assert record.getMessage() == "handler for /divide raised an exception (request id 2)"
     srvwire_handler_errors.clear()
 
 
@@ -232,7 +236,7 @@ def test_a_handler_exception_fails_the_test_with_its_traceback(pytester: pytest.
     result = pytester.runpytest("-p", "no:logging")  # no captured log: the plugin's own report
     result.assert_outcomes(passed=3, failed=2, errors=1)
     traceback = [
-        "srvwire.server ERROR: handler for /divide raised an exception (request id 1)",
+        "srvwire.server ERROR: handler for /divide raised an exception (request id 2)",
         "Traceback (most recent call last):",
         '*return {"quotient": request.dividend // request.divisor}*',
         "ZeroDivisionError: integer division or modulo by zero",

@@ -27,6 +27,36 @@ def test_work_runs_and_its_result_or_exception_comes_back() -> None:
     threads.shutdown()
 
 
+def test_work_is_no_longer_busy_once_its_outcome_can_be_seen() -> None:
+    # A server that shuts down the moment a call's reply is ready must not report that call's
+    # handler as still running. A done callback runs in the worker, as the outcome is set.
+    threads = HandlerThreads(1)
+    seen: list[list[str]] = []
+    go = threading.Event()
+
+    def answers() -> int:
+        go.wait(scaled(5))  # until the callback is in place
+        return 5
+
+    def fails() -> None:
+        go.wait(scaled(5))
+        raise KeyError("boom")
+
+    for work in (answers, fails):
+        go.clear()
+        called = threading.Event()
+
+        def look(_: object, called: threading.Event = called) -> None:
+            seen.append(threads.busy())
+            called.set()
+
+        threads.submit(work).add_done_callback(look)
+        go.set()
+        assert called.wait(scaled(5))
+    assert seen == [[], []]
+    threads.shutdown()
+
+
 def test_at_most_max_workers_run_at_once_and_busy_names_them() -> None:
     threads = HandlerThreads(2)
     release = threading.Event()

@@ -8,6 +8,7 @@ from srvwire.errors import (
     ConnectionLost,
     DeadlineExceeded,
     ErrorCode,
+    InterfaceConflictError,
     InterfaceError,
     InterfaceNotFoundError,
     InterfaceSyntaxError,
@@ -36,6 +37,7 @@ from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
+from srvwire.typeregistry import TypeRegistry
 from srvwire.version import __version__
 
 __all__ = [
@@ -48,6 +50,7 @@ __all__ = [
     "ErrorCode",
     "Handshake",
     "Identity",
+    "InterfaceConflictError",
     "InterfaceError",
     "InterfaceLoader",
     "InterfaceNotFoundError",
@@ -73,6 +76,7 @@ __all__ = [
     "SrvwireError",
     "TokenAuth",
     "Transport",
+    "TypeRegistry",
     "Unauthenticated",
     "__version__",
     "connect",

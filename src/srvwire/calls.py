@@ -1,14 +1,14 @@
 """What a call sends and gets back, on the client's side: types, requests, deadlines.
 
 A client resolves a service's type by name through a :data:`TypeResolver` (by default the
-interface loader), validates and writes a request with :func:`encode_request`, and decodes a
-reply with the :class:`~srvwire.models.ModelDecoder` of the type's ``Response``; the
-:class:`ServiceTypes` of a client keeps both, one per type, for the client's life.
+interface loader) or from the server's description of it, validates and writes a request with
+:func:`encode_request`, and decodes a reply with the :class:`~srvwire.models.ModelDecoder` of
+the type's ``Response``; the :class:`ServiceTypes` of a client keeps both, one per type, for
+the client's life.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -17,11 +17,14 @@ from typing import Any, TypeAlias
 from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticSerializationError
 
-from srvwire.errors import InterfaceError, InvalidParams
+from srvwire.errors import InterfaceError, InterfaceNotFoundError, InvalidParams
+from srvwire.idl import MessageSpec, TypeSpec
 from srvwire.models import (
     Message,
     ModelDecoder,
     Service,
+    build_message,
+    build_service,
     dump_json,
     error_data,
     json_writer,
@@ -30,9 +33,12 @@ from srvwire.models import (
     unencodable_strings,
     validate_python,
 )
+from srvwire.parser import parse_message, parse_service
 from srvwire.protocol import describe_value, encode_json, timeout_seconds
+from srvwire.typeregistry import TypeRegistry, process_types
 
 __all__ = [
+    "MessageResolver",
     "ServiceCodec",
     "ServiceInfo",
     "ServiceTypes",
@@ -47,7 +53,13 @@ SrvType: TypeAlias = type[Service] | str
 """A service type: the class, or its name (``pkg/srv/Name``) to resolve."""
 
 TypeResolver: TypeAlias = Callable[[str], type[Service]]
-"""Turns a service type name into its class, or raises InterfaceError; default: the loader."""
+"""Turns a service type name into its class, or raises InterfaceError; default: the loader.
+
+A name it does not know is an :class:`~srvwire.errors.InterfaceNotFoundError`; the client then
+asks the server for the type's definition."""
+
+MessageResolver: TypeAlias = Callable[[str], type[Message]]
+"""Turns a message type name into its class, or raises InterfaceError; default: the loader."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,48 +167,81 @@ class ServiceCodec:
 
 
 class ServiceTypes:
-    """Which type a call's messages have, given or advertised, each made ready once.
+    """Which type a call's messages have, each made ready once, for the client's life.
 
-    A type given by name that cannot be resolved is an error; one the server advertised is
-    logged once, and its calls send and return plain dicts.
+    A type comes from, in order:
+
+    1. the class the call gives (``srv_type``);
+    2. the local search path, by name (the name the call gives, or the type the server
+       advertised), through the client's resolver;
+    3. the server's description of the service (``rpc.discover``'s ``x-srvwire-definitions``):
+       its definition text is parsed and built here. Each type it nests is taken from the local
+       search path first, and from the description when it is not there.
+
+    Every class goes through the process's :class:`~srvwire.typeregistry.TypeRegistry`, so a
+    type the server defines as a local file does is the local class, and one it defines
+    differently is an :class:`~srvwire.errors.InterfaceConflictError` naming the file and the
+    server. A type found in neither place is an :class:`~srvwire.errors.InterfaceNotFoundError`:
+    a call never falls back to plain dicts.
     """
 
     def __init__(
-        self, resolve: TypeResolver, logger: logging.Logger | logging.LoggerAdapter[Any]
+        self,
+        resolve: TypeResolver,
+        resolve_message: MessageResolver,
+        types: TypeRegistry | None = None,
     ) -> None:
         self._resolve = resolve
-        self._logger = logger
-        self._by_name: dict[str, ServiceCodec | None] = {}
+        self._resolve_message = resolve_message
+        self._types = process_types() if types is None else types
+        self._by_name: dict[str, ServiceCodec] = {}
         self._by_class: dict[type[Service], ServiceCodec] = {}
 
-    def service(
-        self, method: str, srv_type: SrvType | None, advertised: str | None
-    ) -> ServiceCodec | None:
-        """Return the type of ``method``'s messages, or None to send and return plain dicts."""
+    def known(self, srv_type: SrvType | None, advertised: str | None) -> ServiceCodec | None:
+        """Return the type of a call when it is known already (the quick path), else None."""
         if srv_type is not None and not isinstance(srv_type, str):
             return self._codec(srv_type)
-        named = srv_type is not None
-        type_name = srv_type if srv_type is not None else advertised
-        if type_name is None:
+        name = srv_type if srv_type is not None else advertised
+        return None if name is None else self._by_name.get(name)
+
+    def local(self, name: str) -> ServiceCodec | None:
+        """Return the type ``name`` from the local search path, or None when it is not there."""
+        if len(name.split("/")) != 3:  # not a file's name (a class written by hand): not here
             return None
-        if type_name in self._by_name:
-            cached = self._by_name[type_name]
-            if cached is not None or not named:
-                return cached
-        codec: ServiceCodec | None
         try:
-            codec = self._codec(self._resolve(type_name))
-        except InterfaceError as exc:
-            if named:
-                raise  # the caller named a type that cannot be resolved: say so
-            self._logger.info(
-                "cannot load %s for %s (%s); its calls send and return plain dicts",
-                type_name,
-                method,
-                exc,
+            service = self._resolve(name)
+        except InterfaceNotFoundError:
+            return None
+        codec = self._by_name[name] = self._codec(service)
+        return codec
+
+    def remote(
+        self, method: str, name: str, definitions: Mapping[str, str] | None, source: str
+    ) -> ServiceCodec:
+        """Build the type ``name`` from the server's ``definitions`` (text by full name).
+
+        ``source`` says where they came from (``server ws://...``); it is the "file" of every
+        error in them. Raise :class:`~srvwire.errors.InterfaceError` when they do not define
+        ``name`` or do not build.
+        """
+        text = None if definitions is None else definitions.get(name)
+        parts = name.split("/")
+        if text is None or len(parts) != 3 or parts[1] != "srv":
+            why = "does not describe it" if definitions is not None else "does not describe types"
+            raise InterfaceNotFoundError(
+                name,
+                f"cannot type the calls of {method}: {name} is not on the local search path, "
+                f"and the {source} {why}",
             )
-            codec = None
-        self._by_name[type_name] = codec
+        spec = parse_service(text, parts[0], parts[2], path=source)
+        nested = _RemoteMessages(definitions or {}, source, self._resolve_message, self._types)
+        messages = [other for other in definitions or {} if _is_message_name(other)]
+        for other in messages:  # first compare: nothing is built from a conflicting description
+            nested.check(other)
+        for other in messages:
+            nested.load(other)
+        service = self._types.intern(spec, source, lambda: build_service(spec, nested))
+        codec = self._by_name[name] = self._codec(service)
         return codec
 
     def _codec(self, service: type[Service]) -> ServiceCodec:
@@ -204,3 +249,67 @@ class ServiceTypes:
         if codec is None:
             codec = self._by_class[service] = ServiceCodec(service)
         return codec
+
+
+def _is_message_name(name: str) -> bool:
+    parts = name.split("/")
+    return len(parts) == 3 and parts[1] == "msg"
+
+
+class _RemoteMessages:
+    """Resolves the messages a server-described type nests: local first, then the server's."""
+
+    def __init__(
+        self,
+        definitions: Mapping[str, str],
+        source: str,
+        local: MessageResolver,
+        types: TypeRegistry,
+    ) -> None:
+        self.definitions = definitions
+        self.source = source
+        self.local = local
+        self.types = types
+        self.chain: list[str] = []
+
+    def __call__(self, type_: TypeSpec) -> type[Message]:
+        return self.load(type_.qualified_name)
+
+    def spec(self, name: str, text: str) -> MessageSpec:
+        package, _, short = name.split("/")
+        return parse_message(text, package, short, path=self.source)
+
+    def check(self, name: str) -> None:
+        """Compare the server's ``name`` with the local file or the process's class, if any."""
+        spec = self.spec(name, self.definitions[name])
+        local: type[Message] | None = None
+        try:
+            local = self.local(name)
+        except InterfaceNotFoundError:
+            if self.types.get(name) is None:
+                return
+        self.types.intern(spec, self.source, lambda: local)
+
+    def load(self, name: str) -> type[Message]:
+        """Return the process's class of the message ``name``, checked against the server's."""
+        text = self.definitions.get(name)
+        if text is None:  # the server did not describe it: the local one, or an error
+            return self.local(name)
+        if name in self.chain:
+            cycle = " -> ".join((*self.chain[self.chain.index(name) :], name))
+            raise InterfaceError(
+                f"the {self.source} describes a message that nests itself: {cycle}"
+            )
+        spec = self.spec(name, text)
+
+        def build() -> type[Message]:
+            try:
+                return self.local(name)  # the local file first; the loader interns it
+            except InterfaceNotFoundError:
+                self.chain.append(name)
+                try:
+                    return build_message(spec, self)
+                finally:
+                    self.chain.pop()
+
+        return self.types.intern(spec, self.source, build)

@@ -6,8 +6,9 @@
 * the current :class:`~srvwire.link.Link`, one per open connection: the transport's
   connection, the :class:`~srvwire.session.ClientSession` that numbers requests and routes
   replies, and the reader task that feeds it;
-* its :class:`~srvwire.calls.ServiceTypes`: the type of each service, from ``srv_type`` or
-  resolved by the advertised name (by default with the interface loader), and its decoder;
+* its :class:`~srvwire.calls.ServiceTypes`: the type of each service, from ``srv_type``, or
+  by the advertised name from the local search path, else from the server's description
+  (``rpc.discover``), and its decoder;
 * the supervisor that re-dials with backoff when ``reconnect=True``;
 * the call itself (:meth:`Client.call`): encode once, send and wait under one deadline, decode
   in the caller's task.
@@ -26,10 +27,12 @@ Invariants:
 * **Options and payload never share a namespace.** A request is one positional value (a model
   or a mapping), so every field name is free; :class:`ServiceProxy` takes fields as keywords
   and holds its options itself.
-* **Typed when the type is known.** With a type, a mapping is validated locally
-  (:class:`~srvwire.errors.InvalidParams` before anything is sent) and the result is the typed
-  ``Response``; without one, the mapping is sent as it is and the result is the plain ``dict``
-  the server returned.
+* **Always typed.** Every advertised service has a type: the local one, else the one the
+  server describes. A mapping is validated locally (:class:`~srvwire.errors.InvalidParams`
+  before anything is sent) and the result is the typed ``Response``. A type found in neither
+  place is an :class:`~srvwire.errors.InterfaceError`, never plain dicts. Only a service the
+  server does not advertise is called with the mapping as it is (and a srvwire server answers
+  ``ServiceNotFound``).
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from srvwire.calls import (
+    MessageResolver,
+    ServiceCodec,
     ServiceInfo,
     ServiceTypes,
     SrvType,
@@ -56,15 +61,18 @@ from srvwire.calls import (
     check_timeout,
     encode_request,
 )
+from srvwire.dispatch import service_not_found
 from srvwire.errors import (
     ConnectionLost,
+    DeadlineExceeded,
     InternalError,
     RPCError,
+    ServiceNotFound,
     ServiceUnavailable,
 )
 from srvwire.link import Link, LoggerLike
-from srvwire.loader import SearchPath, load_service
-from srvwire.models import error_data, summarize_errors
+from srvwire.loader import SearchPath, load_message, load_service
+from srvwire.models import Service, error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Headers, Options, Transport
@@ -112,7 +120,9 @@ class Client:
         self.url = options.url
         self.timeout = options.timeout
         self.logger: LoggerLike = options._log()
-        self._types = ServiceTypes(options.type_resolver, self.logger)
+        self._types = ServiceTypes(options.type_resolver, options.message_resolver)
+        self._description: tuple[Link, dict[str, dict[str, str]]] | None = None
+        self._describing = asyncio.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
         self._link: Link | None = None
         self._supervisor: asyncio.Task[None] | None = None
@@ -254,6 +264,7 @@ class Client:
         """
         if self._link is link:
             self._services = services
+            self._description = None
             self._pulse()
 
     def forget(self, link: Link) -> bool:
@@ -291,9 +302,9 @@ class Client:
         """Call the service ``name`` with ``request`` and return its response.
 
         ``request`` is a ``Request`` model or a mapping of its fields (left out: every field
-        takes its default). The result is the typed ``Response`` when the service type is
-        known (``srv_type``, or the type the server advertised, resolved here), else the plain
-        dict the server sent. For fields as keywords, use :meth:`proxy`.
+        takes its default). The result is the typed ``Response`` of the service's type:
+        ``srv_type``, or the type the server advertised, found as :func:`connect` says (local
+        first, then the server's description). For fields as keywords, use :meth:`proxy`.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -302,7 +313,9 @@ class Client:
 
         Raise the :class:`~srvwire.errors.RPCError` subclass that matches the failure:
         ``DeadlineExceeded``, ``ConnectionLost``, ``InvalidParams`` (also locally, before
-        sending), ``ServiceNotFound``, ``InternalError``, ``ServiceError``, and so on.
+        sending), ``ServiceNotFound``, ``InternalError``, ``ServiceError``, and so on; and
+        :class:`~srvwire.errors.InterfaceError` when the type can be found neither locally nor
+        from the server (:class:`~srvwire.errors.InterfaceConflictError` when the two differ).
         """
         method = canonical_name(name)
         budget = self.timeout if timeout is None else check_timeout(timeout)
@@ -314,7 +327,12 @@ class Client:
         link = self._link
         if link is None:
             raise self._not_connected(method)
-        codec = self._types.service(method, srv_type, self._services.get(method))
+        advertised = self._services.get(method)
+        codec = self._types.known(srv_type, advertised)
+        if codec is None:
+            named = srv_type if isinstance(srv_type, str) else advertised
+            if named is not None:  # not advertised: the server will say it has no such service
+                codec = await self._type_of(link, method, named, deadline, budget)
         params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
@@ -371,11 +389,68 @@ class Client:
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
     ) -> list[ServiceInfo]:
         """Ask the server for every service it offers (``rpc.discover``), sorted by name."""
+        methods = await self._discover(timeout)
+        found = [
+            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
+            for entry in methods
+            if isinstance(entry, dict)
+            and isinstance(entry.get("name"), str)
+            and isinstance(entry.get("x-srvwire-type"), str)
+        ]
+        return sorted(found, key=lambda info: info.name)
+
+    async def definitions(
+        self,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> dict[str, str]:
+        """Ask the server for the definition text of every type it serves, by full name.
+
+        The services' types and every message they nest (``rpc.discover``'s
+        ``x-srvwire-definitions``), sorted by name: what ``srvwire service describe`` prints.
+        """
+        texts: dict[str, str] = {}
+        for entry in await self._discover(timeout):
+            texts.update(_definitions_of(entry))
+        return dict(sorted(texts.items()))
+
+    async def service_type(
+        self,
+        name: str,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> type[Service]:
+        """Return the class of the service ``name``'s type, as :meth:`call` finds it.
+
+        From the local search path first, else built from the server's description (see
+        :func:`connect`). Raise :class:`~srvwire.errors.ServiceNotFound` when the server does
+        not advertise ``name``, and :class:`~srvwire.errors.InterfaceError` when the type can
+        be found in neither place.
+        """
+        method = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        deadline = asyncio.get_running_loop().time() + budget
+        link = self._link
+        if link is None:
+            raise self._not_connected(method)
+        advertised = self._services.get(method)
+        if advertised is None:
+            raise service_not_found(method, self._services)
+        codec = self._types.known(None, advertised) or await self._type_of(
+            link, method, advertised, deadline, budget
+        )
+        return codec.service
+
+    async def _discover(self, timeout: float | None) -> list[Any]:  # noqa: ASYNC109
+        """Ask for ``rpc.discover`` and return its ``methods``."""
         budget = self.timeout if timeout is None else check_timeout(timeout)
         deadline = asyncio.get_running_loop().time() + budget
         link = self._link
         if link is None:
             raise self._not_connected(DISCOVER_METHOD)
+        return await self._methods(link, deadline, budget)
+
+    async def _methods(self, link: Link, deadline: float, budget: float) -> list[Any]:
         reply = await link.roundtrip(DISCOVER_METHOD, None, deadline, budget)
         try:
             document = reply.decode()
@@ -387,14 +462,41 @@ class Client:
                 "rpc.discover did not return an OpenRPC document with 'methods'",
                 service=DISCOVER_METHOD,
             )
-        found = [
-            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
-            for entry in methods
-            if isinstance(entry, dict)
-            and isinstance(entry.get("name"), str)
-            and isinstance(entry.get("x-srvwire-type"), str)
-        ]
-        return sorted(found, key=lambda info: info.name)
+        return methods
+
+    async def _type_of(
+        self, link: Link, method: str, name: str, deadline: float, budget: float
+    ) -> ServiceCodec:
+        """Find the type ``name`` of ``method``: locally, else from the server's description.
+
+        The description is asked for once per connection (again after ``$/services`` says the
+        services changed), and only when a type is not on the local search path.
+        """
+        codec = self._types.local(name)
+        if codec is not None:
+            return codec
+        try:  # one caller asks; those who need it meanwhile wait for that answer
+            async with asyncio.timeout_at(deadline):
+                await self._describing.acquire()
+        except TimeoutError:
+            raise DeadlineExceeded(
+                f"no response within {budget:g} s", {"timeout": budget}, service=method
+            ) from None
+        try:
+            codec = self._types.known(name, None)
+            if codec is not None:  # built by the caller this one waited for
+                return codec
+            described = self._description
+            if described is None or described[0] is not link:
+                try:
+                    methods = await self._methods(link, deadline, budget)
+                except (ServiceNotFound, InternalError):  # a server that does not describe types
+                    methods = []
+                described = self._description = (link, _described(methods))
+            source = f"server {self.url}"
+            return self._types.remote(method, name, described[1].get(method), source)
+        finally:
+            self._describing.release()
 
     def _not_connected(self, method: str) -> ConnectionLost:
         why = "the client is closed" if self._closed else f"not connected to {self.url}"
@@ -417,6 +519,25 @@ class Client:
                     {"url": self.url, "timeout": budget},
                     service=method,
                 ) from None
+
+
+def _definitions_of(entry: Any) -> dict[str, str]:
+    """The definition texts one ``rpc.discover`` method object carries, by full name."""
+    texts = entry.get("x-srvwire-definitions") if isinstance(entry, dict) else None
+    if not isinstance(texts, dict):
+        return {}
+    return {k: v for k, v in texts.items() if isinstance(k, str) and isinstance(v, str)}
+
+
+def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
+    """Map each method of an ``rpc.discover`` document to the definitions it carries."""
+    return {
+        canonical_name(entry["name"]): _definitions_of(entry)
+        for entry in methods
+        if isinstance(entry, dict)
+        and isinstance(entry.get("name"), str)
+        and "x-srvwire-definitions" in entry
+    }
 
 
 class ServiceProxy:
@@ -498,9 +619,11 @@ class connect:
     * ``reconnect``: re-dial in the background (with backoff) when the connection drops or
       cannot be opened; see :meth:`Client.call`'s ``wait_for_ready``. Opening then never
       raises for an unreachable server.
-    * ``search_path``: where to load service types by name (default: the loader's).
-    * ``type_resolver``: a function from a type name to its service class, instead of the
-      loader (``search_path`` is then unused).
+    * ``search_path``: folders of interface packages searched for types by name, before the
+      default search path (``SRVWIRE_INTERFACE_PATH``, then the bundled packages).
+    * ``type_resolver``: a function from a service type name to its class, instead of the
+      loader; it raises :class:`~srvwire.errors.InterfaceNotFoundError` for a name it does
+      not know.
     * ``logger``: where to log (default: the ``srvwire.client`` logger).
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
@@ -512,6 +635,24 @@ class connect:
       ``allow_plaintext_token=True``.
     * ``ssl``: for a ``wss://`` URL, how to check the server: an :class:`ssl.SSLContext`, or
       the path of a CA certificate file to trust (default: the system's CAs).
+
+    **Where a call's types come from.** Every call is typed: its request is validated here and
+    its reply is the type's ``Response`` class. The type is the ``srv_type`` a call gives, else
+    the one the server advertises for the service, found in this order:
+
+    1. *local first*: ``type_resolver``, or the search path;
+    2. *then the server*: a type the local path does not have is built from the definition
+       texts the server gives in ``rpc.discover`` (asked once per connection, when first
+       needed). The messages it nests are taken from the local path when they are there.
+
+    A service type found locally is used without asking the server. When the description is
+    read, every type in it is compared with the local file or the process's class of the same
+    name (through the process's :class:`~srvwire.typeregistry.TypeRegistry`): one the server
+    defines as the local file does is the local class, and one it defines differently is an
+    :class:`~srvwire.errors.InterfaceConflictError` that names both sources (the file, and
+    ``server ws://...``). A type found in neither place is an
+    :class:`~srvwire.errors.InterfaceNotFoundError` that says so. No environment variable or
+    option turns a call's result into plain dicts.
 
     Raise :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached
     (without ``reconnect``), and ``ValueError`` for a URL the transport cannot use, or a token
@@ -569,6 +710,9 @@ class connect:
         self.search_path = search_path
         self.type_resolver: TypeResolver = type_resolver or functools.partial(
             load_service, search_path=search_path
+        )
+        self.message_resolver: MessageResolver = functools.partial(
+            load_message, search_path=search_path
         )
         self.logger = logger
         self._client: Client | None = None

@@ -17,9 +17,13 @@ Invariants
   ``spec`` leaves out ``path`` (where the files were on the generating machine), and when two
   interfaces in one module share a name (``a/Point`` and ``b/Point``) both classes are renamed
   ``a_msg_Point``/``b_msg_Point`` (their JSON schema title stays ``Point``).
-* **Self-contained.** Every message a generated class nests is generated in the same module,
-  before its first use; the module imports only ``typing``, ``pydantic``, :mod:`srvwire.idl`
-  and :mod:`srvwire.models`.
+* **Self-contained, or beside its siblings.** Every message a generated class nests is
+  generated in the same module, before its first use; the module imports only ``typing``,
+  ``pydantic``, :mod:`srvwire.idl` and :mod:`srvwire.models`. The one exception is a package
+  named in ``siblings``: its messages are not copied but used from the module of that name in
+  the same Python package (``from . import std_msgs``, then ``std_msgs.Header``), which is how
+  ``srvwire gen`` into a folder writes one module per package, so that a message nested by
+  two of them is one class.
 * **No name capture.** An imported helper whose name equals a generated class (``std_msgs``
   has ``String``, ``Int32`` and ``Bool``) is reached through its module, imported under a
   leading underscore (``import srvwire.models as _models``, then ``_models.String``). In a
@@ -40,7 +44,7 @@ import dataclasses
 import enum
 import os
 import typing
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from pathlib import Path
 from typing import Any, TypeAlias
 
@@ -117,16 +121,18 @@ def generate_module(
     *,
     resolve_spec: SpecResolver | None = None,
     docstring: str | None = None,
+    siblings: Collection[str] = (),
 ) -> str:
     """Return the source of a module declaring the classes of ``interfaces``.
 
     ``interfaces`` are message, service and action specs, or classes built from them. The
     messages they nest are included too: found among ``interfaces``, inside the given classes,
     or else through ``resolve_spec``; a nested type found nowhere is an
-    :class:`~srvwire.errors.InterfaceError`. ``docstring`` replaces the module docstring, which
-    otherwise lists the interfaces.
+    :class:`~srvwire.errors.InterfaceError`. The messages of the packages in ``siblings`` are
+    not included but imported from the modules of the same names beside this one. ``docstring``
+    replaces the module docstring, which otherwise lists the interfaces.
     """
-    plan = _Plan(resolve_spec)
+    plan = _Plan(resolve_spec, frozenset(siblings))
     for interface in interfaces:
         plan.add(interface)
     return _Writer(plan).module(docstring)
@@ -138,9 +144,12 @@ def write_module(
     *,
     resolve_spec: SpecResolver | None = None,
     docstring: str | None = None,
+    siblings: Collection[str] = (),
 ) -> Path:
     """Write :func:`generate_module`'s source to ``path`` (UTF-8) and return the path."""
-    source = generate_module(interfaces, resolve_spec=resolve_spec, docstring=docstring)
+    source = generate_module(
+        interfaces, resolve_spec=resolve_spec, docstring=docstring, siblings=siblings
+    )
     target = Path(path)
     target.write_text(source, encoding="utf-8")
     return target
@@ -172,8 +181,10 @@ class _Item:
 class _Plan:
     """Collects the items to write, dependencies first, and finds the specs they nest."""
 
-    def __init__(self, resolve_spec: SpecResolver | None) -> None:
+    def __init__(self, resolve_spec: SpecResolver | None, siblings: frozenset[str]) -> None:
         self._resolve_spec = resolve_spec
+        self.siblings = siblings
+        self.imported: dict[str, str] = {}  # type name -> sibling.Class, for nested messages
         self._known: dict[str, MessageSpec] = {}  # pkg/msg/Name -> spec, for nested lookups
         self.requested: list[_Item] = []
         self.items: list[_Item] = []
@@ -213,7 +224,10 @@ class _Plan:
             raise InterfaceError(f"a message cannot contain itself: {cycle}")
         for part in item.parts:
             for field in part.fields:
-                if not field.type.is_primitive:
+                if field.type.package in self.siblings:
+                    name = field.type.qualified_name
+                    self.imported[name] = f"{field.type.package}.{field.type.name}"
+                elif not field.type.is_primitive:
                     nested = self.lookup(field.type, part)
                     self._visit(_Item(nested, nested.type_name), done, (*chain, item.type_name))
         done.add(item.type_name)
@@ -300,6 +314,10 @@ class _Writer:
             raise InterfaceError("two interfaces would get the same class name; split the module")
         return names
 
+    def class_of(self, type_name: str) -> str:
+        """The expression naming the class of the message ``type_name`` in this module."""
+        return self.class_names.get(type_name) or self.plan.imported[type_name]
+
     def name(self, helper: str) -> str:
         """Return the local name of an imported helper, recording that it is used."""
         self.used.add(helper)
@@ -375,15 +393,24 @@ class _Writer:
                 )
         standard.sort(key=lambda line: not line.startswith("import "))
         third_party.extend(from_imports)
-        return "\n\n".join("\n".join(group) for group in (standard, third_party) if group)
+        used_siblings = sorted({name.split("/")[0] for name in self.plan.imported}, key=isort_key)
+        local = [import_line(".", used_siblings)] if used_siblings else []
+        groups = (standard, third_party, local)
+        return "\n\n".join("\n".join(group) for group in groups if group)
 
     # classes ---------------------------------------------------------------------------------
 
     def message(self, spec: MessageSpec, type_name: str) -> str:
         class_name = self.class_names[type_name]
         nested = {
-            self.class_names[f.type.qualified_name] for f in spec.fields if not f.type.is_primitive
+            self.class_of(f.type.qualified_name) for f in spec.fields if not f.type.is_primitive
         }
+        for field in spec.fields:
+            if python_name(field.name) in self.plan.siblings:
+                raise InterfaceError(
+                    f"{type_name}: field {field.name} has the name of the module of package "
+                    f"{field.name}, which the module imports; rename one"
+                )
         for constant in spec.constants:
             if constant.name in nested:
                 raise InterfaceError(
@@ -423,7 +450,7 @@ class _Writer:
                     f"{self.name('Field')}(max_length={type_.string_bound})]"
                 )
         else:
-            element = self.class_names[type_.qualified_name]
+            element = self.class_of(type_.qualified_name)
         list_ = "list"
         if shadowed_list:  # the field named `list` hides the builtin in the class body
             self.builtins_used = True

@@ -62,6 +62,7 @@ from pydantic_core import PydanticSerializationError
 
 from srvwire.errors import (
     DeadlineExceeded,
+    InterfaceConflictError,
     InternalError,
     InvalidParams,
     RegistrationError,
@@ -69,6 +70,7 @@ from srvwire.errors import (
     ServiceNotFound,
 )
 from srvwire.models import (
+    Message,
     Service,
     dump_json,
     error_data,
@@ -78,6 +80,7 @@ from srvwire.models import (
     validation_errors,
 )
 from srvwire.protocol import Id, canonical_name, encode_json
+from srvwire.typeregistry import TypeRegistry, process_types
 from srvwire.version import __version__
 
 __all__ = [
@@ -85,6 +88,7 @@ __all__ = [
     "Handler",
     "ServiceEntry",
     "ServiceRegistry",
+    "definitions",
     "dispatch",
     "normalize_name",
     "service_not_found",
@@ -344,12 +348,72 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
         "result": {"name": "response", "schema": _standalone_schema(entry.response_model)},
         "x-srvwire-type": entry.type_name,
         "x-srvwire-srv": str(getattr(entry.srv_type, "text", "")),
+        "x-srvwire-definitions": definitions(entry.srv_type),
         "x-srvwire-request-schema": request_schema,
     }
     doc = request_schema.get("description")
     if doc:
         method["description"] = doc
     return method
+
+
+def nested_messages(srv_type: type[Service]) -> list[type[Message]]:
+    """Every message class ``srv_type``'s request and response nest, at any depth, by name."""
+    found: dict[str, type[Message]] = {}
+    todo: list[type[BaseModel]] = [srv_type.Request, srv_type.Response]
+    while todo:
+        model = todo.pop()
+        for info in model.model_fields.values():
+            for nested in _message_classes(info.annotation):
+                name = getattr(nested, "type_name", None)
+                if isinstance(name, str) and name not in found:
+                    found[name] = nested
+                    todo.append(nested)
+    return [found[name] for name in sorted(found)]
+
+
+def _message_classes(annotation: Any) -> Iterator[type[Message]]:
+    if isinstance(annotation, type) and issubclass(annotation, Message):
+        yield annotation
+    for argument in typing.get_args(annotation):
+        yield from _message_classes(argument)
+
+
+def definitions(srv_type: type[Service]) -> dict[str, str]:
+    """The definition text of a service type and of every message it nests, by full name.
+
+    This is what ``rpc.discover`` tells a client that does not have the types itself
+    (``x-srvwire-definitions``). A type whose class carries no text (a class written by hand)
+    is left out.
+    """
+    texts: dict[str, str] = {}
+    text = getattr(srv_type, "text", "")
+    if isinstance(text, str) and text:
+        texts[str(srv_type.type_name)] = text
+    for nested in nested_messages(srv_type):
+        nested_text: object = getattr(getattr(nested, "spec", None), "text", None)
+        if isinstance(nested_text, str) and nested_text:
+            texts[nested.type_name] = nested_text
+    return texts
+
+
+def _adopt(srv_type: type[Service], types: TypeRegistry, service: str) -> None:
+    """Record the classes a registered service uses as the process's, where they have specs.
+
+    So a client in the same process that builds them from this server's description gets these
+    very classes. A conflicting definition is a :class:`~srvwire.errors.RegistrationError`.
+    """
+    classes: list[Any] = [srv_type, *nested_messages(srv_type)]
+    for cls in classes:
+        spec = getattr(cls, "spec", None)
+        if spec is None or not hasattr(cls, "type_name"):
+            continue
+        path = getattr(spec, "path", None)
+        source = path or f"the class {cls.__module__}.{cls.__qualname__} given for {service}"
+        try:
+            types.adopt(cls, source)
+        except InterfaceConflictError as exc:
+            raise RegistrationError(f"cannot register {service}: {exc}") from None
 
 
 def service_not_found(name: str, names: Iterable[str]) -> ServiceNotFound:
@@ -365,9 +429,10 @@ def service_not_found(name: str, names: Iterable[str]) -> ServiceNotFound:
 class ServiceRegistry:
     """The services one server offers, by canonical name."""
 
-    def __init__(self) -> None:
+    def __init__(self, types: TypeRegistry | None = None) -> None:
         self._entries: dict[str, ServiceEntry] = {}
         self._discovery: dict[frozenset[str] | None, str] = {}  # by the scopes it shows
+        self.types = process_types() if types is None else types
 
     def add(
         self,
@@ -404,6 +469,7 @@ class ServiceRegistry:
                 f"not {srv_type!r}"
             )
         is_async, takes_response, context_param = _introspect(canonical, handler)
+        _adopt(srv_type, self.types, canonical)
         entry = ServiceEntry(
             name=canonical,
             srv_type=srv_type,

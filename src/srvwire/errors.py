@@ -5,7 +5,8 @@ The tree::
     SrvwireError
     ├── InterfaceError
     │   ├── InterfaceSyntaxError
-    │   └── InterfaceNotFoundError
+    │   ├── InterfaceNotFoundError
+    │   └── InterfaceConflictError
     ├── RegistrationError
     └── RPCError
         ├── ParseError                  -32700
@@ -38,6 +39,7 @@ __all__ = [
     "ConnectionLost",
     "DeadlineExceeded",
     "ErrorCode",
+    "InterfaceConflictError",
     "InterfaceError",
     "InterfaceNotFoundError",
     "InterfaceSyntaxError",
@@ -124,6 +126,23 @@ class InterfaceNotFoundError(InterfaceError, LookupError):
         if not self.candidates:
             return self.message
         return f"{self.message} (did you mean: {', '.join(self.candidates)}?)"
+
+
+class InterfaceConflictError(InterfaceError):
+    """Raised when one type name is given two different definitions; it names both sources."""
+
+    def __init__(self, name: str, first: str, second: str, difference: str) -> None:
+        self.name = name
+        self.first = first
+        self.second = second
+        self.difference = difference
+        super().__init__(name, first, second, difference)
+
+    def __str__(self) -> str:
+        return (
+            f"two different definitions of {self.name}: {self.first} and {self.second} "
+            f"({self.difference}); a type name has one definition per process"
+        )
 
 
 # --- registering services ---------------------------------------------------------------------

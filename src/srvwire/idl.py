@@ -151,6 +151,7 @@ class MessageSpec:
     constants: tuple[ConstantSpec, ...] = ()
     doc: str = ""
     path: str | None = None
+    text: str = field(default="", repr=False, compare=False)  # a .msg file's text; "" for a part
 
     @property
     def type_name(self) -> str:

@@ -11,11 +11,13 @@ folders (``.git``) are never packages. A search-path folder that does not exist 
 
 Invariants:
 
-* **Search order.** :func:`default_search_path` is the folders in ``SRVWIRE_INTERFACE_PATH``
-  (split on :data:`os.pathsep`, empty entries ignored), then :func:`bundled_interfaces`. When two
-  folders hold a package of the same name, the earlier one wins *as a whole* — its files are not
-  merged with the later one's. This is ROS's overlay/underlay rule: a workspace that rebuilds a
-  package hides the installed copy entirely.
+* **Search order.** A loader searches the folders it is given, then :func:`default_search_path`:
+  the folders in ``SRVWIRE_INTERFACE_PATH`` (split on :data:`os.pathsep`, empty entries
+  ignored), then :func:`bundled_interfaces`. ``use_default_path=False`` searches only the
+  folders given. When two folders hold a package of the same name, the earlier one wins *as a
+  whole* — its files are not merged with the later one's. This is ROS's overlay/underlay rule:
+  a workspace that rebuilds a package hides the installed copy entirely. A type missing from a
+  package that hides another is reported with the folder that hid which.
 * **Laziness.** Building an :class:`InterfaceLoader` touches no file. Listing packages or types
   reads folders only. A file is read and parsed when its type, or a type that nests it, is asked
   for — so a broken file breaks only the types that need it.
@@ -23,6 +25,11 @@ Invariants:
   each file at most once successfully, and builds each class at most once: asking twice returns
   the very same class object. Failures are not cached; fixing the file and asking again works
   on the same loader, but new files or packages appear only in a new loader.
+* **One class per type per process.** Every class is interned in a
+  :class:`~srvwire.typeregistry.TypeRegistry` (the process's by default) under its file's path:
+  two loaders with different search paths that find the same definition return the same class,
+  and a different definition of a type already loaded is an
+  :class:`~srvwire.errors.InterfaceConflictError` naming both files.
 * **Nesting.** A nested field type is resolved through the same loader, across packages. Every
   type a message nests is loaded before the message's own class is built, so an unknown nested
   type or a cycle (a message that contains itself, directly or through others) is reported as an
@@ -51,9 +58,9 @@ import functools
 import os
 import re
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TypeAlias
+from typing import TypeAlias, TypeVar
 
 from srvwire.errors import InterfaceError, InterfaceNotFoundError, InterfaceSyntaxError
 from srvwire.idl import (
@@ -66,6 +73,7 @@ from srvwire.idl import (
 )
 from srvwire.models import Action, Message, Service, build_action, build_message, build_service
 from srvwire.parser import parse_file
+from srvwire.typeregistry import TypeRegistry, process_types
 
 __all__ = [
     "ENV_VAR",
@@ -76,6 +84,7 @@ __all__ = [
     "load_action",
     "load_message",
     "load_service",
+    "search_path_of",
 ]
 
 ENV_VAR = "SRVWIRE_INTERFACE_PATH"
@@ -91,6 +100,7 @@ _KINDS_BY_NAME = {kind.value: kind for kind in InterfaceKind}
 _LINE_BREAK = re.compile(r"\r\n|\r|\n")
 _SHAPES = "expected 'package/kind/Name' (kind: msg, srv or action) or 'package/Name'"
 _SHARED_LOADERS = 16  # how many search paths the module-level functions remember
+T = TypeVar("T")
 
 
 def bundled_interfaces() -> Path:
@@ -130,18 +140,40 @@ def _normalize(search_path: SearchPath) -> tuple[Path, ...]:
     return tuple(Path(os.fspath(folder)).absolute() for folder in search_path)
 
 
+def search_path_of(search_path: SearchPath | None, use_default_path: bool = True) -> list[Path]:
+    """Return the folders to search: ``search_path``, then the default path unless told not to.
+
+    ``search_path`` *adds* folders in front of :func:`default_search_path` (as the command
+    line's ``--path`` does), so the bundled packages stay visible; ``use_default_path=False``
+    searches only the folders given.
+    """
+    given = [] if search_path is None else list(_normalize(search_path))
+    return [*given, *default_search_path()] if use_default_path else given
+
+
 class InterfaceLoader:
     """Find, parse and build the interface types on one search path, caching what it builds.
 
-    ``search_path`` lists the folders that hold packages, earliest first; ``None`` means
-    :func:`default_search_path` as it is when the loader is created. Names may be given in
+    ``search_path`` lists folders that hold packages, searched first, earliest first; then
+    comes :func:`default_search_path` as it is when the loader is created, unless
+    ``use_default_path=False``, which searches only the folders given. Names may be given in
     full (``std_srvs/srv/Trigger``) or short (``std_srvs/Trigger``) when only one kind of
-    interface in the package has that name.
+    interface in the package has that name. Classes are interned in ``types`` (by default
+    :func:`~srvwire.typeregistry.process_types`), so every loader of the process returns the
+    same class for the same type.
     """
 
-    def __init__(self, search_path: SearchPath | None = None) -> None:
-        folders = default_search_path() if search_path is None else search_path
-        self.search_path: tuple[Path, ...] = _normalize(folders)
+    def __init__(
+        self,
+        search_path: SearchPath | None = None,
+        *,
+        use_default_path: bool = True,
+        types: TypeRegistry | None = None,
+    ) -> None:
+        self.search_path: tuple[Path, ...] = _normalize(
+            search_path_of(search_path, use_default_path)
+        )
+        self.types_registry = process_types() if types is None else types
         self._lock = threading.RLock()
         self._packages: dict[str, Path] | None = None
         self._types: dict[str, dict[str, Path]] = {}  # package -> full name -> file
@@ -238,7 +270,9 @@ class InterfaceLoader:
             if cached is None:
                 spec = self.service_spec(full)
                 self._load_nested(full, (spec.request, spec.response), ())
-                cached = self._services[full] = build_service(spec, self._resolve)
+                cached = self._services[full] = self._intern(
+                    spec, lambda: build_service(spec, self._resolve)
+                )
             return cached
 
     def load_action(self, name: str) -> type[Action]:
@@ -249,7 +283,9 @@ class InterfaceLoader:
             if cached is None:
                 spec = self.action_spec(full)
                 self._load_nested(full, (spec.goal, spec.result, spec.feedback), ())
-                cached = self._actions[full] = build_action(spec, self._resolve)
+                cached = self._actions[full] = self._intern(
+                    spec, lambda: build_action(spec, self._resolve)
+                )
             return cached
 
     def load(self, name: str) -> type[Message] | type[Service] | type[Action]:
@@ -368,9 +404,23 @@ class InterfaceLoader:
         what = _KIND_WORDS[kind] if kind is not None else "interface"
         return InterfaceNotFoundError(
             name,
-            f"no {what} {type_name!r} in package {package!r}",
+            f"no {what} {type_name!r} in package {package!r}{self._hidden(package, type_name)}",
             candidates=tuple(candidates),
         )
+
+    def _hidden(self, package: str, type_name: str) -> str:
+        """Say which folder's package hid a later one that has ``type_name`` (overlay)."""
+        folder = self._package_map()[package]
+        later = self.search_path[self.search_path.index(folder.parent) + 1 :]
+        for root in later:
+            other = root / package
+            if any((other / k.value / f"{type_name}.{k.value}").is_file() for k in InterfaceKind):
+                which = "the bundled" if root.resolve() == bundled_interfaces() else "the"
+                return (
+                    f" ({folder} hides {which} package {package!r} in {root}, which has it: "
+                    "a package is taken whole from the first folder that holds it)"
+                )
+        return ""
 
     def _spec(self, name: str, kind: InterfaceKind) -> MessageSpec | ServiceSpec | ActionSpec:
         with self._lock:
@@ -390,8 +440,14 @@ class InterfaceLoader:
         if cached is None:
             spec = self.message_spec(full)
             self._load_nested(full, (spec,), chain)
-            cached = self._messages[full] = build_message(spec, self._resolve)
+            cached = self._messages[full] = self._intern(
+                spec, lambda: build_message(spec, self._resolve)
+            )
         return cached
+
+    def _intern(self, spec: MessageSpec | ServiceSpec | ActionSpec, build: Callable[[], T]) -> T:
+        """The process's class for ``spec``: built here, or the one another source built."""
+        return self.types_registry.intern(spec, str(self.path_of(spec.type_name)), build)
 
     def _load_nested(
         self, owner: str, parts: tuple[MessageSpec, ...], chain: tuple[str, ...]
@@ -472,19 +528,18 @@ def _column_of(path: Path, line: int) -> int:
 @functools.lru_cache(maxsize=_SHARED_LOADERS)
 def _shared_loader(search_path: tuple[Path, ...]) -> InterfaceLoader:
     """Return the loader the module-level functions share for one search path."""
-    return InterfaceLoader(search_path)
+    return InterfaceLoader(search_path, use_default_path=False)
 
 
 def _loader_for(search_path: SearchPath | None) -> InterfaceLoader:
-    folders = default_search_path() if search_path is None else search_path
-    return _shared_loader(_normalize(folders))
+    return _shared_loader(_normalize(search_path_of(search_path)))
 
 
 def load_message(name: str, search_path: SearchPath | None = None) -> type[Message]:
     """Return the message class for ``name`` from a loader shared per search path.
 
-    ``search_path`` defaults to :func:`default_search_path`, read at each call, so changing
-    ``SRVWIRE_INTERFACE_PATH`` selects another shared loader.
+    ``search_path`` adds folders in front of :func:`default_search_path`, which is read at each
+    call, so changing ``SRVWIRE_INTERFACE_PATH`` selects another shared loader.
     """
     return _loader_for(search_path).load_message(name)
 
@@ -492,8 +547,8 @@ def load_message(name: str, search_path: SearchPath | None = None) -> type[Messa
 def load_service(name: str, search_path: SearchPath | None = None) -> type[Service]:
     """Return the service class for ``name`` from a loader shared per search path.
 
-    ``search_path`` defaults to :func:`default_search_path`, read at each call, so changing
-    ``SRVWIRE_INTERFACE_PATH`` selects another shared loader.
+    ``search_path`` adds folders in front of :func:`default_search_path`, which is read at each
+    call, so changing ``SRVWIRE_INTERFACE_PATH`` selects another shared loader.
     """
     return _loader_for(search_path).load_service(name)
 
@@ -501,7 +556,7 @@ def load_service(name: str, search_path: SearchPath | None = None) -> type[Servi
 def load_action(name: str, search_path: SearchPath | None = None) -> type[Action]:
     """Return the action class for ``name`` from a loader shared per search path.
 
-    ``search_path`` defaults to :func:`default_search_path`, read at each call, so changing
-    ``SRVWIRE_INTERFACE_PATH`` selects another shared loader.
+    ``search_path`` adds folders in front of :func:`default_search_path`, which is read at each
+    call, so changing ``SRVWIRE_INTERFACE_PATH`` selects another shared loader.
     """
     return _loader_for(search_path).load_action(name)

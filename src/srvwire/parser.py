@@ -129,7 +129,7 @@ def parse_message(text: str, package: str, name: str, *, path: str | None = None
     _check_names(package, name, "message", path)
     lines = split_lines(text)
     ((first, part),) = _parts(lines, 1, path)
-    return _message(part, first, package, name, path)
+    return replace(_message(part, first, package, name, path), text=text)
 
 
 def parse_service(text: str, package: str, name: str, *, path: str | None = None) -> ServiceSpec:

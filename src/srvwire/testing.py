@@ -38,15 +38,13 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import AsyncIterator, Callable, Generator
+from collections.abc import AsyncIterator, Generator
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import pytest
 
 from srvwire.client import Client, connect
-from srvwire.loader import load_service
-from srvwire.models import Service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports import get_transport
 from srvwire.transports.base import Connection, Options, Transport
@@ -275,18 +273,6 @@ async def _serving(
         server.logger.removeHandler(collect)
 
 
-def _types_of(server: Server) -> Callable[[str], type[Service]]:
-    """Resolve a type name to the class ``server`` serves under it, else with the loader."""
-
-    def resolve(type_name: str) -> type[Service]:
-        for entry in server.registry:
-            if entry.type_name == type_name:
-                return entry.srv_type
-        return load_service(type_name)
-
-    return resolve
-
-
 def _define(scope: LoopScope) -> dict[str, Any]:
     """The async fixtures that run on the event loop of ``scope``; each lives for one test."""
     assert async_fixture is not None
@@ -301,16 +287,10 @@ def _define(scope: LoopScope) -> dict[str, Any]:
             yield value
 
     @async_fixture(loop_scope=scope, name=f"_srvwire_client_{scope}")
-    async def client(
-        request: pytest.FixtureRequest, srvwire_url: str, srvwire_transport: Transport
-    ) -> AsyncIterator[Client]:
-        # Unless a URL was given, srvwire_url has served srvwire_server: this only reads it.
-        types = (
-            None if _url(request.config) else _types_of(request.getfixturevalue("srvwire_server"))
-        )
-        async with connect(
-            srvwire_url, transport=srvwire_transport, timeout=TIMEOUT, type_resolver=types
-        ) as value:
+    async def client(srvwire_url: str, srvwire_transport: Transport) -> AsyncIterator[Client]:
+        # Types not on the search path come from the server's description: in this process,
+        # the very classes the server registered.
+        async with connect(srvwire_url, transport=srvwire_transport, timeout=TIMEOUT) as value:
             yield value
 
     @async_fixture(loop_scope=scope, name=f"_srvwire_wire_{scope}")

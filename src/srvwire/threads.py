@@ -114,12 +114,15 @@ class HandlerThreads(Executor):
                 try:
                     result = fn(*args, **kwargs)
                 except BaseException as exc:
+                    self._finished(ident)  # before the caller can see the outcome
                     future.set_exception(exc)
                 else:
+                    self._finished(ident)
                     future.set_result(result)
-                finally:
-                    with self._lock:
-                        del self._busy[ident]
             del work, future, fn, args, kwargs  # not held while waiting for the next
             with self._lock:
                 self._idle += 1
+
+    def _finished(self, ident: int) -> None:
+        with self._lock:
+            del self._busy[ident]

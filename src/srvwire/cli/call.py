@@ -28,14 +28,14 @@ from srvwire.cli.common import (
     Commands,
     ExitCode,
     add_command,
-    interface_loader,
     local_options,
     open_client,
     positive_float,
     positive_int,
     remote_options,
 )
-from srvwire.errors import InterfaceError, InvalidParams
+from srvwire.errors import InvalidParams
+from srvwire.loader import InterfaceLoader
 from srvwire.models import Service, summarize_errors
 from srvwire.protocol import canonical_name
 
@@ -100,7 +100,9 @@ def _cmd_call(args: argparse.Namespace) -> int:
     if values_arg is None and type_arg is not None and not _TYPE_SHAPE.match(type_arg):
         type_arg, values_arg = None, type_arg
     values = _parse_values(values_arg)
-    srv_type = interface_loader(args).load_service(type_arg) if type_arg is not None else None
+    # The process's classes: the client types the call's nested messages with them too.
+    loader = InterfaceLoader(args.path)
+    srv_type = loader.load_service(type_arg) if type_arg is not None else None
     count: int | None = args.count if args.count is not None else None if args.rate else 1
     try:
         return asyncio.run(_call(args, srv_type, values, count))
@@ -178,7 +180,7 @@ async def _call(
         if advertised is not None:
             if srv_type is None:
                 type_name = advertised
-                srv_type = _try_load_service(args, advertised)
+                srv_type = await client.service_type(name, timeout=args.timeout)
             elif advertised != type_name:
                 raise CommandError(
                     f"{name} is a {advertised} service, not {type_name}", ExitCode.USAGE
@@ -205,15 +207,6 @@ async def _call(
                 print(f"\nresponse:\n{shown}", flush=True)
             done += 1
     return ExitCode.OK
-
-
-def _try_load_service(args: argparse.Namespace, type_name: str) -> type[Service] | None:
-    """Load a type the server advertised; None (plain dicts) when it is not on the search path."""
-    try:
-        return interface_loader(args).load_service(type_name)
-    except InterfaceError as exc:
-        logger.debug("cannot load %s here (%s); sending a plain mapping", type_name, exc)
-        return None
 
 
 def _validate_request(name: str, srv_type: type[Service], values: dict[str, Any]) -> Any:

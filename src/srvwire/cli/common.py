@@ -23,7 +23,8 @@ from typing import Final, NoReturn, TypeAlias
 
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect, plaintext_host
 from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
-from srvwire.loader import InterfaceLoader, default_search_path
+from srvwire.loader import InterfaceLoader
+from srvwire.typeregistry import TypeRegistry
 
 URL_ENV_VAR = "SRVWIRE_URL"
 TOKEN_ENV_VAR = "SRVWIRE_TOKEN"
@@ -260,9 +261,13 @@ def port(text: str) -> int:
 
 
 def interface_loader(args: argparse.Namespace) -> InterfaceLoader:
-    """A loader for the ``--path`` folders, then the default search path."""
+    """A loader for the ``--path`` folders, then the default search path.
+
+    Its classes are its own (a :class:`~srvwire.typeregistry.TypeRegistry` of its own): a
+    command that reads files does not record them as the process's.
+    """
     extra: list[Path] = args.path
-    return InterfaceLoader([*extra, *default_search_path()])
+    return InterfaceLoader(extra, types=TypeRegistry())
 
 
 def resolve_type(loader: InterfaceLoader, name: str) -> str:
@@ -324,7 +329,7 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
             url,
             timeout=args.timeout,
             open_timeout=args.timeout,
-            search_path=[*getattr(args, "path", []), *default_search_path()],
+            search_path=getattr(args, "path", []),
             token=token,
             headers=headers,
             ssl=client_tls(args),

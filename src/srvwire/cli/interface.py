@@ -9,8 +9,10 @@ resolve, at the field that names it.
 from __future__ import annotations
 
 import argparse
+import asyncio
+import difflib
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pydantic
@@ -23,13 +25,17 @@ from srvwire.cli.common import (
     add_command,
     interface_loader,
     local_options,
+    open_client,
     plural,
+    positive_float,
     resolve_type,
 )
+from srvwire.client import DEFAULT_TIMEOUT
 from srvwire.errors import InterfaceError, InterfaceSyntaxError
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
-from srvwire.loader import InterfaceLoader, default_search_path
-from srvwire.parser import parse_file, split_comment
+from srvwire.loader import InterfaceLoader
+from srvwire.parser import parse_action, parse_file, parse_message, parse_service, split_comment
+from srvwire.typeregistry import TypeRegistry
 
 INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
 
@@ -92,12 +98,25 @@ def register(commands: Commands) -> None:
         "print an interface's definition, with nested types expanded",
         "examples:\n"
         "  srvwire interface show geometry_msgs/msg/Pose\n"
-        "  srvwire interface show sensor_msgs/JointState --no-comments\n\n"
+        "  srvwire interface show sensor_msgs/JointState --no-comments\n"
+        "  srvwire interface show my_robot/srv/GetStatus --url ws://robot:8765\n\n"
         "Nested types are printed beneath the field that uses them, indented by one tab.\n"
         "By default only the comments of the type asked for are kept.",
         [local],
     )
     show.add_argument("type", metavar="TYPE", help="pkg/msg/Name, pkg/srv/Name, or pkg/Name")
+    show.add_argument(
+        "--url",
+        metavar="URL",
+        help="show the type as the server at URL describes it, instead of the local files",
+    )
+    show.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=DEFAULT_TIMEOUT,
+        metavar="SECONDS",
+        help=f"with --url: deadline for connecting and asking (default: {DEFAULT_TIMEOUT:g})",
+    )
     comments = show.add_mutually_exclusive_group()
     comments.add_argument(
         "--all-comments", action="store_true", help="keep the comments of nested types too"
@@ -174,29 +193,89 @@ def _cmd_interface_package(args: argparse.Namespace) -> int:
 
 
 def _cmd_interface_show(args: argparse.Namespace) -> int:
-    loader = interface_loader(args)
     keep = "all" if args.all_comments else "none" if args.no_comments else "top"
-    for line in _definition_lines(loader, resolve_type(loader, args.type), keep, ()):
+    if args.url is not None:
+        lines = asyncio.run(_remote_show(args, args.type, keep))
+    else:
+        loader = interface_loader(args)
+        name = resolve_type(loader, args.type)
+        loader.load(name)  # the whole type first: a broken one is said before anything is shown
+        lines = list(_definition_lines(_local_definition(loader), name, keep, ()))
+    for line in lines:
         print(line)
     return ExitCode.OK
 
 
+Definition = Callable[[str], tuple[MessageSpec | ServiceSpec | ActionSpec, str]]
+"""Gives the spec and the text of a type, by its full name."""
+
+
+def _local_definition(loader: InterfaceLoader) -> Definition:
+    def read(name: str) -> tuple[MessageSpec | ServiceSpec | ActionSpec, str]:
+        text = loader.path_of(name).read_text(encoding="utf-8").removeprefix("\ufeff")
+        return loader.spec(name), text
+
+    return read
+
+
+async def _remote_show(args: argparse.Namespace, wanted: str, keep: str) -> list[str]:
+    """The lines ``interface show`` prints for ``wanted`` as the server at ``--url`` has it."""
+    async with open_client(args) as client:
+        texts = await client.definitions(timeout=args.timeout)
+    return remote_definition_lines(texts, wanted, keep, f"server {client.url}")
+
+
+def remote_definition_lines(
+    texts: dict[str, str], wanted: str, keep: str, source: str
+) -> list[str]:
+    """The lines of ``wanted`` (``pkg/kind/Name`` or ``pkg/Name``) as ``texts`` define it.
+
+    ``texts`` is a server's description (:meth:`~srvwire.client.Client.definitions`), which
+    holds every type its services nest; ``source`` names it in errors.
+    """
+    parts = wanted.split("/")
+    kinds = [parts[1]] if len(parts) == 3 else [kind.value for kind in InterfaceKind]
+    names = [f"{parts[0]}/{kind}/{parts[-1]}" for kind in kinds if len(parts) in (2, 3)]
+    found = [name for name in names if name in texts]
+    if len(found) != 1:
+        close = difflib.get_close_matches(wanted, list(texts), n=3, cutoff=0.5)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        what = f"more than one type named {wanted!r}" if found else f"no type {wanted!r}"
+        raise CommandError(f"the {source} describes {what} (of {len(texts)} types){hint}")
+
+    def read(name: str) -> tuple[MessageSpec | ServiceSpec | ActionSpec, str]:
+        text = texts.get(name)
+        if text is None:
+            raise CommandError(f"the {source} does not describe {name}, which it nests")
+        package, kind, short = name.split("/")
+        parse = _PARSERS[kind]
+        return parse(text, package, short, path=source), text
+
+    return list(_definition_lines(read, found[0], keep, ()))
+
+
+_PARSERS: dict[str, Callable[..., MessageSpec | ServiceSpec | ActionSpec]] = {
+    InterfaceKind.MSG.value: parse_message,
+    InterfaceKind.SRV.value: parse_service,
+    InterfaceKind.ACTION.value: parse_action,
+}
+
+
 def _definition_lines(
-    loader: InterfaceLoader, name: str, keep: str, outer: tuple[str, ...]
+    definition: Definition, name: str, keep: str, outer: tuple[str, ...]
 ) -> Iterator[str]:
     """Yield the lines of ``name``'s file, each nested type's lines after the field using it.
 
     ``keep`` says whose comments survive: ``"all"``, ``"top"`` (the outermost file's) or
     ``"none"``. ``outer`` is the chain of types being expanded, so a cycle stops expanding.
     """
-    spec = loader.spec(name)
+    spec, text = definition(name)
     nested = {
         field.line: field.type.qualified_name
         for part in _parts_of(spec)
         for field in part.fields
         if not field.type.is_primitive
     }
-    text = loader.path_of(name).read_text(encoding="utf-8").removeprefix("\ufeff")
     lines = _LINE_BREAK.split(text)
     if lines and not lines[-1]:
         lines.pop()
@@ -209,7 +288,7 @@ def _definition_lines(
         yield "\t" * depth + line if line else ""
         inner = nested.get(number)
         if inner is not None and inner not in outer and inner != name:
-            yield from _definition_lines(loader, inner, keep, (*outer, name))
+            yield from _definition_lines(definition, inner, keep, (*outer, name))
 
 
 def _parts_of(spec: MessageSpec | ServiceSpec | ActionSpec) -> tuple[MessageSpec, ...]:
@@ -293,7 +372,7 @@ def _load_checked(
     root = resolved.parent.parent.parent
     loader = loaders.get(root)
     if loader is None:
-        loader = loaders[root] = InterfaceLoader([root, *extra, *default_search_path()])
+        loader = loaders[root] = InterfaceLoader([root, *extra], types=TypeRegistry())
     try:
         loader.load(f"{package}/{resolved.parent.name}/{file.stem}")
     except InterfaceSyntaxError as exc:

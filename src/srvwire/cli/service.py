@@ -6,6 +6,7 @@ import argparse
 import asyncio
 
 from srvwire.cli.common import Commands, ExitCode, add_command, open_client, remote_options
+from srvwire.cli.interface import remote_definition_lines
 from srvwire.client import ServiceInfo
 from srvwire.dispatch import service_not_found
 from srvwire.protocol import canonical_name
@@ -19,6 +20,7 @@ def register(commands: Commands) -> None:
         "examples:\n"
         "  srvwire service list -t\n"
         "  srvwire service type /add_two_ints\n"
+        "  srvwire service describe /add_two_ints\n"
         "  srvwire service find std_srvs/srv/Trigger",
     )
     verbs = service.add_subparsers(title="subcommands", metavar="SUBCOMMAND", required=True)
@@ -48,6 +50,18 @@ def register(commands: Commands) -> None:
     )
     type_.add_argument("name", metavar="NAME", help="the service, e.g. /add_two_ints")
     type_.set_defaults(command=_cmd_service_type)
+
+    describe = add_command(
+        verbs,
+        "describe",
+        "print a service's type and its definition, as the server describes it",
+        "example:\n  srvwire service describe /add_two_ints\n\n"
+        "The definition comes from the server (rpc.discover), not from local files; each\n"
+        "nested type is printed beneath the field that uses it, indented by one tab.",
+        [remote],
+    )
+    describe.add_argument("name", metavar="NAME", help="the service, e.g. /add_two_ints")
+    describe.set_defaults(command=_cmd_service_describe)
 
     find = add_command(
         verbs,
@@ -92,3 +106,22 @@ def _cmd_service_find(args: argparse.Namespace) -> int:
         if info.type == wanted:
             print(info.name)
     return ExitCode.OK
+
+
+async def _described(args: argparse.Namespace) -> tuple[list[ServiceInfo], dict[str, str], str]:
+    async with open_client(args) as client:
+        services = await client.list_services(timeout=args.timeout)
+        return services, await client.definitions(timeout=args.timeout), client.url
+
+
+def _cmd_service_describe(args: argparse.Namespace) -> int:
+    name = canonical_name(args.name)
+    services, texts, url = asyncio.run(_described(args))
+    for info in services:
+        if info.name == name:
+            lines = remote_definition_lines(texts, info.type, "top", f"server {url}")
+            print(f"{info.name} [{info.type}]")
+            for line in lines:
+                print(line)
+            return ExitCode.OK
+    raise service_not_found(name, (info.name for info in services))

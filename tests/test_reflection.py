@@ -1,0 +1,356 @@
+"""A user's own types work from a client that has no interface files: reflection and one class.
+
+The server runs in another process with its own search path (a package ``my_robot`` that nests
+types from itself, ``std_msgs`` and ``geometry_msgs``); the client has the default path only and
+no environment variable. Its calls are typed from the server's description, its requests are
+checked before sending, and a type it has too is its own class.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import pydantic
+import pytest
+
+import srvwire
+from srvwire.dispatch import ServiceRegistry
+from srvwire.errors import (
+    InterfaceConflictError,
+    InterfaceNotFoundError,
+    InvalidParams,
+    RegistrationError,
+)
+from srvwire.loader import ENV_VAR, InterfaceLoader, bundled_interfaces
+from srvwire.models import build_message, build_service
+from srvwire.parser import parse_message, parse_service
+from srvwire.typeregistry import TypeRegistry, process_types
+from support import scaled
+
+BATTERY = "# The battery, as the robot reports it.\nfloat32 voltage\nuint8 percent 100\n"
+STATUS = (
+    "# What the robot says about itself.\n"
+    "std_msgs/Header header\n"
+    "geometry_msgs/Pose pose\n"
+    "BatteryState battery\n"
+    "string[] faults\n"
+)
+GET_STATUS = "string robot  # which robot\n---\nRobotStatus status\nbool ok\n"
+
+APP = """
+import srvwire
+
+loader = srvwire.InterfaceLoader([{folder!r}])
+GetStatus = loader.load_service("my_robot/srv/GetStatus")
+server = srvwire.Server()
+
+
+@server.service("/get_status", GetStatus)
+def get_status(request):
+    response = GetStatus.Response(ok=request.robot == "r1")
+    response.status.header.frame_id = request.robot
+    response.status.pose.position.x = 1.5
+    response.status.battery.voltage = 24.0
+    return response
+"""
+
+
+def write(root: Path, relative: str, text: str) -> Path:
+    path = root / relative
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def robot_package(root: Path, battery: str = BATTERY) -> Path:
+    write(root, "my_robot/msg/BatteryState.msg", battery)
+    write(root, "my_robot/msg/RobotStatus.msg", STATUS)
+    write(root, "my_robot/srv/GetStatus.srv", GET_STATUS)
+    return root
+
+
+@pytest.fixture
+def no_path_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(ENV_VAR, raising=False)
+
+
+@pytest.fixture(scope="module")
+def robot_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """``srvwire serve`` in another process, its own search path holding ``my_robot``.
+
+    One for the module: the classes a client builds from it are the process's from then on,
+    recorded with its URL.
+    """
+    tmp_path = tmp_path_factory.mktemp("robot")
+    yield from serving(tmp_path, robot_package(tmp_path / "server_interfaces"))
+
+
+def serving(tmp_path: Path, interfaces: Path) -> Iterator[str]:
+    app = write(tmp_path, "robot_app.py", APP.format(folder=str(interfaces)))
+    env = {k: v for k, v in os.environ.items() if k != ENV_VAR}
+    with subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", f"{app}:server", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    ) as process:
+        try:
+            assert process.stdout is not None and process.stderr is not None
+            first = process.stdout.readline()
+            assert first.startswith("serving 1 service on ws://"), first + process.stderr.read()
+            yield first.split(" on ")[1].strip()
+        finally:
+            process.kill()
+
+
+@pytest.fixture
+async def client(robot_server: str, no_path_variable: None) -> AsyncIterator[srvwire.Client]:
+    async with srvwire.connect(robot_server, timeout=scaled(10)) as value:
+        yield value
+
+
+async def test_a_type_only_the_server_has_is_typed_from_its_description(
+    client: srvwire.Client, robot_server: str
+) -> None:
+    response = await client.call("/get_status", {"robot": "r1"})
+    assert type(response).__name__ == "GetStatus_Response"
+    assert response.ok is True
+    status = response.status
+    assert type(status).type_name == "my_robot/msg/RobotStatus"
+    assert (status.header.frame_id, status.pose.position.x) == ("r1", 1.5)
+    assert (status.battery.voltage, status.battery.percent) == (24.0, 100)
+    # The nested types the client has itself are its own classes.
+    assert type(status.header) is srvwire.load_message("std_msgs/msg/Header")
+    assert type(status.pose) is srvwire.load_message("geometry_msgs/msg/Pose")
+    # The server's comments came along.
+    assert type(status.battery).__doc__ == "The battery, as the robot reports it."
+    # Where each class came from.
+    assert process_types().get("my_robot/msg/RobotStatus").source == f"server {robot_server}"
+    header = process_types().get("std_msgs/msg/Header")
+    assert header.source == str(bundled_interfaces() / "std_msgs/msg/Header.msg")
+
+
+async def test_a_request_is_checked_before_it_is_sent(client: srvwire.Client) -> None:
+    with pytest.raises(InvalidParams) as excinfo:
+        await client.call("/get_status", {"robot": 7})
+    assert excinfo.value.message == (
+        "invalid params for /get_status: robot: Input should be a valid string "
+        "(checked by the client; nothing was sent)"
+    )
+
+
+async def test_one_class_whichever_way_it_was_obtained(
+    client: srvwire.Client, tmp_path: Path
+) -> None:
+    # 1. load_message with the default search path.
+    Header = srvwire.load_message("std_msgs/Header")
+    # 2. another loader, whose search path holds its own copy of the same files.
+    copy = tmp_path / "copy"
+    shutil.copytree(bundled_interfaces() / "geometry_msgs", copy / "geometry_msgs")
+    Pose = InterfaceLoader([copy]).load_message("geometry_msgs/Pose")
+    assert InterfaceLoader([copy]).path_of("geometry_msgs/Pose").is_relative_to(copy)
+    # 3. reflection: the server's description of /get_status.
+    GetStatus = await client.service_type("/get_status")
+    RobotStatus = type(GetStatus.Response().status)
+    status = RobotStatus(header=Header(frame_id="base"), pose=Pose())
+    assert status.header.frame_id == "base"
+    assert GetStatus.Response(status=status, ok=True).status is status
+    # The same type from the loader of a folder that holds my_robot too is that class.
+    assert (
+        InterfaceLoader([robot_package(tmp_path / "mine")]).load_message("my_robot/RobotStatus")
+        is RobotStatus
+    )
+
+
+async def test_a_local_file_that_differs_from_the_server_is_an_error(
+    client: srvwire.Client, robot_server: str, tmp_path: Path
+) -> None:
+    await client.call("/get_status", {"robot": "r1"})  # the server's BatteryState, interned
+    other = robot_package(tmp_path / "other", battery="float64 voltage\n")
+    with pytest.raises(InterfaceConflictError) as excinfo:
+        InterfaceLoader([other]).load_message("my_robot/BatteryState")
+    assert str(excinfo.value) == (
+        f"two different definitions of my_robot/msg/BatteryState: server {robot_server} and "
+        f"{other / 'my_robot/msg/BatteryState.msg'} (declaration 1: 'float32 voltage' against "
+        "'float64 voltage'); a type name has one definition per process"
+    )
+
+
+async def test_a_nested_type_the_server_defines_differently_is_an_error(
+    tmp_path: Path, no_path_variable: None
+) -> None:
+    interfaces = robot_package(tmp_path / "interfaces")
+    header = "uint32 seq\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+    write(interfaces, "std_msgs/msg/Header.msg", header)
+    for url in serving(tmp_path, interfaces):
+        async with srvwire.connect(url, timeout=scaled(10)) as client:
+            with pytest.raises(InterfaceConflictError) as excinfo:
+                await client.call("/get_status", {"robot": "r1"})
+    assert str(excinfo.value) == (
+        "two different definitions of std_msgs/msg/Header: "
+        f"{bundled_interfaces() / 'std_msgs/msg/Header.msg'} and server {url} (declaration 1: "
+        "'builtin_interfaces/Time stamp' against 'uint32 seq'); a type name has one definition "
+        "per process"
+    )
+
+
+# --- in one process: the server's own classes -------------------------------------------------
+
+LIMITS = "# Speed limits.\nfloat64 max_speed 1.0\n"
+SET_LIMITS = "Limits limits\n---\nbool ok\n"
+
+
+def limits_server() -> tuple[srvwire.Server, type[srvwire.Service]]:
+    """A server whose type is built from text: no file on any search path defines it."""
+    Limits = build_message(parse_message(LIMITS, "inproc_robot", "Limits"))
+    spec = parse_service(SET_LIMITS, "inproc_robot", "SetLimits")
+    SetLimits = build_service(spec, lambda type_: Limits)
+    server = srvwire.Server()
+    server.add_service(
+        "/set_limits", SetLimits, lambda request: {"ok": request.limits.max_speed < 5}
+    )
+    return server, SetLimits
+
+
+async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
+    monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    server, SetLimits = limits_server()
+    described: list[object] = []
+    discover_json = ServiceRegistry.discover_json
+
+    def counted(registry: ServiceRegistry) -> str:
+        described.append(registry)
+        return discover_json(registry)
+
+    monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
+    transport = srvwire.MemoryTransport()
+    async with (
+        srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
+        srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        reply = await client.call("/set_limits", {"limits": {"max_speed": 2}})
+        assert type(reply) is SetLimits.Response and reply.ok is True
+        request = SetLimits.Request(limits={"max_speed": 9})
+        assert (await client.call("/set_limits", request)).ok is False
+        with pytest.raises(InvalidParams, match=r"checked by the client; nothing was sent"):
+            await client.call("/set_limits", {"limits": {"max_speed": "fast"}})
+        assert await client.service_type("/set_limits") is SetLimits
+        definitions = await client.definitions()
+    assert len(described) == 2  # once for the calls, once for definitions()
+    assert definitions == {
+        "inproc_robot/msg/Limits": LIMITS,
+        "inproc_robot/srv/SetLimits": SET_LIMITS,
+    }
+
+
+async def test_the_description_is_asked_again_after_the_services_change(
+    monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    server, _ = limits_server()
+    described: list[object] = []
+    discover_json = ServiceRegistry.discover_json
+
+    def counted(registry: ServiceRegistry) -> str:
+        described.append(registry)
+        return discover_json(registry)
+
+    monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
+    Reset = build_service(parse_service("---\nbool done\n", "inproc_robot", "Reset"))
+    transport = srvwire.MemoryTransport()
+    async with (
+        srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
+        srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        # Calls that need the description at the same time share one answer.
+        await asyncio.gather(*(client.call("/set_limits", {}) for _ in range(5)))
+        await client.call("/set_limits", {})
+        assert len(described) == 1
+        server.add_service("/reset", Reset, lambda request: {"done": True})
+        await client.wait_for_service("/reset")
+        assert type(await client.call("/reset")) is Reset.Response
+        assert len(described) == 2
+
+
+def test_rpc_discover_carries_every_definition_text() -> None:
+    server, _ = limits_server()
+    [method] = server.registry.discover()["methods"]
+    assert method["x-srvwire-type"] == "inproc_robot/srv/SetLimits"
+    assert method["x-srvwire-definitions"] == {
+        "inproc_robot/srv/SetLimits": SET_LIMITS,
+        "inproc_robot/msg/Limits": LIMITS,
+    }
+
+
+def test_registering_another_definition_under_a_known_name_is_refused() -> None:
+    limits_server()  # the process's inproc_robot/msg/Limits
+    Limits = build_message(parse_message("float32 max_speed\n", "inproc_robot", "Limits"))
+    spec = parse_service(SET_LIMITS, "inproc_robot", "SetLimits")
+    server = srvwire.Server()
+    with pytest.raises(RegistrationError) as excinfo:
+        server.add_service("/other", build_service(spec, lambda type_: Limits), lambda r: {})
+    assert str(excinfo.value) == (
+        "cannot register /other: two different definitions of inproc_robot/msg/Limits: the "
+        "class inproc_robot.msg.Limits given for /set_limits and the class "
+        "inproc_robot.msg.Limits given for /other (declaration 1: 'float64 max_speed 1.0' "
+        "against 'float32 max_speed'); a type name has one definition per process"
+    )
+
+
+async def test_a_type_written_by_hand_and_not_described_is_an_error() -> None:
+    class Point(pydantic.BaseModel):
+        x: int = 0
+
+    class Custom:  # a service type with no interface file behind it
+        Request = Point
+        Response = Point
+
+    server = srvwire.Server()
+    server.add_service("/custom", Custom, lambda request: request)
+    transport = srvwire.MemoryTransport()
+    async with (
+        srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
+        srvwire.connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        assert client.services == {"/custom": "Custom"}
+        with pytest.raises(InterfaceNotFoundError) as excinfo:
+            await client.call("/custom", {"x": 1})
+    assert str(excinfo.value) == (
+        f"cannot type the calls of /custom: Custom is not on the local search path, and the "
+        f"server {running.url} does not describe it"
+    )
+
+
+def test_a_description_with_bad_names_or_text_is_an_interface_error() -> None:
+    from srvwire.calls import ServiceTypes
+    from srvwire.errors import InterfaceError
+
+    def nowhere(name: str) -> Any:
+        raise InterfaceNotFoundError(name, f"no {name} here")
+
+    types = ServiceTypes(nowhere, nowhere, TypeRegistry())
+    good = {"odd_pkg/srv/Go": "int32 a\n---\n", "odd/msg/too/many": "x", "nameless": "y"}
+    assert types.remote("/go", "odd_pkg/srv/Go", good, "server ws://x").service.type_name == (
+        "odd_pkg/srv/Go"
+    )
+    broken = {"odd_pkg/srv/Stop": "int32 a\n---\nodd_pkg/Loop l\n", "odd_pkg/msg/Loop": "Loop l\n"}
+    with pytest.raises(InterfaceError) as excinfo:
+        types.remote("/stop", "odd_pkg/srv/Stop", broken, "server ws://x")
+    assert str(excinfo.value) == (
+        "the server ws://x describes a message that nests itself: odd_pkg/msg/Loop -> "
+        "odd_pkg/msg/Loop"
+    )
+    with pytest.raises(InterfaceError) as excinfo:
+        types.remote("/bad", "odd_pkg/srv/Bad", {"odd_pkg/srv/Bad": "int32\n"}, "server ws://x")
+    assert str(excinfo.value) == (
+        "server ws://x:2:1: a service needs a '---' line between the request and the response; "
+        "found none"
+    )

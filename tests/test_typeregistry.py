@@ -1,0 +1,106 @@
+"""One class per type: what counts as the same definition, conflicts, failures, adoption."""
+
+from __future__ import annotations
+
+import pytest
+
+from srvwire.errors import InterfaceConflictError
+from srvwire.models import build_message, build_service
+from srvwire.parser import parse_message, parse_service
+from srvwire.typeregistry import TypeRegistry, definition_lines, process_types
+
+POINT = "# A point.\nfloat64 x  # along x\nfloat64 y 1.5\nuint8 ORIGIN=0\n"
+
+
+def test_comments_blank_lines_and_paths_are_not_the_definition() -> None:
+    plain = parse_message("uint8 ORIGIN=0\n\nfloat64 x\nfloat64 y 1.5\n", "geo", "Point")
+    commented = parse_message(POINT, "geo", "Point", path="/somewhere/geo/msg/Point.msg")
+    assert definition_lines(plain) == definition_lines(commented)
+    assert definition_lines(commented) == ("uint8 ORIGIN=0", "float64 x", "float64 y 1.5")
+
+
+def test_a_service_is_its_parts_split_by_a_line() -> None:
+    spec = parse_service("geo/Point a  # first\n---\nbool ok\n", "geo", "Check")
+    assert definition_lines(spec) == ("geo/Point a", "---", "bool ok")
+
+
+def test_the_same_definition_is_the_same_class_and_builds_once() -> None:
+    types = TypeRegistry()
+    built: list[type] = []
+
+    def build(text: str) -> type:
+        cls = build_message(parse_message(text, "geo", "Point"))
+        built.append(cls)
+        return cls
+
+    first = types.intern(parse_message(POINT, "geo", "Point"), "a.msg", lambda: build(POINT))
+    plain = "uint8 ORIGIN=0\nfloat64 x\nfloat64 y 1.5\n"
+    again = types.intern(parse_message(plain, "geo", "Point"), "b.msg", lambda: build(plain))
+    assert again is first and built == [first]
+    recorded = types.get("geo/msg/Point")
+    assert recorded is not None and (recorded.cls, recorded.source) == (first, "a.msg")
+
+
+def test_another_definition_under_the_same_name_names_both_sources() -> None:
+    types = TypeRegistry()
+    spec = parse_message(POINT, "geo", "Point")
+    types.intern(spec, "/ws/geo/msg/Point.msg", lambda: build_message(spec))
+    other = parse_message("uint8 ORIGIN=0\nfloat64 x\n", "geo", "Point")
+    with pytest.raises(InterfaceConflictError) as excinfo:
+        types.intern(other, "server ws://robot:8765", lambda: build_message(other))
+    assert str(excinfo.value) == (
+        "two different definitions of geo/msg/Point: /ws/geo/msg/Point.msg and server "
+        "ws://robot:8765 (declaration 3: 'float64 y 1.5' against nothing); a type name has one "
+        "definition per process"
+    )
+    assert (excinfo.value.first, excinfo.value.second) == (
+        "/ws/geo/msg/Point.msg",
+        "server ws://robot:8765",
+    )
+
+
+def test_a_failed_build_records_nothing() -> None:
+    types = TypeRegistry()
+    spec = parse_message(POINT, "geo", "Point")
+
+    def fail() -> type:
+        raise RuntimeError("broken")
+
+    with pytest.raises(RuntimeError):
+        types.intern(spec, "a.msg", fail)
+    assert types.get("geo/msg/Point") is None
+    assert types.intern(spec, "a.msg", lambda: build_message(spec)) is not None
+
+
+def test_a_builder_that_records_the_name_itself_is_checked() -> None:
+    # A loader interns what it finds; the caller's definition must agree with it.
+    types = TypeRegistry()
+    local = parse_message("int32 a\n", "geo", "Thing")
+    remote = parse_message("int64 a\n", "geo", "Thing")
+
+    def load_locally() -> type:
+        return types.intern(local, "/ws/geo/msg/Thing.msg", lambda: build_message(local))
+
+    with pytest.raises(InterfaceConflictError) as excinfo:
+        types.intern(remote, "server ws://robot:8765", load_locally)
+    assert (excinfo.value.first, excinfo.value.second) == (
+        "/ws/geo/msg/Thing.msg",
+        "server ws://robot:8765",
+    )
+    same = parse_message("int32 a  # the same\n", "geo", "Thing")
+    assert types.intern(same, "server ws://robot:8765", load_locally) is load_locally()
+
+
+def test_adopt_records_a_class_declared_elsewhere_once() -> None:
+    types = TypeRegistry()
+    spec = parse_service("int32 a\n---\nint32 b\n", "geo", "Twice")
+    declared = build_service(spec)
+    assert types.adopt(declared, "module app.types") is declared
+    assert types.adopt(build_service(spec), "module other") is declared
+    with pytest.raises(TypeError, match="has no interface spec"):
+        types.adopt(int, "nowhere")
+
+
+def test_the_process_has_one_registry() -> None:
+    assert process_types() is process_types()
+    assert repr(TypeRegistry()) == "<TypeRegistry of 0 types>"
