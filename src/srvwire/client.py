@@ -332,7 +332,11 @@ class Client:
         if codec is None:
             named = srv_type if isinstance(srv_type, str) else advertised
             if named is not None:  # not advertised: the server will say it has no such service
-                codec = await self._type_of(link, method, named, deadline, budget)
+                try:
+                    codec = await self._type_of(link, method, named, deadline, budget)
+                except RPCError as exc:  # asking for the description failed: this call did
+                    exc.service = method
+                    raise
         params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
