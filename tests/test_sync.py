@@ -289,6 +289,14 @@ def test_closing_ends_the_loop_thread(running: RunningServer) -> None:
     assert client_threads() == before
 
 
+def test_a_client_collected_unclosed_ends_its_loop_thread(running: RunningServer) -> None:
+    before = client_threads()
+    client = srvwire.sync.connect(running.url)
+    assert client_threads() - before == {f"srvwire client of {running.url}"}
+    del client  # no cycle holds it: collected here, which stops its loop and joins the thread
+    assert client_threads() == before
+
+
 def test_the_options_are_srvwire_connects() -> None:
     assert inspect.signature(srvwire.sync.connect) == inspect.signature(srvwire.connect)
     with pytest.raises(ValueError, match="http://localhost"):
