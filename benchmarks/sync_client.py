@@ -10,6 +10,8 @@ machine's load falls on all of them alike; the table gives each one's median ove
 * ``sync, 4 threads``: four threads calling at once on one blocking client;
 * ``sync, a connection per call``: ``with srvwire.sync.connect(url)`` around every call, which
   is what a blocking client that opened a connection per call would cost.
+* ``the hand-off alone``: what the blocking client adds to a call, without one: a coroutine
+  that returns at once, run on a loop thread from this one and waited for.
 
 Ratios are of time per call against the async client's, in the same run.
 
@@ -119,12 +121,31 @@ def sync_connection_per_call(url: str, calls: int) -> float:
     return (time.perf_counter() - start) / calls
 
 
+def handoff(url: str, calls: int) -> float:
+    """A blocking client's hand-off alone: a coroutine that returns at once, on a loop thread."""
+
+    async def nothing() -> None:
+        pass
+
+    thread = srvwire.sync.LoopThread("hand-off")
+    try:
+        for _ in range(WARMUP):
+            thread.run(nothing(), 10.0)
+        start = time.perf_counter()
+        for _ in range(calls):
+            thread.run(nothing(), 10.0)
+        return (time.perf_counter() - start) / calls
+    finally:
+        thread.stop()
+
+
 MEASUREMENTS: dict[str, Callable[[str, int], float]] = {
     "async": lambda url, calls: asyncio.run(async_sequential(url, calls)),
     "sync": sync_sequential,
     f"async, {THREADS} tasks": lambda url, calls: asyncio.run(async_tasks(url, calls)),
     f"sync, {THREADS} threads": sync_threads,
     "sync, a connection per call": sync_connection_per_call,
+    "the hand-off alone, no call": handoff,
 }
 
 

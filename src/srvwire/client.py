@@ -26,6 +26,9 @@ Invariants:
 * **Options and payload never share a namespace.** A request is one positional value (a model
   or a mapping), so every field name is free; :class:`ServiceProxy` takes fields as keywords
   and holds its options itself.
+* **A client belongs to the event loop that opened it.** When that loop ends, the connection
+  is closed with 1001; used from another loop, the client raises ``RuntimeError`` saying so.
+  Blocking code uses :mod:`srvwire.sync`, which runs a client on a loop of its own.
 * **Typed when the type is known.** With a type, a mapping is validated locally
   (:class:`~srvwire.errors.InvalidParams` before anything is sent) and the result is the typed
   ``Response``; without one, the mapping is sent as it is and the result is the plain ``dict``
