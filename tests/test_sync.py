@@ -13,6 +13,8 @@ import contextlib
 import gc
 import inspect
 import json
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -52,6 +54,7 @@ class Handlers:
         self.peers: set[Any] = set()
         self.barrier: asyncio.Barrier | None = None  # made on the server's loop
         self.hanging = threading.Event()  # set once a call to /hang has started
+        self.hung_up = threading.Event()  # set once that call has ended
 
     async def add(self, request: Any, context: Context) -> Any:
         self.peers.add(context.peer)
@@ -66,7 +69,10 @@ class Handlers:
 
     async def hang(self, request: Any) -> Any:
         self.hanging.set()
-        await asyncio.Event().wait()  # never set: only a deadline or a cancel ends it
+        try:
+            await asyncio.Event().wait()  # never set: only a deadline or a cancel ends it
+        finally:
+            self.hung_up.set()
 
 
 def build_server(handlers: Handlers) -> Server:
@@ -236,6 +242,25 @@ def test_a_stuck_loop_cannot_make_a_call_wait_forever(client: srvwire.sync.Clien
         )
     finally:
         release.set()
+    assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
+
+
+def test_ctrl_c_in_a_blocking_call_cancels_it_on_the_server(
+    client: srvwire.sync.Client, handlers: Handlers
+) -> None:
+    def press_ctrl_c() -> None:
+        if handlers.hanging.wait(scaled(5)):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    presser = threading.Thread(target=press_ctrl_c)
+    presser.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            client.call("/hang", timeout=scaled(30))
+    finally:
+        presser.join()
+    assert handlers.hung_up.wait(scaled(5))  # the server was told: its handler was cancelled
+    assert client.in_flight == 0
     assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
 
 
