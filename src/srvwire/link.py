@@ -12,6 +12,8 @@ Invariants:
   ``ConnectionLost`` when the connection ends; the session forgets its id in every case.
 * **Something that is not JSON-RPC fails the connection** (close 1008), found by the reader
   or by a caller decoding a reply the reader left unparsed.
+* **A reader is cancelled only when its event loop ends** (``asyncio.run`` returning): the
+  connection is closed with 1001, and a client used from another loop says so.
 * **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
   background, best effort.
 """
@@ -19,6 +21,7 @@ Invariants:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Coroutine
 from typing import Any, Protocol, TypeAlias
@@ -183,7 +186,8 @@ class Link:
             # with 1001 so that the server is told, and every call still waiting says why.
             cause = TransportClosed(1001, LOOP_ENDED)
             self.lost(None, cause)
-            await conn.close(1001, LOOP_ENDED)
+            with contextlib.suppress(Exception):  # however the close goes, the loop ends
+                await conn.close(1001, LOOP_ENDED)
             raise
         except Exception:  # a bug here must not leave calls waiting for their deadlines
             owner.logger.exception("the reader of %s failed; closing the connection", owner.url)
