@@ -173,8 +173,10 @@ def _takes_the_options_of(
 
 @_takes_the_options_of(aio.connect)
 def connect(*args: Any, **kwargs: Any) -> Client:
-    """Open a blocking client to the srvwire server at ``url``; it takes the same options
-    as :func:`srvwire.connect` (``timeout``, ``reconnect``, ``transport``, ...).
+    """Open a blocking client to the srvwire server at ``url``, with srvwire.connect's options.
+
+    The options are those of :func:`srvwire.connect` (``timeout``, ``reconnect``,
+    ``transport``, ...), passed on to it as they are.
 
     Use it as ``with connect(url) as client:`` (closed on exit), or as
     ``client = connect(url)`` followed by ``client.close()``. Raise
