@@ -133,6 +133,9 @@ class LoopThread:
         except RuntimeError:  # the loop is closed
             coro.close()
             raise LoopEnded("the event loop has ended") from None
+        except BaseException:  # interrupted (Ctrl-C) once handed over: find it to cancel it
+            self.loop.call_soon_threadsafe(_cancel_the_task_of, coro)
+            raise
         try:
             future.exception(within)  # waits; the coroutine's own error is raised below
         except concurrent.futures.CancelledError:
@@ -157,6 +160,13 @@ class LoopThread:
             pass  # closed already
         if threading.current_thread() is not self.thread:
             self.thread.join(within)
+
+
+def _cancel_the_task_of(coro: Coroutine[Any, Any, Any]) -> None:
+    """Cancel the task running ``coro`` on this loop, if there is one."""
+    for task in asyncio.all_tasks():
+        if task.get_coro() is coro:
+            task.cancel()
 
 
 def _takes_the_options_of(
