@@ -208,7 +208,7 @@ def test_closing_fails_the_calls_other_threads_wait_on(
         pending = pool.submit(client.call, "/hang", timeout=scaled(30))
         assert handlers.hanging.wait(scaled(5))
         client.close()
-        with pytest.raises(ConnectionLost, match="the client (was|is) closed"):
+        with pytest.raises(ConnectionLost, match=r"the client (was|is) closed"):
             pending.result(scaled(5))  # at once, not after the call's 30 s deadline
     assert client.closed
     with pytest.raises(ConnectionLost, match="the client is closed"):
