@@ -63,6 +63,10 @@ COMMANDS: dict[str, str] = {
     r"(\.venv/bin/)?python examples/robot_state_server\.py( &)?": (
         "serves until stopped: tests/test_examples.py runs it in a child process"
     ),
+    r"python examples/sync_client\.py": (
+        "needs the robot server: tests/test_examples.py's test_the_blocking_client_script runs "
+        "it against one and compares its output with the page"
+    ),
     r"\.venv/bin/python examples/robot_command_client\.py": (
         "needs the robot server: tests/test_examples.py runs it against one"
     ),
@@ -137,6 +141,10 @@ EXPLAINED: dict[tuple[str, str], str] = {
         "lowercase letter and contain only lowercase letters, digits and underscores, with no "
         "double or trailing underscore",
     ): "the parser's errors: test_the_parser_errors_on_the_interfaces_page gives each of them",
+    ("sync.md", "Current joint positions: [0.0, 0.0, 0.0, 0.0, 0.0]"): (
+        "what examples/sync_client.py prints: tests/test_examples.py's "
+        "test_the_blocking_client_script compares it"
+    ),
     ("tutorial.md", "make demo: robot_state_server.py is serving on ws://127.0.0.1:41111"): (
         "make demo's output: tests/test_examples.py's test_make_demo_runs_the_whole_tutorial"
     ),
