@@ -14,6 +14,17 @@ Exceptions are mapped here and nowhere else:
   same text;
 * ``InvalidURI`` from :meth:`WebSocketsTransport.check_url` -> ``ValueError``.
 
+**Messages sent in one turn of the event loop are written together.** A ``send`` frames its
+message into websockets' outgoing buffer and returns; the first one of a turn schedules one
+socket write of all of them, which runs when the loop comes round (``call_soon``): the replies
+to every message the reader took from one read, or the calls many tasks made at once, go out in
+one write. Order is kept, since every frame goes through the same buffer, and anything
+websockets writes itself (a pong, a close, a send that writes through) writes the held frames
+first. A send writes through, as websockets' own ``send`` with its backpressure, when holding it
+would put more than :data:`CORK_LIMIT` bytes in the buffer, when the socket's buffer is past
+its high-water mark (so a peer that does not read still holds the sender back), and when the
+connection is not open.
+
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
 and, through ``select_subprotocol``, its subprotocol. A client's refusal says the HTTP status
@@ -40,7 +51,7 @@ from websockets.exceptions import (
 )
 from websockets.frames import Close
 from websockets.http11 import Request, Response
-from websockets.protocol import State
+from websockets.protocol import OPEN, State
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
@@ -59,7 +70,11 @@ from srvwire.transports.base import (
     TransportError,
 )
 
-__all__ = ["WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
+__all__ = ["CORK_LIMIT", "WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
+
+CORK_LIMIT = 2**16
+"""Bytes of messages a connection holds while its reader works through what it received;
+a send that would hold more writes through (see the module's docstring)."""
 
 
 def _closed(exc: ConnectionClosed) -> TransportClosed:
@@ -140,10 +155,13 @@ def _refusal(exc: Exception, url: str) -> TransportError:
 class WebSocketsConnection(Connection):
     """One WebSocket connection, server or client side."""
 
-    __slots__ = ("_ws", "identity", "remote_address")
+    __slots__ = ("_flushing", "_held", "_protocol", "_ws", "identity", "remote_address")
 
     def __init__(self, ws: ServerConnection | ClientConnection, identity: object = None) -> None:
         self._ws = ws
+        self._protocol = ws.protocol
+        self._flushing = False  # a write of the held frames is scheduled
+        self._held = 0  # bytes framed since the last write, at most (websockets may write them)
         self.remote_address = ws.remote_address
         self.identity = identity
 
@@ -154,11 +172,35 @@ class WebSocketsConnection(Connection):
             raise _closed(exc) from exc
 
     async def send(self, message: str | bytes) -> None:
+        ws = self._ws
+        size = self._held + len(message)
+        if size <= CORK_LIMIT and not ws.paused and self._protocol.state is OPEN:
+            self._protocol.send_text(message.encode() if isinstance(message, str) else message)
+            self._held = size
+            if not self._flushing:
+                self._flushing = True
+                ws.loop.call_soon(self.flush)
+            return
+        self._held = 0  # websockets' send writes every frame held before its own
         # text=True sends bytes as a text frame as they are, and a str as usual.
         try:
-            await self._ws.send(message, text=True)
+            await ws.send(message, text=True)
         except ConnectionClosed as exc:
             raise _closed(exc) from exc
+
+    def flush(self) -> None:
+        """Write the frames held since the last write, in one socket write."""
+        self._flushing = False
+        self._held = 0
+        writes = self._protocol.data_to_send()
+        transport = self._ws.transport
+        if not writes or transport.is_closing():  # nobody left to write to
+            return
+        if all(writes):
+            transport.write(b"".join(writes))
+        else:  # websockets asks for a half-close: let it write, as it does itself
+            self._protocol.writes[:0] = writes
+            self._ws.send_data()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         await self._ws.close(code, reason)
