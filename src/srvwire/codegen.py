@@ -23,8 +23,9 @@ Invariants
 * **No name capture.** An imported helper whose name equals a generated class (``std_msgs``
   has ``String``, ``Int32`` and ``Bool``) is reached through its module, imported under a
   leading underscore (``import srvwire.models as _models``, then ``_models.String``). In a
-  class with a field named ``list``, ``list[...]`` is written ``_builtins.list[...]``. Constants
-  and ``type_name`` come before the fields, so a field named ``str`` or ``bool`` shadows nothing.
+  class with a field named ``list`` or ``bytes``, that builtin is written ``_builtins.list``
+  (``_builtins.bytes``). Constants and ``type_name`` come before the fields, so a field named
+  ``str`` or ``bool`` shadows nothing.
   A constant named like a class that the same message nests cannot be written and is refused.
 * **Deterministic.** The output depends only on the input: same specs, same text.
 * **Lint-clean as written.** The module passes ruff (its default rules, and ``E,F,W,I,B,UP,
@@ -390,7 +391,7 @@ class _Writer:
                     f"{type_name}: constant {constant.name} has the name of the class of one of "
                     "its fields, so the module cannot name both; rename one"
                 )
-        shadowed_list = any(python_name(f.name) == "list" for f in spec.fields)
+        shadowed = {python_name(f.name) for f in spec.fields} & {"list", "bytes"}
         lines = [f"class {class_name}({self.name('Message')}):"]
         if spec.doc:
             doc = as_docstring(spec.doc, "    ")
@@ -410,12 +411,17 @@ class _Writer:
         if spec.fields:
             lines.append("")
         for field in spec.fields:
-            lines.append(self.field(field, shadowed_list))
+            lines.append(self.field(field, shadowed))
         return "\n".join(lines)
 
-    def field(self, field: FieldSpec, shadowed_list: bool) -> str:
+    def field(self, field: FieldSpec, shadowed: set[str]) -> str:
         type_ = field.type
-        if type_.is_primitive:
+        # A field named `list` or `bytes` hides the builtin in the class body.
+        list_, bytes_ = (self.builtin(name, shadowed) for name in ("list", "bytes"))
+        is_bytes = type_.is_array and type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES
+        if is_bytes:
+            element = bytes_
+        elif type_.is_primitive:
             element = self.name(PRIMITIVE_ALIASES[type_.name])
             if type_.string_bound is not None:
                 element = (
@@ -424,13 +430,9 @@ class _Writer:
                 )
         else:
             element = self.class_names[type_.qualified_name]
-        list_ = "list"
-        if shadowed_list:  # the field named `list` hides the builtin in the class body
-            self.builtins_used = True
-            list_ = "_builtins.list"
         annotation: Expr = element
         if type_.is_array:
-            annotation = f"{list_}[{element}]"
+            annotation = element if is_bytes else f"{list_}[{element}]"
             metadata: list[str] = []
             if type_.array is ArrayKind.FIXED:
                 metadata.append(
@@ -438,7 +440,7 @@ class _Writer:
                 )
             elif type_.array is ArrayKind.BOUNDED:
                 metadata.append(f"{self.name('Field')}(max_length={type_.size})")
-            if type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES:
+            if is_bytes:
                 metadata.append(self.name("AcceptBase64"))
             if metadata:
                 annotation = Call(f"{self.name('Annotated')}[", (annotation, *metadata), "]")
@@ -451,12 +453,13 @@ class _Writer:
         default: Keyword
         if type_.is_primitive:
             value = default_value(field)
+            written = _bytes_value(value, bytes_) if isinstance(value, bytes) else None
             if isinstance(value, list):
                 default = Keyword("default_factory", self.list_value(field, value, list_))
             elif not keywords:
-                return statement("    ", name, annotation, expression(value))
+                return statement("    ", name, annotation, written or expression(value))
             else:
-                default = Keyword("default", expression(value))
+                default = Keyword("default", written or expression(value))
         elif not type_.is_array:
             default = Keyword("default_factory", f"lambda: {element}()")
         elif type_.array is ArrayKind.FIXED:
@@ -467,6 +470,13 @@ class _Writer:
             default = Keyword("default_factory", list_)
         call = Call(f"{self.name('Field')}(", (default, *keywords))
         return statement("    ", name, annotation, call)
+
+    def builtin(self, name: str, shadowed: set[str]) -> str:
+        """The builtin ``name`` as the class body can reach it: ``_builtins.name`` if shadowed."""
+        if name not in shadowed:
+            return name
+        self.builtins_used = True
+        return f"_builtins.{name}"
 
     def list_value(self, field: FieldSpec, value: list[Scalar], list_: str) -> Expr:
         if not value:
@@ -511,6 +521,13 @@ class _Writer:
         if isinstance(value, enum.Enum):
             return f"{self.name(type(value).__name__)}.{value.name}"
         return expression(value)
+
+
+def _bytes_value(value: bytes, bytes_: str) -> Expr:
+    """Spell a ``bytes`` default: ``bytes(4)`` for zeros, else a literal (``b"\\x00\\xff"``)."""
+    if value and not any(value):
+        return f"{bytes_}({len(value)})"
+    return 'b"' + "".join(f"\\x{octet:02x}" for octet in value) + '"'
 
 
 def _as_written(type_name: str, value: Scalar) -> Scalar:

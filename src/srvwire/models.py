@@ -16,8 +16,9 @@ Invariants
   a generated one validate, serialize and describe themselves (JSON schema) identically.
 * **Constraints live in pydantic-core.** Ranges, lengths and strictness are declared with
   ``Strict()`` and ``Field(ge=, le=, min_length=, max_length=)``, so validation runs in Rust.
-  Only two checks call Python: the ``float32`` range (it must let ``inf`` and ``nan`` through,
-  which a ``ge``/``le`` pair cannot) and the base64 decoding of byte arrays (once per field).
+  Only a few checks call Python: the ``float32`` range (it must let ``inf`` and ``nan``
+  through, which a ``ge``/``le`` pair cannot), a non-finite float spelled as a string or
+  ``null``, and the reading and writing of byte arrays (once per field).
 * **Every field has a default.** A written default is used; otherwise the field takes its ROS
   zero value. Scalars share their immutable default; every list and nested message comes from
   a ``default_factory``, so two instances never share a mutable value. ``Request()`` with no
@@ -33,9 +34,15 @@ Invariants
 Decisions (``docs/types.md`` explains them for users): integers, floats, booleans and strings
 are strict (no ``"5"`` for an int, no ``5.0`` or ``True`` for an int, no ``1`` for a bool; an
 int is accepted for a float and becomes a float); ``float32`` and ``float64`` allow ``inf`` and
-``nan``, which JSON output writes as ``Infinity``/``NaN`` like Python's :mod:`json`; string
-bounds count characters (code points); ``byte``/``uint8`` arrays also accept base64 text and
-``bytes`` and always serialize as a list of integers.
+``nan``, which JSON output writes as the strings ``"Infinity"``/``"NaN"`` (a server or client
+can choose ``null`` or the bare tokens instead: :data:`InfNan`, :func:`json_writer`) and input
+reads in all three spellings; string bounds count characters (code points); ``byte``/``uint8``
+arrays are ``bytes``, written as base64 text, and also read from lists of integers.
+
+The JSON written for one :data:`InfNan` mode comes from a serializer built for that mode once
+(:func:`json_writer`), from the class's own core schema with every model's
+``ser_json_inf_nan`` set to the mode: pydantic chooses the spelling when it builds a
+serializer, not per call.
 """
 
 from __future__ import annotations
@@ -48,6 +55,7 @@ from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
 from pydantic import ConfigDict, Field
+from pydantic_core import SchemaSerializer
 
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
@@ -64,6 +72,7 @@ from srvwire.idl import (
 )
 from srvwire.primitives import (
     FLOAT32_MAX,
+    INF_NAN_MODES,
     PRIMITIVE_ALIASES,
     PRIMITIVE_ANNOTATIONS,
     AcceptBase64,
@@ -72,6 +81,7 @@ from srvwire.primitives import (
     Char,
     Float32,
     Float64,
+    InfNan,
     Int8,
     Int16,
     Int32,
@@ -86,6 +96,7 @@ from srvwire.primitives import (
 
 __all__ = [
     "FLOAT32_MAX",
+    "INF_NAN_MODES",
     "MAX_LISTED_ERRORS",
     "PRIMITIVE_ALIASES",
     "AcceptBase64",
@@ -95,6 +106,7 @@ __all__ = [
     "Char",
     "Float32",
     "Float64",
+    "InfNan",
     "Int8",
     "Int16",
     "Int32",
@@ -148,15 +160,20 @@ def zero_value(type_: TypeSpec) -> Scalar:
     raise InterfaceError(f"{type_} is not a primitive type, so it has no zero value")
 
 
-def default_value(field: FieldSpec) -> Scalar | list[Scalar]:
+def default_value(field: FieldSpec) -> Scalar | list[Scalar] | bytes:
     """Return the default of a primitive field: its written default, else the ROS zero value.
 
-    Arrays give a new list (``N`` zero values for a fixed array ``T[N]``, else empty); floats
-    are always floats. A nested message field has no such value: it defaults to a new instance.
+    Arrays give a new list (``N`` zero values for a fixed array ``T[N]``, else empty), and
+    ``byte``/``uint8`` arrays ``bytes`` instead; floats are always floats. A nested message field
+    has no such value: it defaults to a new instance.
     """
     type_ = field.type
     if not type_.is_primitive:
         raise InterfaceError(f"field {field.name!r} has the nested type {type_}, not a primitive")
+    if _is_bytes(type_):
+        if isinstance(field.default, tuple):
+            return bytes(item for item in field.default if isinstance(item, int))
+        return bytes(type_.size or 0) if type_.array is ArrayKind.FIXED else b""
     if isinstance(field.default, tuple):
         return [_normalize(type_.name, item) for item in field.default]
     if field.default is not None:
@@ -166,6 +183,11 @@ def default_value(field: FieldSpec) -> Scalar | list[Scalar]:
     if type_.array is ArrayKind.FIXED:
         return [zero_value(type_)] * (type_.size or 0)
     return []
+
+
+def _is_bytes(type_: TypeSpec) -> bool:
+    """Whether a field of this type is ``bytes``: an array of ``byte`` or ``uint8``."""
+    return type_.is_array and type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES
 
 
 # --- the base classes --------------------------------------------------------------------------
@@ -185,7 +207,8 @@ class Message(pydantic.BaseModel):
         validate_by_alias=True,
         serialize_by_alias=True,
         validate_assignment=True,
-        ser_json_inf_nan="constants",
+        ser_json_inf_nan=INF_NAN_MODES[0],
+        ser_json_bytes="base64",  # only for the JSON schema's defaults: AcceptBase64 writes them
         protected_namespaces=(),
     )
 
@@ -275,12 +298,16 @@ def _annotation(type_: TypeSpec, element: Any) -> Any:
     if not type_.is_array:
         return element
     metadata: list[Any] = []
+    if _is_bytes(type_):
+        if type_.array is ArrayKind.FIXED:
+            metadata.append(Field(min_length=type_.size, max_length=type_.size))
+        elif type_.array is ArrayKind.BOUNDED:
+            metadata.append(Field(max_length=type_.size))
+        return Annotated[(bytes, *metadata, AcceptBase64)]
     if type_.array is ArrayKind.FIXED:
         metadata.append(Field(min_length=type_.size, max_length=type_.size))
     elif type_.array is ArrayKind.BOUNDED:
         metadata.append(Field(max_length=type_.size))
-    if type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES:
-        metadata.append(AcceptBase64)
     if not metadata:
         return list[element]
     return Annotated[(list[element], *metadata)]
@@ -561,12 +588,38 @@ def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
     return serializer.to_json(value, by_alias=True)
 
 
-def json_writer(model: type[M]) -> Callable[[M], bytes]:
-    """:func:`dump_json` for instances of exactly ``model``, with no lookup per call."""
-    write: Callable[[M], bytes] = functools.partial(
-        model.__pydantic_serializer__.to_json, by_alias=True
-    )
+def json_writer(
+    model: type[M], inf_nan: InfNan | None = None, *, strict: bool = False
+) -> Callable[[M], bytes]:
+    """:func:`dump_json` for instances of exactly ``model``, with no lookup per call.
+
+    ``inf_nan`` chooses how non-finite floats are written (None: as the class writes them);
+    a mode the class does not write already costs one serializer, built here, never per call.
+    """
+    serializer = model.__pydantic_serializer__
+    if inf_nan is not None and model.model_config.get("ser_json_inf_nan") != inf_nan:
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        schema = _with_inf_nan(model.__pydantic_core_schema__, inf_nan)
+        serializer = SchemaSerializer(schema, {"ser_json_inf_nan": inf_nan}, _use_prebuilt=False)
+    write: Callable[[M], bytes]
+    if strict:
+        write = functools.partial(serializer.to_json, by_alias=True, warnings="error")
+    else:
+        write = functools.partial(serializer.to_json, by_alias=True)
     return write
+
+
+def _with_inf_nan(schema: Any, inf_nan: InfNan) -> Any:
+    """A copy of a core schema in which every model writes non-finite floats as ``inf_nan``."""
+    if isinstance(schema, list):
+        return [_with_inf_nan(item, inf_nan) for item in schema]
+    if not isinstance(schema, dict):
+        return schema
+    copied = {key: _with_inf_nan(value, inf_nan) for key, value in schema.items()}
+    if schema.get("type") == "model" and isinstance(schema.get("config"), dict):
+        copied["config"] = {**schema["config"], "ser_json_inf_nan": inf_nan}
+    return copied
 
 
 class ModelDecoder(Generic[M]):
