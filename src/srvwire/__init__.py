@@ -30,7 +30,7 @@ from srvwire.loader import (
     load_message,
     load_service,
 )
-from srvwire.models import Action, Message, Service
+from srvwire.models import Action, InfNan, Message, Service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Transport
 from srvwire.transports.memory import MemoryTransport
@@ -44,6 +44,7 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "InfNan",
     "InterfaceError",
     "InterfaceLoader",
     "InterfaceNotFoundError",

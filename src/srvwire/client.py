@@ -60,7 +60,7 @@ from srvwire.errors import (
 )
 from srvwire.link import Link, LoggerLike
 from srvwire.loader import SearchPath, load_service
-from srvwire.models import error_data, summarize_errors
+from srvwire.models import INF_NAN_MODES, InfNan, error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Options, Transport
@@ -108,7 +108,7 @@ class Client:
         self.url = options.url
         self.timeout = options.timeout
         self.logger: LoggerLike = options._log()
-        self._types = ServiceTypes(options.type_resolver, self.logger)
+        self._types = ServiceTypes(options.type_resolver, self.logger, options.inf_nan)
         self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
         self._link: Link | None = None
         self._supervisor: asyncio.Task[None] | None = None
@@ -481,6 +481,9 @@ class connect:
     * ``search_path``: where to load service types by name (default: the loader's).
     * ``type_resolver``: a function from a type name to its service class, instead of the
       loader (``search_path`` is then unused).
+    * ``inf_nan``: how typed requests write ``inf``, ``-inf`` and ``nan``: ``"strings"`` (the
+      default), ``"null"`` or ``"constants"``, as :class:`~srvwire.server.Server` takes it;
+      responses are read in every spelling.
     * ``logger``: where to log (default: the ``srvwire.client`` logger).
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
@@ -505,6 +508,7 @@ class connect:
         type_resolver: TypeResolver | None = None,
         logger: LoggerLike | None = None,
         transport: str | Transport = "websockets",
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         self.transport = get_transport(transport)
         self.transport.check_url(url)
@@ -517,6 +521,9 @@ class connect:
             ping_timeout=ping_timeout,
             compression=compression,
         )
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        self.inf_nan: InfNan = inf_nan
         self.reconnect = reconnect
         self.search_path = search_path
         self.type_resolver: TypeResolver = type_resolver or functools.partial(

@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 
 from srvwire.dispatch import Handler, ServiceRegistry
 from srvwire.errors import ServiceUnavailable
-from srvwire.models import Service
+from srvwire.models import INF_NAN_MODES, InfNan, Service
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
 from srvwire.transports import get_transport
@@ -68,7 +68,11 @@ class Server:
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
     calls down); ``executor`` runs sync handlers (default: the server's own
-    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive).
+    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive);
+    ``inf_nan`` how responses write ``inf``, ``-inf`` and ``nan``: ``"strings"`` (the default;
+    ``"Infinity"``, ``"-Infinity"``, ``"NaN"``), ``"null"`` or ``"constants"`` (the bare tokens
+    Python's :mod:`json` writes, which a browser cannot parse); requests are read in every
+    spelling (see :data:`~srvwire.models.InfNan`).
     """
 
     def __init__(
@@ -84,6 +88,7 @@ class Server:
         compression: str | None = None,
         executor: Executor | None = None,
         logger: logging.Logger | None = None,
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         if max_in_flight < 1:
             raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
@@ -95,7 +100,7 @@ class Server:
             )
         if grace_period < 0:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
-        self.registry = ServiceRegistry()
+        self.registry = ServiceRegistry(inf_nan=inf_nan)
         self.max_in_flight = max_in_flight
         self.max_batch = max_batch
         self.notification_timeout = notification_timeout
