@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import typing
 import warnings
 from typing import Any
 
@@ -32,6 +33,8 @@ from srvwire.models import (
     InfNan,
     Message,
     Service,
+    ServiceRequest,
+    TypedService,
     build_action,
     build_message,
     build_service,
@@ -630,6 +633,21 @@ def test_class_names_modules_and_type_names() -> None:
     assert srv.spec is SERVICE
     assert srv.text == SERVICE.text
     assert srv.Request.spec is SERVICE.request
+
+
+def test_a_service_names_its_parts_in_generic_bases_and_nothing_else() -> None:
+    srv = build_service(SERVICE)
+    assert issubclass(srv, TypedService)
+    assert typing.get_args(srv.__orig_bases__[0]) == (srv.Request, srv.Response)
+    assert issubclass(srv.Request, ServiceRequest)
+    assert typing.get_args(srv.Request.__orig_bases__[1]) == (srv.Response,)
+    assert not issubclass(srv.Response, ServiceRequest)
+    # The generic base adds no field, config or state: the request is the plain message.
+    assert srv.Request.model_fields.keys() == {f.name for f in SERVICE.request.fields}
+    assert srv.Request.model_config == Message.model_config
+    assert not hasattr(srv.Request(), "__dict__") or srv.Request().__dict__.keys() == (
+        srv.Request.model_fields.keys()
+    )
 
 
 # --- documentation ---------------------------------------------------------------------------

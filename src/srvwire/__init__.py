@@ -30,7 +30,7 @@ from srvwire.loader import (
     load_message,
     load_service,
 )
-from srvwire.models import Action, InfNan, Message, Service
+from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Transport
 from srvwire.transports.memory import MemoryTransport
@@ -65,9 +65,11 @@ __all__ = [
     "ServiceInfo",
     "ServiceNotFound",
     "ServiceProxy",
+    "ServiceRequest",
     "ServiceUnavailable",
     "SrvwireError",
     "Transport",
+    "TypedService",
     "Unauthenticated",
     "__version__",
     "connect",

@@ -29,7 +29,10 @@ Invariants:
 * **Typed when the type is known.** With a type, a mapping is validated locally
   (:class:`~srvwire.errors.InvalidParams` before anything is sent) and the result is the typed
   ``Response``; without one, the mapping is sent as it is and the result is the plain ``dict``
-  the server returned.
+  the server returned. For a type checker too: :meth:`Client.call` with a generated
+  ``Request`` (a :class:`~srvwire.models.ServiceRequest`), or with a
+  :class:`~srvwire.models.TypedService` as ``srv_type``, returns that service's ``Response``,
+  and so does a :class:`ServiceProxy` made with one.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ import logging
 import random
 from collections.abc import AsyncIterator, Coroutine, Generator, Iterator, Mapping
 from types import MappingProxyType, TracebackType
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
@@ -60,7 +63,15 @@ from srvwire.errors import (
 )
 from srvwire.link import Link, LoggerLike
 from srvwire.loader import SearchPath, load_service
-from srvwire.models import INF_NAN_MODES, InfNan, error_data, summarize_errors
+from srvwire.models import (
+    INF_NAN_MODES,
+    InfNan,
+    Message,
+    ServiceRequest,
+    TypedService,
+    error_data,
+    summarize_errors,
+)
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Options, Transport
@@ -79,6 +90,8 @@ DEFAULT_URL = "ws://localhost:8765"
 
 DEFAULT_TIMEOUT = 10.0
 """The deadline, in seconds, of a call that does not give its own."""
+
+R = TypeVar("R", bound=Message)
 
 # Reconnection backoff: first retry at once, then from this delay, growing to the cap.
 _BACKOFF_INITIAL = 0.05
@@ -272,10 +285,46 @@ class Client:
 
     # --- calls ------------------------------------------------------------------------------
 
+    @overload
+    async def call(
+        self,
+        name: str,
+        request: ServiceRequest[R],
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
     async def call(
         self,
         name: str,
         request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: type[TypedService[Any, R]],
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
+    async def call(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> Any: ...
+
+    async def call(
+        self,
+        name: str,
+        request: Any = None,  # the overloads say what it may be
         /,
         *,
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
@@ -287,7 +336,9 @@ class Client:
         ``request`` is a ``Request`` model or a mapping of its fields (left out: every field
         takes its default). The result is the typed ``Response`` when the service type is
         known (``srv_type``, or the type the server advertised, resolved here), else the plain
-        dict the server sent. For fields as keywords, use :meth:`proxy`.
+        dict the server sent. For fields as keywords, use :meth:`proxy`. Statically, a
+        generated ``Request`` or a generated service class as ``srv_type`` makes the result
+        that service's ``Response``; otherwise it is ``Any``.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -325,6 +376,17 @@ class Client:
                 service=method,
             ) from None
 
+    @overload
+    def proxy(
+        self,
+        name: str,
+        srv_type: type[TypedService[Any, R]],
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[R]: ...
+
+    @overload
     def proxy(
         self,
         name: str,
@@ -332,11 +394,21 @@ class Client:
         *,
         timeout: float | None = None,
         wait_for_ready: bool = False,
-    ) -> ServiceProxy:
+    ) -> ServiceProxy[Any]: ...
+
+    def proxy(
+        self,
+        name: str,
+        srv_type: SrvType | None = None,
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[Any]:
         """Return a callable for the service ``name`` that takes fields as keywords.
 
         ``await client.proxy("/add_two_ints")(a=1, b=2)``; the options given here apply to
-        every call made through it.
+        every call made through it. With a generated service class as ``srv_type``, a type
+        checker knows its calls return that service's ``Response``.
         """
         return ServiceProxy(self, name, srv_type, timeout=timeout, wait_for_ready=wait_for_ready)
 
@@ -413,11 +485,12 @@ class Client:
                 ) from None
 
 
-class ServiceProxy:
+class ServiceProxy(Generic[R]):
     """A callable bound to one service: ``await proxy(request)`` or ``await proxy(a=1, b=2)``.
 
     Made by :meth:`Client.proxy`; the call options are the proxy's, so every field name,
-    ``timeout`` included, is free for the request.
+    ``timeout`` included, is free for the request. ``R`` is the response type a type checker
+    sees (``Any`` unless the proxy was made with a generated service class).
     """
 
     def __init__(
@@ -437,17 +510,18 @@ class ServiceProxy:
 
     async def __call__(
         self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
-    ) -> Any:
+    ) -> R:
         """Call the service; see :meth:`Client.call`."""
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
-        return await self.client.call(
+        response: R = await self.client.call(
             self.name,
             fields if request is None else request,
             timeout=self.timeout,
             srv_type=self.srv_type,
             wait_for_ready=self.wait_for_ready,
         )
+        return response
 
     async def wait_for_service(
         self,

@@ -61,6 +61,7 @@ from srvwire.idl import (
 from srvwire.models import Action, Message, Service, default_value, python_name
 from srvwire.primitives import PRIMITIVE_ALIASES
 from srvwire.pysource import (
+    LINE,
     Call,
     Expr,
     Keyword,
@@ -100,6 +101,8 @@ _HELPERS = {
         "Action",
         "Message",
         "Service",
+        "ServiceRequest",
+        "TypedService",
         *sorted(PRIMITIVE_ALIASES.values()),
     ),
 }
@@ -318,15 +321,27 @@ class _Writer:
                 body.append(self.message(item.spec, item.type_name))
                 specs.append(self.assign_spec(item.type_name, item.spec))
                 continue
+            answered_by = None
+            if isinstance(item.spec, ServiceSpec):  # the Request names its Response class
+                answered_by = self.class_names[_part_type_name(item, item.spec.response)]
             for part in item.parts:
-                body.append(self.message(part, _part_type_name(item, part)))
+                is_request = isinstance(item.spec, ServiceSpec) and part is item.spec.request
+                body.append(
+                    self.message(
+                        part, _part_type_name(item, part), answered_by if is_request else None
+                    )
+                )
             body.append(self.group(item))
             specs.append(self.assign_spec(item.type_name, item.spec))
             for part in item.parts:
                 attribute = _part_attribute(item, part)
                 specs.append(
-                    f"{self.class_names[_part_type_name(item, part)]}.spec = "
-                    f"{self.class_names[item.type_name]}.spec.{attribute}"
+                    statement(
+                        "",
+                        f"{self.class_names[_part_type_name(item, part)]}.spec",
+                        None,
+                        f"{self.class_names[item.type_name]}.spec.{attribute}",
+                    ).rstrip("\n")
                 )
         if docstring is None:
             listed = "\n".join(f"* ``{item.type_name}``" for item in self.plan.requested)
@@ -380,7 +395,7 @@ class _Writer:
 
     # classes ---------------------------------------------------------------------------------
 
-    def message(self, spec: MessageSpec, type_name: str) -> str:
+    def message(self, spec: MessageSpec, type_name: str, answered_by: str | None = None) -> str:
         class_name = self.class_names[type_name]
         nested = {
             self.class_names[f.type.qualified_name] for f in spec.fields if not f.type.is_primitive
@@ -392,7 +407,10 @@ class _Writer:
                     "its fields, so the module cannot name both; rename one"
                 )
         shadowed = {python_name(f.name) for f in spec.fields} & {"list", "bytes"}
-        lines = [f"class {class_name}({self.name('Message')}):"]
+        bases = [self.name("Message")]
+        if answered_by is not None:  # defined after this class, so named as a string
+            bases.append(f'{self.name("ServiceRequest")}["{answered_by}"]')
+        lines = [_class_line(class_name, bases)]
         if spec.doc:
             doc = as_docstring(spec.doc, "    ")
             lines.append(doc or statement("    ", "__doc__", None, Text(spec.doc)))
@@ -488,9 +506,13 @@ class _Writer:
     def group(self, item: _Item) -> str:
         spec = item.spec
         assert not isinstance(spec, MessageSpec)
-        base = "Service" if isinstance(spec, ServiceSpec) else "Action"
+        if isinstance(spec, ServiceSpec):
+            request, response = (self.class_names[_part_type_name(item, p)] for p in item.parts)
+            base = f"{self.name('TypedService')}[{request}, {response}]"
+        else:
+            base = self.name("Action")
         class_var = self.name("ClassVar")
-        lines = [f"class {self.class_names[item.type_name]}({self.name(base)}):"]
+        lines = [_class_line(self.class_names[item.type_name], [base])]
         for part in item.parts:
             attribute = _part_attribute(item, part).capitalize()
             target = self.class_names[_part_type_name(item, part)]
@@ -521,6 +543,27 @@ class _Writer:
         if isinstance(value, enum.Enum):
             return f"{self.name(type(value).__name__)}.{value.name}"
         return expression(value)
+
+
+def _class_line(name: str, bases: list[str]) -> str:
+    """``class name(bases):``, split as ruff format splits a line that is too long.
+
+    A single base that is a subscript (``TypedService[A, B]``) is split inside its brackets.
+    """
+    line = f"class {name}({', '.join(bases)}):"
+    if len(line) <= LINE:
+        return line
+    inner = "    " + ", ".join(bases)
+    if len(inner) <= LINE:
+        return f"class {name}(\n{inner}\n):"
+    if len(bases) == 1 and bases[0].endswith("]"):
+        head, _, arguments = bases[0][:-1].partition("[")
+        items = arguments.split(", ")
+        if len(f"        {arguments}") <= LINE:
+            return f"class {name}(\n    {head}[\n        {arguments}\n    ],\n):"
+        listed = "".join(f"        {item},\n" for item in items)
+        return f"class {name}(\n    {head}[\n{listed}    ],\n):"
+    return f"class {name}(\n" + "".join(f"    {base},\n" for base in bases) + "):"
 
 
 def _bytes_value(value: bytes, bytes_: str) -> Expr:

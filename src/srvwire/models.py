@@ -30,6 +30,11 @@ Invariants
   locations use the name the input used.
 * **No module state.** Each ``build_*`` call builds new classes; callers that want one class per
   type (the loader) cache them.
+* **A request knows its response, statically.** A service's ``Request`` class also derives
+  from :class:`ServiceRequest` parametrized with its ``Response`` class, and the service class
+  from :class:`TypedService` parametrized with both, so that a type checker can tell what
+  ``client.call(name, SetSpeed.Request(...))`` returns. These generic bases hold nothing at
+  run time (pydantic sees no field or config in them).
 
 Decisions (``docs/types.md`` explains them for users): integers, floats, booleans and strings
 are strict (no ``"5"`` for an int, no ``5.0`` or ``True`` for an int, no ``1`` for a bool; an
@@ -115,7 +120,9 @@ __all__ = [
     "ModelDecoder",
     "Resolver",
     "Service",
+    "ServiceRequest",
     "String",
+    "TypedService",
     "UInt8",
     "UInt16",
     "UInt32",
@@ -218,6 +225,22 @@ class Message(pydantic.BaseModel):
     """``pkg/msg/Name``; ``pkg/srv/Name_Request`` and so on for the parts of a service/action."""
 
 
+Req = TypeVar("Req", bound=Message)
+Resp = TypeVar("Resp", bound=Message)
+Resp_co = TypeVar("Resp_co", bound=Message, covariant=True)
+
+
+class ServiceRequest(Generic[Resp_co]):
+    """The second base of a service's ``Request`` class, naming its ``Response`` class.
+
+    ``class SetSpeed_Request(Message, ServiceRequest["SetSpeed_Response"])``: for type checkers
+    only, so that ``await client.call(name, SetSpeed.Request(...))`` is a ``SetSpeed.Response``.
+    It adds no field, method or state.
+    """
+
+    __slots__ = ()
+
+
 class Service:
     """The base of every service class: a request type and a response type under one name."""
 
@@ -228,6 +251,17 @@ class Service:
     spec: ClassVar[ServiceSpec]
     text: ClassVar[str]
     """The text of the .srv file."""
+
+
+class TypedService(Service, Generic[Req, Resp]):
+    """The base of a service class whose parts a type checker knows:
+    ``class SetSpeed(TypedService[SetSpeed_Request, SetSpeed_Response])``.
+
+    Every service class :func:`build_service` builds or ``srvwire gen`` writes derives from it,
+    so that ``client.proxy(name, SetSpeed)`` calls return ``SetSpeed.Response``. A class
+    known only as ``type[Service]`` (what :func:`~srvwire.loader.load_service` returns) gives
+    its calls the static type ``Any``.
+    """
 
 
 class Action:
@@ -376,7 +410,11 @@ def _filler(namespace: dict[str, Any]) -> Callable[[dict[str, Any]], None]:
 
 
 def _build(
-    spec: MessageSpec, resolve: Resolver | None, type_name: str, module: str
+    spec: MessageSpec,
+    resolve: Resolver | None,
+    type_name: str,
+    module: str,
+    bases: tuple[Any, ...] = (Message,),
 ) -> type[Message]:
     annotations: dict[str, Any] = {"spec": ClassVar[MessageSpec], "type_name": ClassVar[str]}
     namespace: dict[str, Any] = {
@@ -395,7 +433,7 @@ def _build(
         name = python_name(field.name)
         annotations[name] = _annotation(field.type, element)
         namespace[name] = _field_info(spec, field, element)
-    cls = cast("type[Message]", types.new_class(spec.name, (Message,), {}, _filler(namespace)))
+    cls = cast("type[Message]", types.new_class(spec.name, bases, {}, _filler(namespace)))
     _check_defaults(cls, spec)
     return cls
 
@@ -418,16 +456,25 @@ def build_service(spec: ServiceSpec, resolve: Resolver | None = None) -> type[Se
     ``pkg/srv/Name_Request``/``pkg/srv/Name_Response``; see :func:`build_message`.
     """
     module = f"{spec.package}.srv"
+    response = _build(spec.response, resolve, _part_name(spec, spec.response), module)
+    request = _build(
+        spec.request,
+        resolve,
+        _part_name(spec, spec.request),
+        module,
+        (Message, ServiceRequest[response]),  # type: ignore[valid-type]
+    )
     namespace: dict[str, Any] = {
         "__module__": module,
         "__qualname__": spec.name,
-        "Request": _build(spec.request, resolve, _part_name(spec, spec.request), module),
-        "Response": _build(spec.response, resolve, _part_name(spec, spec.response), module),
+        "Request": request,
+        "Response": response,
         "type_name": spec.type_name,
         "spec": spec,
         "text": spec.text,
     }
-    return cast("type[Service]", types.new_class(spec.name, (Service,), {}, _filler(namespace)))
+    base = TypedService[request, response]  # type: ignore[valid-type]
+    return cast("type[Service]", types.new_class(spec.name, (base,), {}, _filler(namespace)))
 
 
 def build_action(spec: ActionSpec, resolve: Resolver | None = None) -> type[Action]:
