@@ -20,6 +20,7 @@ from websockets.asyncio.server import ServerConnection, serve as ws_serve
 
 import srvwire
 from conftest import open_wire
+from srvwire import models
 from srvwire.loader import InterfaceLoader, bundled_interfaces
 from srvwire.models import InfNan
 from srvwire.server import RunningServer, Server, serve
@@ -360,3 +361,26 @@ async def test_raised_limits_on_both_sides_carry_a_vga_frame(transport: Transpor
         1920,
         921_600,
     )
+
+
+async def test_a_mode_builds_its_serializers_once_not_per_call(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    built: list[Any] = []
+    real = models.SchemaSerializer
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        built.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(models, "SchemaSerializer", counting)
+    server = wire_server(inf_nan="null")
+    assert len(built) == 2  # one per service: the writer of its response, in this mode
+    async with (
+        serve(server, "127.0.0.1", 0) as running,
+        srvwire.connect(running.url, type_resolver=LOADER.load_service, inf_nan="null") as client,
+    ):
+        for _ in range(3):
+            response = await client.call("/scan", Scan.Request(fill=INF))
+            assert math.isnan(response.reading.value)
+    assert len(built) == 3  # and one for the client's Scan requests, when it first met Scan
