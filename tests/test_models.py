@@ -986,3 +986,41 @@ def test_every_primitive_has_an_alias() -> None:
     )
     for alias in PRIMITIVE_ALIASES.values():
         assert hasattr(models, alias)
+
+
+class _Floats(pydantic.BaseModel):
+    values: list[float]
+
+
+def test_a_strict_writer_refuses_a_value_that_does_not_fit_even_with_warnings_ignored() -> None:
+    import warnings
+
+    from pydantic_core import PydanticSerializationError
+
+    from srvwire.models import dump_json, json_writer
+
+    value = _Floats(values=[1.0])
+    value.values.append("x")  # type: ignore[arg-type]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # goes in front of srvwire's filter: put back behind it
+        with pytest.raises(PydanticSerializationError, match="Expected `float`"):
+            json_writer(_Floats, strict=True)(value)
+        with pytest.raises(PydanticSerializationError, match="Expected `float`"):
+            dump_json(value, strict=True)
+    assert json_writer(_Floats, strict=True)(_Floats(values=[1.0])) == b'{"values":[1.0]}'
+
+
+def test_only_strict_writers_turn_the_serializer_warning_into_an_error() -> None:
+    import warnings
+
+    from srvwire.models import json_writer
+
+    value = _Floats(values=[1.0])
+    value.values.append("x")  # type: ignore[arg-type]
+    json_writer(_Floats, strict=True)(_Floats(values=[1.0]))  # the filter is in place
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        json_writer(_Floats, strict=True)(_Floats(values=[2.0]))
+        assert value.model_dump_json() == '{"values":[1.0,"x"]}'  # pydantic's own: a warning
+        assert json_writer(_Floats)(value) == b'{"values":[1.0,"x"]}'  # not strict: a warning
+    assert [str(w.message).splitlines()[0] for w in caught] == ["Pydantic serializer warnings:"] * 2

@@ -665,3 +665,70 @@ async def test_a_binary_frame_is_received_as_bytes() -> None:
         listener.close()
         async with asyncio.timeout(scaled(5)):
             await listener.wait_closed()
+
+
+async def test_messages_sent_in_one_turn_go_out_in_one_write() -> None:
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        socket = pair.server._ws.transport  # type: ignore[attr-defined]
+        writes: list[bytes] = []
+        write = socket.write
+
+        def counting(data: bytes) -> None:
+            writes.append(bytes(data))
+            write(data)
+
+        socket.write = counting
+        for i in range(50):
+            await pair.server.send(f"reply {i}".encode())
+        assert writes == []  # held until the loop comes round
+        assert [await pair.client.recv() for _ in range(50)] == [f"reply {i}" for i in range(50)]
+        assert len(writes) == 1
+        await pair.server.send(b"later")  # a later turn: a write of its own
+        assert await pair.client.recv() == "later"
+        assert len(writes) == 2
+
+
+async def test_messages_past_the_cork_limit_write_through_in_order() -> None:
+    from srvwire.transports.websockets import CORK_LIMIT
+
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        size = CORK_LIMIT // 4
+        for i in range(12):  # three times what a turn holds
+            await pair.client.send(f"{i:04d}".encode() + b"x" * size)
+        received = [await pair.server.recv() for _ in range(12)]
+        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(12)]
+        assert all(len(m) == size + 4 for m in received)
+
+
+async def test_a_message_held_when_the_connection_closes_is_delivered_first() -> None:
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        await pair.server.send(b"last words")
+        await pair.server.close(1000, "done")
+        assert await pair.client.recv() == "last words"
+        closed = await closed_with(pair.client)
+        assert (closed.code, closed.reason) == (1000, "done")
+
+
+async def test_held_messages_do_not_escape_backpressure() -> None:
+    """A peer that does not read stops the sender once its socket's buffer is full, held
+    messages or not: some send waits before 64 MiB went out, and goes on once the peer reads."""
+    from srvwire.inline import Pending, finish, first_step
+
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(20)):
+        message = b"x" * 1000
+        count = 0
+        while True:
+            count += 1
+            step = first_step(pair.server.send(message))
+            if isinstance(step, Pending):
+                break
+            assert count * len(message) < 64 * 2**20, "no send ever waited for the peer"
+
+        async def read_all() -> int:
+            for _ in range(count):
+                assert len(await pair.client.recv()) == len(message)
+            return count
+
+        reading = asyncio.create_task(read_all())
+        await finish(step)
+        assert await reading == count
