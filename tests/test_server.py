@@ -1861,8 +1861,9 @@ async def test_a_deadline_that_passes_while_the_reply_is_being_sent_lets_it_go_o
         return {"text": "x" * 10_000}
 
     monkeypatch.setattr(CallRunner, "expire", recording_expire)
+    server.max_queued_bytes = 1_000
     server.add_service("/big", Echo, big)
-    transport = MemoryTransport(high_water=1_000)
+    transport = MemoryTransport()
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         await w.send(request("/big", deadline(0.05), id=1))
@@ -1876,13 +1877,13 @@ async def test_replies_a_client_does_not_read_count_against_its_limit() -> None:
     # A client that writes calls and never reads: each reply waits in its send, and counts in
     # flight until it goes out; past the limit the reader answers the next call itself, its
     # own send waits too, and the client's writes are pushed back instead of piling up tasks.
-    server = Server(max_in_flight=4, grace_period=0)
+    server = Server(max_in_flight=4, max_queued_bytes=10_000, grace_period=0)
 
     async def big(request: Any) -> Any:
         return {"text": "x" * 5_000}
 
     server.add_service("/big", Echo, big)
-    transport = MemoryTransport(high_water=10_000)
+    transport = MemoryTransport(high_water=10_000)  # what the client sends, unread, holds it
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         client = await transport.connect(running.url, Options(max_message_size=None))
 

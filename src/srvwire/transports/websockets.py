@@ -6,6 +6,15 @@ through them. ``websockets`` already keeps the rules of :mod:`srvwire.transports
 write buffer gives the backpressure, ``max_size`` the 1009, UTF-8 checks the 1007, and
 ``close`` waits for the closing handshake (within its ``close_timeout``).
 
+The budget is websockets' ``write_limit``: the asyncio transport's high-water mark, its low one
+a quarter of it. websockets writes a message into the buffer first and waits for it to drain
+after, so a ``send`` that finds the connection congested waits before it calls websockets.
+websockets' connection classes are subclassed (its ``create_connection``) only to hear the
+transport's ``pause_writing``/``resume_writing``: the write timeout is one timer, armed when
+writing pauses and cancelled when it resumes. This is also what ends a peer that does not read
+when keepalive cannot: websockets writes its ping and then waits for the buffer to drain before
+it starts the pong deadline, so past the high-water mark the ping deadline never starts.
+
 Exceptions are mapped here and nowhere else:
 
 * ``ConnectionClosed`` (any subclass) -> :class:`TransportClosed`, with the code and reason of
@@ -17,14 +26,19 @@ Exceptions are mapped here and nowhere else:
 
 from __future__ import annotations
 
+import asyncio
+from typing import Any
+
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.asyncio.connection import Connection as WebSocket
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed, InvalidURI, WebSocketException
 from websockets.frames import Close
-from websockets.protocol import State
+from websockets.protocol import OPEN, State
 from websockets.uri import parse_uri
 
 from srvwire.transports.base import (
+    WRITE_TIMEOUT_CODE,
     Connection,
     ConnectionHandler,
     Listener,
@@ -32,13 +46,73 @@ from srvwire.transports.base import (
     Transport,
     TransportClosed,
     TransportError,
+    WriteTimedOut,
+    write_timeout_reason,
 )
 
 __all__ = ["WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
 
 
-def _closed(exc: ConnectionClosed) -> TransportClosed:
+DEFAULT_WRITE_LIMIT = 2**15
+"""websockets' own high-water mark, for ``max_queued_bytes=None``."""
+
+
+class _Watched(WebSocket):
+    """What srvwire adds to a websockets connection: it knows when writing is paused, and
+    closes the connection when it stays paused for ``write_timeout`` (None: never)."""
+
+    write_timeout: float | None = None
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.drained = asyncio.Event()  # set while writing is not paused, and once closed
+        self.drained.set()
+        self.stall: asyncio.TimerHandle | None = None
+        self.timed_out = False
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        self.drained.clear()
+        if self.write_timeout is not None:
+            self.stall = self.loop.call_later(self.write_timeout, self.stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        self.drained.set()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        super().connection_lost(exc)
+        self.drained.set()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def stalled(self) -> None:
+        """Close now: the peer does not read, so a closing handshake would wait for nothing."""
+        self.stall = None
+        assert self.write_timeout is not None
+        self.timed_out = True
+        if self.protocol.state is OPEN:  # record the close frame that recv will report
+            self.protocol.fail(WRITE_TIMEOUT_CODE, write_timeout_reason(self.write_timeout))
+        self.transport.abort()
+
+
+class _ServerConnection(_Watched, ServerConnection):
+    pass
+
+
+class _ClientConnection(_Watched, ClientConnection):
+    pass
+
+
+def _closed(exc: ConnectionClosed, ws: _Watched) -> TransportClosed:
     """Translate how ``websockets`` says a connection ended into :class:`TransportClosed`."""
+    if ws.timed_out:
+        assert ws.write_timeout is not None
+        return WriteTimedOut(ws.write_timeout)
     frame = exc.rcvd if exc.rcvd is not None else exc.sent
     if frame is None:
         return TransportClosed(None)
@@ -55,22 +129,35 @@ class WebSocketsConnection(Connection):
 
     __slots__ = ("_ws", "remote_address")
 
-    def __init__(self, ws: ServerConnection | ClientConnection) -> None:
+    def __init__(self, ws: _ServerConnection | _ClientConnection, options: Options) -> None:
         self._ws = ws
         self.remote_address = ws.remote_address
+        ws.write_timeout = options.write_timeout
 
     async def recv(self) -> str | bytes:
         try:
             return await self._ws.recv()
         except ConnectionClosed as exc:
-            raise _closed(exc) from exc
+            raise _closed(exc, self._ws) from exc
 
     async def send(self, message: str | bytes) -> None:
         # text=True sends bytes as a text frame as they are, and a str as usual.
+        ws = self._ws
         try:
-            await self._ws.send(message, text=True)
+            if ws.paused:  # congested: queue nothing more until it drains
+                await self.writable()
+            await ws.send(message, text=True)
         except ConnectionClosed as exc:
-            raise _closed(exc) from exc
+            raise _closed(exc, ws) from exc
+
+    @property
+    def congested(self) -> bool:
+        return self._ws.paused
+
+    async def writable(self) -> None:
+        ws = self._ws
+        while ws.paused:  # woken together, the first to write may pause it again
+            await ws.drained.wait()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         await self._ws.close(code, reason)
@@ -93,6 +180,11 @@ class WebSocketsConnection(Connection):
         if protocol.state is not State.CLOSED:
             return None
         return protocol.close_rcvd if protocol.close_rcvd is not None else protocol.close_sent
+
+
+def _write_limit(options: Options) -> int:
+    budget = options.max_queued_bytes
+    return DEFAULT_WRITE_LIMIT if budget is None else budget
 
 
 class WebSocketsListener(Listener):
@@ -126,7 +218,8 @@ class WebSocketsTransport(Transport):
     ) -> WebSocketsListener:
         async def handle(ws: ServerConnection) -> None:
             # When this returns, websockets closes with 1000; when it raises, with 1011.
-            await handler(WebSocketsConnection(ws))
+            assert isinstance(ws, _ServerConnection)
+            await handler(WebSocketsConnection(ws, options))
 
         server = await serve(
             handle,
@@ -136,6 +229,8 @@ class WebSocketsTransport(Transport):
             max_size=options.max_message_size,
             ping_interval=options.ping_interval,
             ping_timeout=options.ping_timeout,
+            write_limit=_write_limit(options),
+            create_connection=_ServerConnection,
         )
         return WebSocketsListener(server, host)
 
@@ -148,11 +243,14 @@ class WebSocketsTransport(Transport):
                 ping_interval=options.ping_interval,
                 ping_timeout=options.ping_timeout,
                 compression=options.compression,
+                write_limit=_write_limit(options),
                 open_timeout=None,
+                create_connection=_ClientConnection,
             )
         except (OSError, WebSocketException) as exc:
             raise TransportError(str(exc)) from exc
-        return WebSocketsConnection(ws)
+        assert isinstance(ws, _ClientConnection)
+        return WebSocketsConnection(ws, options)
 
     def check_url(self, url: str) -> None:
         try:
