@@ -219,7 +219,11 @@ class CallRunner:
                 reply = session.fail(call, context._cancel_error)
             else:
                 if call.batch is not None and self.conn.congested:  # see the invariants
-                    await self.conn.writable()
+                    try:
+                        await self.conn.writable()
+                    except TransportClosed:  # nobody to answer: do not run it
+                        session.forget(call)
+                        return
                 result = await dispatch(
                     entry, call.params, context, executor=self.executor, logger=log
                 )

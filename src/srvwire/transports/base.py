@@ -150,7 +150,8 @@ class Connection(abc.ABC):
 
     @abc.abstractmethod
     async def writable(self) -> None:
-        """Wait until the connection is not :attr:`congested`, or has ended."""
+        """Wait until the connection is not :attr:`congested`; raise :class:`TransportClosed`
+        when it ended while this waited."""
 
     @abc.abstractmethod
     async def close(self, code: int = 1000, reason: str = "") -> None:

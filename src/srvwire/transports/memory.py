@@ -20,7 +20,7 @@ It keeps the rules of :mod:`srvwire.transports.base` as the WebSocket transport 
   until the peer reads it down to the low-water mark (a quarter of it) or the connection ends.
   In between the sender is congested: a ``send`` that starts then waits before it puts
   anything in the inbox. Congested for the sender's ``write_timeout``, the connection ends
-  as a socket the sender aborts: the peer's inbox is emptied and the peer sees it drop
+  as a socket the sender aborts: both inboxes are emptied and the peer sees it drop
   (code None), while the sender's ``recv`` and ``send`` raise :class:`WriteTimedOut` (1008).
 * A message larger than the receiver's ``max_message_size`` is not delivered: the connection
   ends with 1009. Bytes are delivered as text; when they are not UTF-8, the receiver ends the
@@ -159,8 +159,6 @@ class MemoryConnection(Connection):
         peer = self._peer
         if not peer._writable.is_set():  # congested: queue nothing more until it drains
             await self.writable()
-            if self._ended:
-                raise self.closed()
         if isinstance(message, str):
             size = len(message) if message.isascii() else len(message.encode())
         else:
@@ -191,8 +189,12 @@ class MemoryConnection(Connection):
 
     async def writable(self) -> None:
         writable = self._peer._writable
+        if writable.is_set():
+            return
         while not writable.is_set():  # woken together, the first to send may congest it again
             await writable.wait()
+        if self._ended:
+            raise self.closed()
 
     def closed(self) -> TransportClosed:
         if self._timed_out:
@@ -205,8 +207,9 @@ class MemoryConnection(Connection):
         assert self._write_timeout is not None
         peer = self._peer
         peer._stall = None
-        peer._inbox.clear()  # as an aborted socket drops what it buffered
-        peer._unread = 0
+        for end in (self, peer):  # as an aborted socket drops what was not read, both ways
+            end._inbox.clear()
+            end._unread = 0
         self._end(None, "")  # the peer sees the connection drop ...
         self._timed_out = True  # ... this end knows why
         self._code = WRITE_TIMEOUT_CODE

@@ -156,8 +156,18 @@ class WebSocketsConnection(Connection):
 
     async def writable(self) -> None:
         ws = self._ws
+        if not ws.paused:
+            return
         while ws.paused:  # woken together, the first to write may pause it again
             await ws.drained.wait()
+        if ws.protocol.state is State.CLOSED:
+            raise self.closed()
+
+    def closed(self) -> TransportClosed:
+        if self._ws.timed_out:
+            assert self._ws.write_timeout is not None
+            return WriteTimedOut(self._ws.write_timeout)
+        return super().closed()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         await self._ws.close(code, reason)
