@@ -10,8 +10,9 @@ subprocess, then:
 4. waits up to ``--wait`` seconds for the server to log that it closed the stuck connection.
 
 It prints the server's RSS growth (the peak, VmHWM, less VmRSS before the stuck client came),
-whether and when the stuck connection was closed, and the other client's median call time
-with the stuck peer as a ratio of the one without, measured in the same run. Linux only
+whether and when the stuck connection was closed (and whether the server's end of it was still
+open when the wait ended), and the other client's median and slowest call times with the stuck
+peer, as ratios of its median without, measured in the same run. Linux only
 (``/proc``). Options after ``--`` go to the server (``-- --max-queued-bytes 1048576``).
 
     python benchmarks/slow_reader.py [--batches] [--stuck-calls N] [-- SERVER OPTIONS]
@@ -187,6 +188,11 @@ async def measure(args: argparse.Namespace) -> dict[str, object]:
         "median_call_ms_alone": round(statistics.median(alone) * 1000, 3),
         "median_call_ms_with_stuck_peer": round(statistics.median(with_stuck) * 1000, 3),
         "ratio": round(statistics.median(with_stuck) / statistics.median(alone), 2),
+        "slowest_ms_alone": round(max(alone) * 1000, 3),
+        "slowest_ms_with_stuck_peer": round(max(with_stuck) * 1000, 3),
+        "slowest_with_stuck_over_median_alone": round(
+            max(with_stuck) / statistics.median(alone), 1
+        ),
     }
 
 

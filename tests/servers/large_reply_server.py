@@ -6,7 +6,8 @@ to stderr. Its services:
 
 * ``/large`` (``std_srvs/srv/Trigger``) answers at once with a ``message`` of
   ``--reply-bytes`` characters;
-* ``/small`` answers at once with an empty message.
+* ``/small`` answers at once with an empty message;
+* ``/values`` takes ``int32[] values`` and answers ``ok``: a request that makes validation work.
 
 Any other ``--name value`` is passed to :class:`srvwire.server.Server` as ``name=value``
 (numbers as numbers, ``none`` as None), so the same script measures any setting of the limits.
@@ -20,6 +21,8 @@ import sys
 from typing import Any
 
 from srvwire.loader import load_service
+from srvwire.models import build_service
+from srvwire.parser import parse_service
 from srvwire.server import Server, serve
 
 
@@ -52,6 +55,12 @@ async def main() -> None:
 
     server.add_service("/large", trigger, answer_large)
     server.add_service("/small", trigger, answer_small)
+    values = build_service(parse_service("int32[] values\n---\nbool ok\n", "limits", "Values"))
+
+    async def answer_ok(request: Any) -> Any:
+        return {"ok": True}
+
+    server.add_service("/values", values, answer_ok)
     async with serve(server, "127.0.0.1", 0) as running:
         print(running.port, flush=True)
         await asyncio.Event().wait()
