@@ -8,7 +8,7 @@ the size of its reply (and its ratio to the request), the other client's slowest
 that message was being handled, as a ratio of its median call with nothing else going on
 (measured first, in the same run), and the server's peak RSS growth (VmHWM).
 
-Messages, each 1 MiB (the default ``max_message_size``):
+Messages, each ``--size`` bytes (1 MiB, the default ``max_message_size``):
 
 * ``invalid elements``: one request whose ``int32[]`` array holds ~350 000 ``{}`` elements;
 * ``invalid strings``: the same with ``"x"`` elements;
@@ -17,7 +17,7 @@ Messages, each 1 MiB (the default ``max_message_size``):
 * ``batch at max_batch``: a batch of ``max_batch`` (100) calls, each with ~10 KB of invalid
   elements.
 
-    python benchmarks/worst_message.py [--repeat 5] [-- SERVER OPTIONS]
+    python benchmarks/worst_message.py [--repeat 5] [--size BYTES] [-- SERVER OPTIONS]
 """
 
 from __future__ import annotations
@@ -46,13 +46,13 @@ def array_request(element: str, size: int, id: int = 1) -> str:
     return head + ",".join([element] * count) + "]}}"
 
 
-def messages(max_batch: int) -> dict[str, str]:
+def messages(max_batch: int, size: int) -> dict[str, str]:
     unknown = '{"jsonrpc":"2.0","id":1,"method":"/nope"}'
-    per_item = SIZE // max_batch
+    per_item = size // max_batch
     return {
-        "invalid elements": array_request("{}", SIZE),
-        "invalid strings": array_request('"x"', SIZE),
-        "unknown methods batch": "[" + ",".join([unknown] * (SIZE // (len(unknown) + 1))) + "]",
+        "invalid elements": array_request("{}", size),
+        "invalid strings": array_request('"x"', size),
+        "unknown methods batch": "[" + ",".join([unknown] * (size // (len(unknown) + 1))) + "]",
         "batch at max_batch": "["
         + ",".join(array_request("{}", per_item - 2, id=i) for i in range(max_batch))
         + "]",
@@ -126,7 +126,8 @@ async def measure_one(name: str, message: str, args: argparse.Namespace) -> dict
 
 async def measure(args: argparse.Namespace) -> list[dict[str, object]]:
     return [
-        await measure_one(name, message, args) for name, message in messages(args.max_batch).items()
+        await measure_one(name, message, args)
+        for name, message in messages(args.max_batch, args.size).items()
     ]
 
 
@@ -136,6 +137,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--max-batch", type=int, default=100, help="the server's max_batch")
+    parser.add_argument("--size", type=int, default=SIZE, help="bytes per message (1 MiB)")
     args = parser.parse_args(own)
     args.server_options = argv[argv.index("--") + 1 :] if "--" in argv else []
     for result in asyncio.run(measure(args)):
