@@ -452,9 +452,9 @@ class ServedConnection:
         reader = asyncio.current_task(self.loop)
         assert reader is not None
         while True:
-            if conn.congested:  # read nothing while what waits to be sent is past the budget
-                await conn.writable()
             try:
+                if conn.congested:  # read nothing while what waits to be sent is past the budget
+                    await conn.writable()
                 data = await conn.recv()
             except TransportClosed as exc:
                 if exc.clean:
