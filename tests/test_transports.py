@@ -742,6 +742,26 @@ async def test_memory_listener_waits_for_its_handlers(memory: MemoryTransport) -
 # The WebSocket transport only
 
 
+async def test_with_keepalive_a_peer_that_does_not_read_is_closed_after_a_ping_period() -> None:
+    # No write timeout, but keepalive: websockets' own ping deadline cannot start while the
+    # buffer does not drain, so the interval plus the timeout bounds the congestion instead.
+    interval, timeout = scaled(0.1), scaled(0.1)
+    options = Options(max_queued_bytes=2**16, ping_interval=interval, ping_timeout=timeout)
+    async with connected(WebSocketsTransport(), server_options=options) as pair:
+        pressing = asyncio.create_task(press(pair.server))
+        with pytest.raises(WriteTimedOut) as info:
+            async with asyncio.timeout(scaled(20)):
+                await pair.server.recv()
+        assert info.value.timeout == interval + timeout
+        with pytest.raises(TransportClosed):
+            async with asyncio.timeout(scaled(10)):
+                await pressing
+        with pytest.raises(TransportClosed):
+            async with asyncio.timeout(scaled(10)):
+                while True:
+                    await pair.client.recv()
+
+
 async def test_a_binary_frame_is_received_as_bytes() -> None:
     transport = WebSocketsTransport()
     received: asyncio.Queue[str | bytes] = asyncio.Queue()

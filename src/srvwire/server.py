@@ -74,7 +74,8 @@ class Server:
     ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent: past it the
     connection reads no more calls until its client has read them down to a quarter of it;
     ``write_timeout`` how long a connection may stay past its budget before it is closed with
-    code 1008 (None: forever); see ``docs/limits.md`` for what they bound;
+    code 1008 (None: forever; with keepalive on, at most ``ping_interval + ping_timeout``);
+    see ``docs/limits.md`` for what they bound;
     ``grace_period`` how long shutdown waits for calls in flight;
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small

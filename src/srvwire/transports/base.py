@@ -20,7 +20,9 @@ Rules every transport keeps:
   queues anything, so at most the budget plus one message waits in the buffer, and
   :meth:`~Connection.writable` waits for the end of it (a server stops reading calls there).
 * **A peer that does not read is closed.** Congested for ``Options.write_timeout`` seconds in a
-  row, the connection is closed at once, without a closing handshake (the peer would not read
+  row (or, where the transport has keepalive, ``ping_interval + ping_timeout`` when that is
+  sooner: a ping cannot be answered through a buffer that does not drain), the connection is
+  closed at once, without a closing handshake (the peer would not read
   it), dropping what was queued: this side's ``recv`` and ``send`` raise :class:`WriteTimedOut`,
   code :data:`WRITE_TIMEOUT_CODE` (1008, policy violation); the peer sees the connection drop.
 * **Limits end the connection, not the process.** A message larger than the receiver's

@@ -13,7 +13,9 @@ websockets' connection classes are subclassed (its ``create_connection``) only t
 transport's ``pause_writing``/``resume_writing``: the write timeout is one timer, armed when
 writing pauses and cancelled when it resumes. This is also what ends a peer that does not read
 when keepalive cannot: websockets writes its ping and then waits for the buffer to drain before
-it starts the pong deadline, so past the high-water mark the ping deadline never starts.
+it starts the pong deadline, so past the high-water mark the ping deadline never starts. With
+keepalive on, a connection congested for a ping interval plus a ping timeout is closed as one
+whose ping went unanswered, when that is sooner than ``write_timeout``.
 
 Exceptions are mapped here and nowhere else:
 
@@ -132,7 +134,7 @@ class WebSocketsConnection(Connection):
     def __init__(self, ws: _ServerConnection | _ClientConnection, options: Options) -> None:
         self._ws = ws
         self.remote_address = ws.remote_address
-        ws.write_timeout = options.write_timeout
+        ws.write_timeout = _write_timeout(options)
 
     async def recv(self) -> str | bytes:
         try:
@@ -190,6 +192,16 @@ class WebSocketsConnection(Connection):
         if protocol.state is not State.CLOSED:
             return None
         return protocol.close_rcvd if protocol.close_rcvd is not None else protocol.close_sent
+
+
+def _write_timeout(options: Options) -> float | None:
+    """How long a connection may stay congested: ``write_timeout``, and with keepalive on, no
+    longer than a ping interval and a ping timeout, in which a ping sent while it is congested
+    would have gone unanswered (websockets starts the pong deadline only once it drained)."""
+    timeouts = [options.write_timeout]
+    if options.ping_interval is not None and options.ping_timeout is not None:
+        timeouts.append(options.ping_interval + options.ping_timeout)
+    return min((t for t in timeouts if t is not None), default=None)
 
 
 def _write_limit(options: Options) -> int:
