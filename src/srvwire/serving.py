@@ -14,9 +14,12 @@ Invariants:
   to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
   reader task takes over. A batch's calls run in tasks of their own, started once the whole
   batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
-* **The reader waits only to send**, which is what pushes back on a client that writes
-  faster than it reads: a reply held by such a client counts in flight until it is sent, so
-  past ``max_in_flight`` the reader answers the next call itself, and waits.
+* **The reader waits only to send, and while the connection is congested**, which is what
+  pushes back on a client that writes faster than it reads: a reply held by such a client
+  counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
+  itself, and waits; and while the bytes waiting to be sent are past the connection's budget
+  (:attr:`~srvwire.transports.base.Connection.congested`), it reads nothing, and a batch's call
+  waits before its handler runs: no reply is built that could not be queued.
 * **A deadline is a cancellation with a reason.** A call's ``_meta.timeout`` is armed as one
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
@@ -70,6 +73,7 @@ class CallRunner:
     """
 
     __slots__ = (
+        "conn",
         "counted",
         "executor",
         "identity",
@@ -86,6 +90,7 @@ class CallRunner:
         session: ServerSession[ServiceEntry],
         send: Callable[[bytes], Awaitable[None]],
         *,
+        conn: Connection,
         peer: Any,
         executor: Executor | None,
         logger: logging.Logger,
@@ -94,6 +99,7 @@ class CallRunner:
     ) -> None:
         self.session = session
         self.send = send
+        self.conn = conn
         self.peer = peer
         self.identity = identity
         self.executor = executor
@@ -216,6 +222,12 @@ class CallRunner:
             if context._cancel_error is not None:  # cancelled before it started
                 reply = session.fail(call, context._cancel_error)
             else:
+                if call.batch is not None and self.conn.congested:  # see the invariants
+                    try:
+                        await self.conn.writable()
+                    except TransportClosed:  # nobody to answer: do not run it
+                        session.forget(call)
+                        return
                 result = await dispatch(
                     entry, call.params, context, executor=self.executor, logger=log
                 )
@@ -321,6 +333,7 @@ class ServedConnection:
         self.runner = CallRunner(
             self.session,
             self.send,
+            conn=conn,
             peer=conn.remote_address,
             executor=executor,
             logger=logger,
@@ -462,6 +475,8 @@ class ServedConnection:
         assert reader is not None
         while True:
             try:
+                if conn.congested:  # read nothing while what waits to be sent is past the budget
+                    await conn.writable()
                 data = await conn.recv()
             except TransportClosed as exc:
                 if exc.clean:
