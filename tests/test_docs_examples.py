@@ -42,6 +42,9 @@ RUN_ELSEWHERE = {
 # any URL written as PORT, since each run listens on a port of its own.
 SCRIPTS = {
     "quickstart.py": "2 + 3 = 5\n",
+    "blocking_handlers.py": (
+        "calibrate: the deadline passed\nthe handler stopped early, at step 0\n2 + 3 = 5\n"
+    ),
     "field_names.py": '{"from":3,"to":0}\n',
     "handling_errors.py": (
         "sum: 3\n"

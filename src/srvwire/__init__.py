@@ -32,6 +32,7 @@ from srvwire.loader import (
 )
 from srvwire.models import Action, Message, Service
 from srvwire.server import RunningServer, Server, serve
+from srvwire.threads import HandlerThreads
 from srvwire.transports.base import Transport
 from srvwire.transports.memory import MemoryTransport
 from srvwire.version import __version__
@@ -44,6 +45,7 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "HandlerThreads",
     "InterfaceError",
     "InterfaceLoader",
     "InterfaceNotFoundError",

@@ -123,16 +123,29 @@ class Server:
 
     # --- services ---------------------------------------------------------------------------
 
-    def add_service(self, name: str, srv_type: type[Service], handler: Handler) -> None:
+    def add_service(
+        self,
+        name: str,
+        srv_type: type[Service],
+        handler: Handler,
+        *,
+        max_concurrency: int | None = None,
+    ) -> None:
         """Serve ``handler`` for ``srv_type`` under ``name``; tell connected clients.
 
+        ``max_concurrency`` bounds how many calls of this service run their handler at once,
+        over all connections; the others wait for a slot, in order, within their deadline. A
+        blocking handler holds its slot until it returns, even after its caller left, so a slow
+        service cannot take more threads than that.
+
         Raise :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
-        a type that is not a service type, or a handler that cannot be called as one. Safe to
-        call from any thread: while the server listens, the change is made on its event loop.
+        a type that is not a service type, a handler that cannot be called as one, or a
+        ``max_concurrency`` below 1. Safe to call from any thread: while the server listens, the
+        change is made on its event loop.
         """
 
         def add() -> None:
-            self.registry.add(name, srv_type, handler)
+            self.registry.add(name, srv_type, handler, max_concurrency=max_concurrency)
             self._services_changed()
 
         self._change_services(add)
@@ -150,11 +163,16 @@ class Server:
 
         self._change_services(remove)
 
-    def service(self, name: str, srv_type: type[Service]) -> Callable[[H], H]:
-        """Decorate a handler to serve it under ``name``; the handler is returned unchanged."""
+    def service(
+        self, name: str, srv_type: type[Service], *, max_concurrency: int | None = None
+    ) -> Callable[[H], H]:
+        """Decorate a handler to serve it under ``name``; the handler is returned unchanged.
+
+        ``max_concurrency`` is :meth:`add_service`'s.
+        """
 
         def register(handler: H) -> H:
-            self.add_service(name, srv_type, handler)
+            self.add_service(name, srv_type, handler, max_concurrency=max_concurrency)
             return handler
 
         return register
