@@ -38,7 +38,14 @@ from srvwire.models import Service
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
 from srvwire.transports import get_transport
-from srvwire.transports.base import Connection, Listener, Options, Transport, TransportClosed
+from srvwire.transports.base import (
+    Connection,
+    Hosts,
+    Listener,
+    Options,
+    Transport,
+    TransportClosed,
+)
 
 __all__ = ["RunningServer", "Server", "serve"]
 
@@ -48,6 +55,27 @@ H = TypeVar("H", bound=Handler)
 # them its own way (srvwire serve) to leave out: record.srvwire_lifecycle is True.
 _LIFECYCLE = {"srvwire_lifecycle": True}
 _LOOP_CHECK_INTERVAL = 1.0  # seconds between checks that a loop we wait on still runs
+
+
+@contextlib.contextmanager
+def _show_log_unless_configured() -> Generator[None, None, None]:
+    """Show the ``srvwire`` loggers on stderr at INFO while in the block, when nothing else
+    would show them; leave a configured logging alone."""
+    package = logging.getLogger("srvwire")
+    if package.hasHandlers():
+        yield
+        return
+    handler = logging.StreamHandler()  # stderr
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    level = package.level
+    package.addHandler(handler)
+    if package.getEffectiveLevel() > logging.INFO:
+        package.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        package.removeHandler(handler)
+        package.setLevel(level)
 
 
 def _running_loop() -> asyncio.AbstractEventLoop | None:
@@ -69,6 +97,9 @@ class Server:
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
     calls down); ``executor`` runs sync handlers (default: the server's own
     :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive).
+    ``access_log=True`` writes a line per call to the ``srvwire.access`` logger (or to the
+    logger given): peer, service, outcome and duration (see
+    :class:`~srvwire.serving.AccessLoggedSession`); off, it costs nothing.
     """
 
     def __init__(
@@ -84,6 +115,7 @@ class Server:
         compression: str | None = None,
         executor: Executor | None = None,
         logger: logging.Logger | None = None,
+        access_log: bool | logging.Logger = False,
     ) -> None:
         if max_in_flight < 1:
             raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
@@ -106,6 +138,13 @@ class Server:
         self.compression = compression
         self.executor: Executor = executor if executor is not None else HandlerThreads()
         self.logger = logger if logger is not None else logging.getLogger(__name__)
+        self.access_log: logging.Logger | None = (
+            access_log
+            if isinstance(access_log, logging.Logger)
+            else logging.getLogger("srvwire.access")
+            if access_log
+            else None
+        )
         self._running: set[RunningServer] = set()
 
     def __repr__(self) -> str:
@@ -222,7 +261,7 @@ class Server:
 
     def run(
         self,
-        host: str = "127.0.0.1",
+        host: Hosts = "127.0.0.1",
         port: int = 8765,
         *,
         ready: Callable[[RunningServer], object] | None = None,
@@ -232,15 +271,19 @@ class Server:
         """Serve until Ctrl-C or SIGTERM, then shut down gracefully; for scripts.
 
         The blocking form of :meth:`serve_forever`, which describes ``ready`` and ``stopping``.
+        When logging is not configured for srvwire (no handler on the ``srvwire`` logger, its
+        parents or the root), srvwire's log is shown on stderr at INFO while it runs: the
+        ``serving ... on URL, ...`` line, the shutdown, warnings, the access log if on.
+        Configure logging (``logging.basicConfig(...)``) and nothing is added.
         """
-        with contextlib.suppress(KeyboardInterrupt):
+        with contextlib.suppress(KeyboardInterrupt), _show_log_unless_configured():
             asyncio.run(
                 self.serve_forever(host, port, ready=ready, stopping=stopping, transport=transport)
             )
 
     async def serve_forever(
         self,
-        host: str = "127.0.0.1",
+        host: Hosts = "127.0.0.1",
         port: int = 8765,
         *,
         ready: Callable[[RunningServer], object] | None = None,
@@ -272,7 +315,11 @@ class Server:
                 count = len(self.registry)
                 services = "service" if count == 1 else "services"
                 self.logger.info(
-                    "serving %d %s on %s", count, services, running.url, extra=_LIFECYCLE
+                    "serving %d %s on %s",
+                    count,
+                    services,
+                    ", ".join(running.urls),
+                    extra=_LIFECYCLE,
                 )
                 if ready is not None:
                     ready(running)
@@ -299,7 +346,7 @@ class serve:
     def __init__(
         self,
         server: Server,
-        host: str = "127.0.0.1",
+        host: Hosts = "127.0.0.1",
         port: int = 8765,
         *,
         transport: str | Transport = "websockets",
@@ -347,7 +394,7 @@ class RunningServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._close_task: asyncio.Task[None] | None = None
 
-    async def _start(self, host: str, port: int) -> None:
+    async def _start(self, host: Hosts, port: int) -> None:
         self._loop = asyncio.get_running_loop()
         self._listener = await self.transport.listen(self._handle, host, port, self.server.options)
         self.host = self._listener.host
@@ -359,6 +406,13 @@ class RunningServer:
         """The address clients connect to, such as ``ws://127.0.0.1:8765``."""
         assert self._listener is not None
         return self._listener.url
+
+    @property
+    def urls(self) -> list[str]:
+        """Every address clients can connect to, :attr:`url` first: on a wildcard host
+        (``0.0.0.0``, ``::``, None), each address of the machine's interfaces."""
+        assert self._listener is not None
+        return self._listener.urls
 
     def __repr__(self) -> str:
         state = "closing" if self.closing else "serving"
@@ -453,6 +507,7 @@ class RunningServer:
             notification_timeout=server.notification_timeout,
             executor=server.executor,
             logger=server.logger,
+            access_log=server.access_log,
         )
         if self.closing:
             conn.session.close()

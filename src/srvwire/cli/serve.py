@@ -1,8 +1,9 @@
 """``srvwire serve``: run the services of a :class:`~srvwire.server.Server` defined in user code.
 
 TARGET is ``module[:attr]`` or ``file.py[:attr]``; the attribute defaults to ``server``, then
-``app``. The first line printed is always ``serving N services on URL``. Ctrl-C or SIGTERM stops
-the server gracefully and exits with 0.
+``app``. The first line printed is always ``serving N services on URL[, URL...]``, with every
+address the server can be reached at. Ctrl-C or SIGTERM stops the server gracefully and exits
+with 0.
 """
 
 from __future__ import annotations
@@ -44,7 +45,10 @@ def register(commands: Commands) -> None:
         help="TARGET is a function that takes no arguments and returns the Server",
     )
     serve.add_argument(
-        "--host", default="127.0.0.1", help="interface to listen on (default: 127.0.0.1)"
+        "--host",
+        action="append",
+        help="interface to listen on (default: 127.0.0.1); give it again to listen on several "
+        "(--host 0.0.0.0 --host :: for every IPv4 and IPv6 interface), or '' for every one",
     )
     serve.add_argument(
         "--port",
@@ -59,11 +63,20 @@ def register(commands: Commands) -> None:
         default="info",
         help="how much the server logs to stderr (default: info)",
     )
+    serve.add_argument(
+        "--access-log",
+        action="store_true",
+        help="log a line per call: peer, service, outcome, duration (logger srvwire.access)",
+    )
     serve.set_defaults(command=_cmd_serve)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     server = _load_target(args.target, factory=args.factory)
+    hosts: list[str] = args.host or ["127.0.0.1"]
+    host: str | list[str] = hosts[0] if len(hosts) == 1 else hosts
+    if args.access_log:
+        server.access_log = logging.getLogger("srvwire.access")
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     handler.addFilter(_printed_already)
@@ -74,7 +87,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     def ready(running: RunningServer) -> None:
         services = server.registry.services()
-        print(f"serving {plural(len(services), 'service')} on {running.url}", flush=True)
+        urls = ", ".join(running.urls)
+        print(f"serving {plural(len(services), 'service')} on {urls}", flush=True)
         for name, type_name in services:
             print(f"  {name} [{type_name}]", flush=True)
 
@@ -83,11 +97,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         # run() stops on SIGINT or SIGTERM, and takes a KeyboardInterrupt where it cannot.
-        server.run(args.host, args.port, ready=ready, stopping=stopping)
+        server.run(host, args.port, ready=ready, stopping=stopping)
     except BrokenPipeError:
         raise  # stdout was closed, which is not a listening problem
     except OSError as exc:
-        raise CommandError(f"cannot listen on {args.host}:{args.port}: {exc}") from None
+        where = ", ".join(f"{h}:{args.port}" for h in hosts)
+        raise CommandError(f"cannot listen on {where}: {exc}") from None
     finally:
         package_logger.removeHandler(handler)
         package_logger.setLevel(previous_level)

@@ -27,13 +27,14 @@ Rules every transport keeps:
 from __future__ import annotations
 
 import abc
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 __all__ = [
     "Connection",
     "ConnectionHandler",
+    "Hosts",
     "Listener",
     "Options",
     "Transport",
@@ -132,6 +133,10 @@ ConnectionHandler = Callable[[Connection], Awaitable[None]]
 """What a listener runs for each connection; the connection is closed when it returns."""
 
 
+Hosts = str | Sequence[str] | None
+"""Where to listen: one host, several, or None for every interface (IPv4 and IPv6)."""
+
+
 class Listener(abc.ABC):
     """Where a transport accepts connections, until :meth:`close`."""
 
@@ -139,6 +144,11 @@ class Listener(abc.ABC):
     port: int
     url: str
     """The address clients connect to, with the port really bound (useful with port 0)."""
+
+    @property
+    def urls(self) -> list[str]:
+        """Every address clients can connect to, :attr:`url` first."""
+        return [self.url]
 
     @abc.abstractmethod
     def close(self) -> None:
@@ -157,11 +167,13 @@ class Transport(abc.ABC):
 
     @abc.abstractmethod
     async def listen(
-        self, handler: ConnectionHandler, host: str, port: int, options: Options
+        self, handler: ConnectionHandler, host: Hosts, port: int, options: Options
     ) -> Listener:
         """Accept connections on ``host``:``port`` (0: any free port) and run ``handler``.
 
-        Raise :class:`OSError` when the address cannot be used.
+        ``host`` may name several hosts, or be None for every interface, where the transport
+        can listen on more than one. Raise :class:`OSError` when the address cannot be used,
+        ``ValueError`` for hosts the transport cannot listen on.
         """
 
     @abc.abstractmethod

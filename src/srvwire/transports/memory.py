@@ -42,6 +42,7 @@ from typing import Any
 from srvwire.transports.base import (
     Connection,
     ConnectionHandler,
+    Hosts,
     Listener,
     Options,
     Transport,
@@ -255,8 +256,10 @@ class MemoryTransport(Transport):
         self._connections = 0
 
     async def listen(
-        self, handler: ConnectionHandler, host: str, port: int, options: Options
+        self, handler: ConnectionHandler, host: Hosts, port: int, options: Options
     ) -> MemoryListener:
+        if not isinstance(host, str):
+            raise ValueError(f"the memory transport listens on one host name, not {host!r}")
         if port == 0:
             while (host.lower(), self._next_port) in self._listeners:
                 self._next_port += 1

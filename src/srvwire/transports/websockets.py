@@ -13,9 +13,24 @@ Exceptions are mapped here and nowhere else:
 * ``OSError`` and ``WebSocketException`` while connecting -> :class:`TransportError`, with the
   same text;
 * ``InvalidURI`` from :meth:`WebSocketsTransport.check_url` -> ``ValueError``.
+
+A listener can listen on several hosts (``asyncio``'s ``create_server`` takes a list), or on
+every interface, IPv4 and IPv6, with ``host=None``; its :attr:`~WebSocketsListener.urls` name
+each address clients can use, with the interfaces' own addresses for a wildcard
+(``0.0.0.0``, ``::``). ``websockets``' own INFO lines (a connection opened, closed, the server
+listening) are left out unless its logger's level was set (:class:`_QuietLogger`); its
+warnings and errors always go through.
 """
 
 from __future__ import annotations
+
+import ipaddress
+import logging
+import socket
+import struct
+import sys
+from collections.abc import Sequence
+from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.server import Server, ServerConnection, serve
@@ -27,6 +42,7 @@ from websockets.uri import parse_uri
 from srvwire.transports.base import (
     Connection,
     ConnectionHandler,
+    Hosts,
     Listener,
     Options,
     Transport,
@@ -48,6 +64,81 @@ def _closed(exc: ConnectionClosed) -> TransportClosed:
 def _url(host: str, port: int) -> str:
     """Return the ``ws://`` URL of ``host``:``port``, with an IPv6 host in brackets."""
     return f"ws://[{host}]:{port}" if ":" in host else f"ws://{host}:{port}"
+
+
+_WILDCARDS = ("", "0.0.0.0", "::")
+_SIOCGIFADDR = 0x8915  # Linux's ioctl for the IPv4 address of an interface
+_LINK_LOCAL_SCOPE = 0x20  # in /proc/net/if_inet6: needs a zone (%eth0) to be used
+
+
+def interface_addresses(family: socket.AddressFamily) -> list[str]:
+    """This machine's addresses in ``family`` (IPv4 or IPv6), loopback first.
+
+    On Linux, every interface's (IPv6 link-local ones left out: they need a zone); elsewhere,
+    what the host name resolves to. Never raises: at worst, loopback alone.
+    """
+    found: list[str] = []
+    if sys.platform.startswith("linux"):
+        found = _linux_ipv4() if family == socket.AF_INET else _linux_ipv6()
+    if not found:
+        try:
+            infos = socket.getaddrinfo(socket.gethostname(), None, family, socket.SOCK_STREAM)
+        except OSError:
+            infos = []
+        found = [str(info[4][0]) for info in infos]
+    loopback = "127.0.0.1" if family == socket.AF_INET else "::1"
+    ordered = [loopback] + [a for a in found if not ipaddress.ip_address(a).is_loopback]
+    return list(dict.fromkeys(ordered))
+
+
+def _linux_ipv4() -> list[str]:
+    import fcntl
+
+    found = []
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        for _, name in socket.if_nameindex():
+            request = struct.pack("256s", name.encode()[:15])
+            try:
+                answer = fcntl.ioctl(probe.fileno(), _SIOCGIFADDR, request)
+            except OSError:  # the interface has no IPv4 address
+                continue
+            found.append(socket.inet_ntoa(answer[20:24]))
+    return found
+
+
+def _linux_ipv6() -> list[str]:
+    try:
+        with open("/proc/net/if_inet6", encoding="ascii") as lines:
+            rows = [line.split() for line in lines]
+    except OSError:
+        return []
+    return [
+        str(ipaddress.IPv6Address(bytes.fromhex(row[0])))
+        for row in rows
+        if len(row) >= 4 and int(row[3], 16) != _LINK_LOCAL_SCOPE
+    ]
+
+
+class _QuietLogger(logging.LoggerAdapter[logging.Logger]):
+    """``websockets.server`` without its INFO lines unless asked for; warnings always pass.
+
+    A line at INFO or DEBUG goes through only when the level of ``websockets.server`` (or of
+    ``websockets``) was set, to that level or lower: ``logging.basicConfig(level=INFO)`` alone
+    then does not print a line for every connection.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(logging.getLogger("websockets.server"), None)
+
+    def isEnabledFor(self, level: int) -> bool:
+        if level < logging.WARNING:
+            chosen = self.logger.level or logging.getLogger("websockets").level
+            if not chosen or level < chosen:
+                return False
+        return self.logger.isEnabledFor(level)
+
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        return msg, kwargs  # keep the extra websockets adds for each connection
 
 
 class WebSocketsConnection(Connection):
@@ -98,16 +189,37 @@ class WebSocketsConnection(Connection):
 class WebSocketsListener(Listener):
     """A ``websockets`` server; closing it keeps the connections it accepted.
 
-    ``host`` is the name it was asked to listen on (``localhost`` stays ``localhost``), else
-    the address its first socket bound; ``port`` is the port really bound.
+    ``urls`` are the addresses clients can use: for one host name, that name (``localhost``
+    stays ``localhost``); for a wildcard (``0.0.0.0``, ``::``, None), each address of the
+    interfaces of its family, loopback first; for several hosts, each. ``url`` is the first,
+    and ``host`` and ``port`` are its. With port 0, each socket has a port of its own.
     """
 
-    def __init__(self, server: Server, host: str | None = None) -> None:
+    def __init__(self, server: Server, host: Hosts = None) -> None:
         self._server = server
-        address = server.sockets[0].getsockname()
-        self.host = host or address[0]
-        self.port = address[1]
-        self.url = _url(self.host, self.port)
+        sockets = list(server.sockets)
+        if isinstance(host, str) and host not in _WILDCARDS:
+            address = sockets[0].getsockname()
+            self._urls = [_url(host, address[1])]
+            self.host, self.port = host, address[1]
+        else:
+            urls: list[str] = []
+            for sock in sockets:
+                address = sock.getsockname()
+                bound, port = str(address[0]), int(address[1])
+                if ipaddress.ip_address(bound).is_unspecified:
+                    urls += [_url(a, port) for a in interface_addresses(sock.family)]
+                else:
+                    urls.append(_url(bound, port))
+            self._urls = list(dict.fromkeys(urls))
+            first = sockets[0].getsockname()
+            self.port = int(first[1])
+            self.host = self._urls[0].removeprefix("ws://").rsplit(":", 1)[0].strip("[]")
+        self.url = self._urls[0]
+
+    @property
+    def urls(self) -> list[str]:
+        return list(self._urls)
 
     def close(self) -> None:
         self._server.close(close_connections=False)
@@ -122,20 +234,26 @@ class WebSocketsTransport(Transport):
     name = "websockets"
 
     async def listen(
-        self, handler: ConnectionHandler, host: str, port: int, options: Options
+        self, handler: ConnectionHandler, host: Hosts, port: int, options: Options
     ) -> WebSocketsListener:
         async def handle(ws: ServerConnection) -> None:
             # When this returns, websockets closes with 1000; when it raises, with 1011.
             await handler(WebSocketsConnection(ws))
 
+        if isinstance(host, Sequence) and not isinstance(host, str):
+            host = list(host)  # create_server takes a list of hosts
+            if not host:
+                raise ValueError("no host to listen on: name one, or None for every interface")
+        hosts: Any = host
         server = await serve(
             handle,
-            host,
+            hosts,
             port,
             compression=options.compression,
             max_size=options.max_message_size,
             ping_interval=options.ping_interval,
             ping_timeout=options.ping_timeout,
+            logger=_QuietLogger(),
         )
         return WebSocketsListener(server, host)
 
