@@ -184,8 +184,8 @@ class Context:
         return self._cancelled
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Block this thread up to ``timeout`` seconds (None: until the call ends), or until the
-        call is cancelled or its deadline passes; return whether it was.
+        """Block this thread until the call is cancelled or its deadline passes, or for
+        ``timeout`` seconds at most (None: no limit); return whether the call is over.
 
         A blocking handler's ``time.sleep(t)`` that stops when its caller no longer waits:
         ``if context.wait(t): return``. Never call it from an ``async`` handler, which would

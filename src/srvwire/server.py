@@ -337,6 +337,9 @@ class Server:
 class serve:
     """Serve ``server`` on ``host``:``port`` (0 picks a free port) over ``transport``.
 
+    ``host`` may also be a list of hosts, or None for every interface, IPv4 and IPv6 (on the
+    WebSocket transport); :attr:`RunningServer.urls` then names each address.
+
     ``transport`` is ``"websockets"`` (the default) or a :class:`~srvwire.transports.base.Transport`
     such as a :class:`~srvwire.transports.memory.MemoryTransport`. Use it as
     ``async with serve(server) as running: ...`` (closed on exit) or as
