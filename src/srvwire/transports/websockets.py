@@ -119,6 +119,13 @@ def _linux_ipv6() -> list[str]:
     ]
 
 
+def _socket_order(sock: socket.socket) -> tuple[bool, bool, Any]:
+    """IPv4 first, then IPv6; in each, a wildcard or loopback first, then by address."""
+    address = ipaddress.ip_address(sock.getsockname()[0])
+    local = address.is_unspecified or address.is_loopback
+    return sock.family != socket.AF_INET, not local, address
+
+
 class _QuietLogger(logging.LoggerAdapter[logging.Logger]):
     """``websockets.server`` without its INFO lines unless asked for; warnings always pass.
 
@@ -191,13 +198,14 @@ class WebSocketsListener(Listener):
 
     ``urls`` are the addresses clients can use: for one host name, that name (``localhost``
     stays ``localhost``); for a wildcard (``0.0.0.0``, ``::``, None), each address of the
-    interfaces of its family, loopback first; for several hosts, each. ``url`` is the first,
-    and ``host`` and ``port`` are its. With port 0, each socket has a port of its own.
+    interfaces of its family, loopback first; for several hosts, each. IPv4 comes before IPv6.
+    ``url`` is the first, and ``host`` and ``port`` are its. With port 0, each socket has a
+    port of its own.
     """
 
     def __init__(self, server: Server, host: Hosts = None) -> None:
         self._server = server
-        sockets = list(server.sockets)
+        sockets = sorted(server.sockets, key=_socket_order)  # asyncio's order is a set's
         if isinstance(host, str) and host not in _WILDCARDS:
             address = sockets[0].getsockname()
             self._urls = [_url(host, address[1])]
@@ -212,9 +220,8 @@ class WebSocketsListener(Listener):
                 else:
                     urls.append(_url(bound, port))
             self._urls = list(dict.fromkeys(urls))
-            first = sockets[0].getsockname()
-            self.port = int(first[1])
             self.host = self._urls[0].removeprefix("ws://").rsplit(":", 1)[0].strip("[]")
+            self.port = int(sockets[0].getsockname()[1])
         self.url = self._urls[0]
 
     @property
