@@ -90,16 +90,23 @@ async def test_handlers_past_their_deadline_do_not_starve_a_fast_service(
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         for id in range(8):
-            await w.send(call("slow", id, timeout=scaled(0.2)))
+            await w.send(call("slow", id, timeout=scaled(1)))
+        assert {await blocker.next_start(), await blocker.next_start()} == {1, 2}
         replies = [await w.recv_reply() for _ in range(8)]
         assert [status(r) for r in replies] == ["DEADLINE_EXCEEDED"] * 8
-        # The first two ran; a replacement may have taken a call whose deadline had not quite
-        # passed yet. Every one that runs still blocks its thread, and was abandoned.
+        # A replacement may have taken a call whose deadline had not quite passed yet. Every
+        # handler that runs still blocks its thread, and was abandoned.
         assert 2 <= blocker.runs == blocker.running == threads.abandoned
         reply = await w.call(call("fast", 100, timeout=scaled(5)))
         assert reply["result"] == {"difference": 1}
         blocker.release.set()
         await w.ws.close()
+
+
+async def cancel(w: Any, id: int) -> None:
+    """``$/cancel`` the call ``id`` and check that it answered ``CANCELLED``."""
+    await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": id}})
+    assert status(await w.recv_reply()) == "CANCELLED"
 
 
 async def test_the_cap_on_abandoned_threads_is_logged(
@@ -111,10 +118,10 @@ async def test_the_cap_on_abandoned_threads_is_logged(
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         with caplog.at_level(logging.WARNING, "srvwire.threads"):
-            for id in range(2):  # one after the other: each runs, then its caller leaves
-                reply = await w.call(call("slow", id, timeout=scaled(0.1)))
-                assert status(reply) == "DEADLINE_EXCEEDED"
-                assert await blocker.next_start() == id + 1
+            for id in (1, 2):  # one after the other: each runs, then its caller leaves
+                await w.send(call("slow", id))
+                assert await blocker.next_start() == id
+                await cancel(w, id)
         assert threads.abandoned == 1
         assert caplog.messages == [
             "1 blocking handlers still run after their callers left (the cap, max_abandoned); "
@@ -159,9 +166,9 @@ async def test_an_abandoned_handler_keeps_its_slot_until_it_returns(
     assert entry is not None and entry.limit is not None
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
-        reply = await w.call(call("slow", 1, timeout=scaled(0.1)))
-        assert status(reply) == "DEADLINE_EXCEEDED"
+        await w.send(call("slow", 1))
         assert await blocker.next_start() == 1
+        await cancel(w, 1)  # answered; its handler still runs
         reply = await w.call(call("slow", 2, timeout=scaled(0.1)))
         assert status(reply) == "DEADLINE_EXCEEDED"  # it waited for the slot, and never ran
         assert blocker.runs == 1
@@ -179,7 +186,10 @@ async def test_a_blocking_handler_sees_the_cancellation_and_stops_early(
     loop = asyncio.get_running_loop()
     outcomes: asyncio.Queue[tuple[bool, bool, float | None]] = asyncio.Queue()
 
+    entered: asyncio.Queue[None] = asyncio.Queue()
+
     def patient(request: Any, context: Any) -> Any:
+        loop.call_soon_threadsafe(entered.put_nowait, None)
         stopped = context.wait(scaled(30))  # ends when the call does, not after 30 s
         outcome = (stopped, context.cancelled, context.time_remaining())
         loop.call_soon_threadsafe(outcomes.put_nowait, outcome)
@@ -189,13 +199,16 @@ async def test_a_blocking_handler_sees_the_cancellation_and_stops_early(
     server.add_service("/patient", Subtract, patient)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
-        reply = await w.call(call("patient", 1, timeout=scaled(0.1)))
-        assert status(reply) == "DEADLINE_EXCEEDED"
+        await w.send(call("patient", 1, timeout=scaled(1)))
+        async with asyncio.timeout(scaled(5)):
+            await entered.get()
+        assert status(await w.recv_reply()) == "DEADLINE_EXCEEDED"
         async with asyncio.timeout(scaled(5)):
             assert await outcomes.get() == (True, True, 0.0)
         await w.send(call("patient", 2))
-        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 2}})
-        assert status(await w.recv_reply()) == "CANCELLED"
+        async with asyncio.timeout(scaled(5)):
+            await entered.get()
+        await cancel(w, 2)
         async with asyncio.timeout(scaled(5)):
             assert await outcomes.get() == (True, True, None)
         await w.ws.close()
