@@ -48,10 +48,11 @@ from typing import Any, TypeAlias
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import DeadlineExceeded, InternalError, RPCError
 from srvwire.inline import Pending, finish, first_step
-from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
+from srvwire.session import Call, CancelCall, Dropped, NotificationCall, Publish, ServerSession
+from srvwire.topics import Outbox, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
 
-__all__ = ["CallRunner", "ServedConnection"]
+__all__ = ["CallRunner", "ServedConnection", "Writer"]
 
 
 DROP_LOG_INTERVAL = 1.0
@@ -281,6 +282,59 @@ class CallRunner:
             self.session.done(note)
 
 
+class Writer:
+    """Sends what one connection's :class:`~srvwire.topics.Outbox` holds, one message at a time.
+
+    The outbox decides the order (control messages first, then subscriptions round-robin) and
+    the bounds (``depth`` per subscription, bytes per connection); the writer only takes the
+    next message and sends it, and each send waits while the transport's buffer is past its
+    high-water mark. So what a slow reader costs is what the outbox may hold plus what the
+    transport buffers, and while it waits, the outbox keeps deciding what to drop (best
+    effort) or end (reliable). Replies to calls do not go through it: they are sent at once,
+    so they never wait behind topic data.
+
+    It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
+    low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
+    """
+
+    __slots__ = ("conn", "loop", "outbox", "task", "waiter")
+
+    def __init__(self, conn: Connection, loop: asyncio.AbstractEventLoop) -> None:
+        self.conn = conn
+        self.loop = loop
+        self.outbox = Outbox(self.wake)
+        self.task: asyncio.Task[None] | None = None
+        self.waiter: asyncio.Future[None] | None = None
+
+    def wake(self) -> None:
+        """The outbox has something to send: start the task, or wake it."""
+        if self.task is None:
+            self.task = self.loop.create_task(self.run())
+        elif self.waiter is not None and not self.waiter.done():
+            self.waiter.set_result(None)
+
+    async def run(self) -> None:
+        outbox = self.outbox
+        send = self.conn.send
+        try:
+            while True:
+                data = outbox.next()
+                if data is None:
+                    self.waiter = self.loop.create_future()
+                    await self.waiter
+                    self.waiter = None
+                    continue
+                await send(data)
+        except TransportClosed:
+            outbox.close()
+
+    def stop(self) -> None:
+        """The connection ended: end every subscription and stop the task."""
+        self.outbox.close()
+        if self.task is not None:
+            self.task.cancel()
+
+
 class ServedConnection:
     """One client connection: its session, its reader, and the runner of its calls."""
 
@@ -298,6 +352,7 @@ class ServedConnection:
         "runner",
         "session",
         "tasks",
+        "writer",
     )
 
     def __init__(
@@ -315,8 +370,15 @@ class ServedConnection:
         self.log = logger
         identity = getattr(conn, "identity", None)
         scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
+        self.loop = asyncio.get_running_loop()
+        self.writer = Writer(conn, self.loop)
         self.session: ServerSession[ServiceEntry] = ServerSession(
-            registry, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes
+            registry,
+            max_in_flight=max_in_flight,
+            max_batch=max_batch,
+            scopes=scopes,
+            topics=registry.topics,
+            outbox=self.writer.outbox,
         )
         self.runner = CallRunner(
             self.session,
@@ -331,7 +393,6 @@ class ServedConnection:
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
         self.drops_timer: asyncio.TimerHandle | None = None  # says the count when it fires
-        self.loop = asyncio.get_running_loop()
         # Credentials that expire: past then, the session answers UNAUTHENTICATED.
         expires = getattr(identity, "expires", None)
         self.expiry: asyncio.TimerHandle | None = None
@@ -381,6 +442,7 @@ class ServedConnection:
         for cancel in self.session.cancel_all(error):
             runner.cancel(cancel.call, cancel.error)
         if error is None:
+            self.writer.stop()
             if self.expiry is not None:
                 self.expiry.cancel()
                 self.expiry = None
@@ -496,9 +558,42 @@ class ServedConnection:
                         await self.ignore_cancellation(None)
                 elif kind is CancelCall:
                     runner.cancel(event.call, event.error)
+                elif kind is Publish:
+                    await self.publish(event)
                 else:
                     assert kind is Dropped
                     self.dropped(event)
+
+    async def publish(self, event: Publish) -> None:
+        """A message a client published: validate it, hand it to the server's handlers (an
+        async one in a task of its own), then to the topic's subscribers; acknowledge it when
+        asked. A message that does not fit is answered INVALID_PARAMS, or logged."""
+        topic = event.topic
+        entry = topic.entry  # a srvwire.pubsub.TopicEntry
+        try:
+            message = entry.validate(event.message)
+        except RPCError as exc:
+            if event.id is not None:
+                await self.send(self.session.refuse(event.id, exc))
+            else:
+                self.log.info("dropped a message on %s from %s: %s", topic.name, self.peer, exc)
+            return
+        for handler in entry.handlers:
+            try:
+                result = handler(message)
+                if asyncio.iscoroutine(result):
+                    self.spawn(self.run_topic_handler(topic.name, result))
+            except Exception:
+                self.log.exception("the handler of %s failed", topic.name)
+        topic.publish(entry.write(message))
+        if event.id is not None:
+            await self.send(publish_ack(event.id))
+
+    async def run_topic_handler(self, name: str, coro: Any) -> None:
+        try:
+            await coro
+        except Exception:
+            self.log.exception("the handler of %s failed", name)
 
     def dropped(self, event: Dropped[ServiceEntry]) -> None:
         """Log a dropped notification, or count it if a line about drops was written less than
