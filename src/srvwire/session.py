@@ -40,6 +40,7 @@ Server invariants:
 from __future__ import annotations
 
 import itertools
+import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -59,9 +60,12 @@ from srvwire.errors import (
 from srvwire.protocol import (
     CANCEL_METHOD,
     DISCOVER_METHOD,
+    MESSAGE_METHOD,
     PUBLISH_METHOD,
     SERVICES_METHOD,
     SUBSCRIBE_METHOD,
+    SUBSCRIBED_METHOD,
+    TOPICS_METHOD,
     ErrorResponse,
     Id,
     Notification,
@@ -95,7 +99,10 @@ __all__ = [
     "Services",
     "ServicesChanged",
     "Stray",
+    "Subscribed",
+    "TopicMessage",
     "Topics",
+    "TopicsChanged",
 ]
 
 _PROTOCOL_PREFIX = "$/"
@@ -593,6 +600,41 @@ class ServicesChanged:
 
 
 @dataclass(slots=True)
+class TopicsChanged:
+    """The server's ``$/topics``: every topic it offers now, canonical name -> its entry
+    (``type``, ``qos``, ``publish``)."""
+
+    topics: dict[str, dict[str, Any]]
+
+
+@dataclass(slots=True)
+class Subscribed:
+    """The server's ``$/subscribed``: the subscription ``id`` started, with what it granted
+    (``seq``: the last sequence number the topic published)."""
+
+    id: int
+    granted: dict[str, Any]
+
+
+@dataclass(slots=True)
+class TopicMessage:
+    """One ``$/message`` of the subscription ``id``; ``message`` is JSON text when ``raw``
+    (read without parsing the rest), else parsed data."""
+
+    id: int
+    seq: int
+    dropped: int
+    message: Any
+    raw: bool
+
+
+_MESSAGE_OPENING = re.compile(
+    r'\{"jsonrpc":"2\.0","method":"\$/message","params":\{"subscription":([0-9]{1,18}),'
+    r'"seq":([0-9]{1,18}),"dropped":([0-9]{1,18}),"message":'
+)
+
+
+@dataclass(slots=True)
 class Stray:
     """A reply no call waits for (its caller gave up), or an error the server sent about a
     message it could not read (``id`` null); for the log."""
@@ -656,6 +698,12 @@ class ClientSession(Generic[W]):
         JSON-RPC: the connection cannot be trusted to route other replies either.
         """
         if type(data) is str:
+            if data.startswith('{"jsonrpc":"2.0","method":"$/message"') and data.endswith("}}"):
+                opening = _MESSAGE_OPENING.match(data)
+                if opening is not None:  # as a srvwire server writes it: the message unparsed
+                    id, seq, dropped = opening.groups()
+                    text = data[opening.end() : -2]
+                    return [TopicMessage(int(id), int(seq), int(dropped), text, True)]
             raw = peek_reply(data)
             if raw is not None:
                 waiter = self.pending.pop(raw.id, None)
@@ -675,13 +723,50 @@ class ClientSession(Generic[W]):
         events: list[Any] = []
         for message in messages:
             if isinstance(message, Notification):
-                if message.method == SERVICES_METHOD:
+                method = message.method
+                if method == SERVICES_METHOD:
                     events.append(services.pop(0))
+                elif method in _TOPIC_NEWS:
+                    events.append(_topic_news(message))
                 continue  # other notifications: for later versions
             id = message.id
             waiter = self.pending.pop(id, None) if type(id) is int else None
             events.append(Stray(message) if waiter is None else (waiter, message))
         return events
+
+
+_TOPIC_NEWS = frozenset({MESSAGE_METHOD, SUBSCRIBED_METHOD, TOPICS_METHOD})
+
+
+def _topic_news(message: Notification) -> TopicMessage | Subscribed | TopicsChanged:
+    """Read ``$/message``, ``$/subscribed`` or ``$/topics``; raise ProtocolViolation when it
+    is malformed."""
+    method = message.method
+    params = message.params if isinstance(message.params, dict) else {}
+    if method == TOPICS_METHOD:
+        listed = params.get("topics")
+        if isinstance(listed, list) and all(
+            isinstance(t, dict)
+            and isinstance(t.get("name"), str)
+            and isinstance(t.get("type"), str)
+            for t in listed
+        ):
+            return TopicsChanged({canonical_name(t["name"]): t for t in listed})
+        raise ProtocolViolation(
+            InvalidRequest(f"{TOPICS_METHOD} needs params {{'topics': [{{'name', 'type'}}]}}")
+        )
+    id = params.get("subscription")
+    if type(id) is not int:
+        raise ProtocolViolation(InvalidRequest(f"{method} needs an integer 'subscription'"))
+    if method == SUBSCRIBED_METHOD:
+        return Subscribed(id, params)
+    seq = params.get("seq")
+    dropped = params.get("dropped", 0)
+    if type(seq) is not int or type(dropped) is not int or "message" not in params:
+        raise ProtocolViolation(
+            InvalidRequest(f"{MESSAGE_METHOD} needs integers 'seq' and 'dropped', and 'message'")
+        )
+    return TopicMessage(id, seq, dropped, params["message"], False)
 
 
 def parse_services(message: Notification) -> dict[str, str]:

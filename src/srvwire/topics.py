@@ -58,6 +58,7 @@ from srvwire.protocol import (
 
 __all__ = [
     "DEFAULT_MAX_QUEUED_BYTES",
+    "Gaps",
     "Outbox",
     "QoS",
     "Subscription",
@@ -458,6 +459,48 @@ class TopicBoard(Generic[T]):
             duplicate = InvalidParams(f"id {id!r} is already a subscription on this connection")
             return ErrorResponse(id, duplicate).serialize()
         return outbox.subscribe(id, topic, qos)
+
+
+class Gaps:
+    """A subscriber's account of the sequence numbers it saw, across reconnections.
+
+    :meth:`accept` says whether a message is new (a resumed transient-local subscription
+    replays some it saw already) and counts in :attr:`missed` every message it did not get:
+    what the server dropped (best effort) and what was published while it was not subscribed.
+    A topic whose numbers went back (its server restarted) cannot be compared: counting starts
+    again, and :attr:`restarts` says so.
+    """
+
+    __slots__ = ("last", "missed", "restarts", "resumed")
+
+    def __init__(self) -> None:
+        self.last: int | None = None  # the last sequence number accepted
+        self.missed = 0
+        self.resumed = 0
+        self.restarts = 0
+
+    def subscribed(self, seq: int) -> None:
+        """A ``$/subscribed`` said the topic's last sequence number is ``seq``."""
+        last = self.last
+        if last is not None:
+            self.resumed += 1
+            if seq < last:
+                self.restarts += 1
+                self.last = None
+
+    def accept(self, seq: int, dropped: int) -> int | None:
+        """Account for message ``seq``; return how many were missed just before it, or None
+        when it is one seen already."""
+        last = self.last
+        if last is None:
+            missed = dropped
+        elif seq <= last:
+            return None
+        else:
+            missed = seq - last - 1
+        self.last = seq
+        self.missed += missed
+        return missed
 
 
 def topics_notification(topics: Iterable[Topic[Any]]) -> bytes:
