@@ -1081,6 +1081,7 @@ class Subscription:
         self._finish(error)
 
     def _finish(self, error: BaseException) -> None:
+        self.client._subscriptions.discard(self)
         if self._end is None:
             self._end = error
         if self._started is not None and not self._started.done():
