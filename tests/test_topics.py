@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import socket
+import sys
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -420,3 +424,82 @@ def test_declaring_topics_checks_names_types_and_handlers() -> None:
     assert json.loads(json.dumps(server.registry.discover()))["methods"][0]["name"] == (
         "/joint_states"
     )
+
+
+# --- a subscriber that never reads ---------------------------------------------------------------
+
+SERVERS = Path(__file__).parent / "servers"
+
+
+def rss(pid: int) -> int:
+    """The resident memory of process ``pid``, in bytes."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS")
+
+
+def masked_text_frame(text: str) -> bytes:
+    """One WebSocket text frame from a client (masked), written by hand."""
+    payload = text.encode()
+    assert len(payload) < 126
+    mask = os.urandom(4)
+    return (
+        bytes([0x81, 0x80 | len(payload)])
+        + mask
+        + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    )
+
+
+async def never_reading_subscriber(port: int, topic: str) -> asyncio.StreamWriter:
+    """Open a WebSocket by hand with a small receive buffer, subscribe to ``topic``, and never
+    read again (asyncio stops reading the socket once its own small buffer is full)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    reader, writer = await asyncio.open_connection(sock=sock, limit=4096)
+    writer.write(
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    assert (await reader.readuntil(b"\r\n\r\n")).startswith(b"HTTP/1.1 101")
+    subscribe = {"jsonrpc": "2.0", "id": 1, "method": "$/subscribe", "params": {"topic": topic}}
+    writer.write(masked_text_frame(json.dumps(subscribe)))
+    await writer.drain()
+    return writer
+
+
+async def test_a_subscriber_that_never_reads_costs_bounded_memory_and_slows_nobody() -> None:
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, str(SERVERS / "flooding_server.py"), stdout=asyncio.subprocess.PIPE
+    )
+    stalled = []
+    try:
+        assert process.stdout is not None
+        port = int(await asyncio.wait_for(process.stdout.readline(), scaled(20)))
+        url = f"ws://127.0.0.1:{port}"
+        stalled = [await never_reading_subscriber(port, "/flood") for _ in range(3)]
+        async with connect(url, timeout=scaled(10)) as client:
+            async with client.subscribe("/flood", qos={"depth": 100}) as sub:
+                for _ in range(1000):  # the stalled sockets' buffers fill meanwhile
+                    await sub.receive()
+                before = rss(process.pid)
+                received = 0
+                for n in range(3000):  # about 3 s, 30 MB published
+                    message = await sub.receive()
+                    assert len(message.data) == 10_000  # type: ignore[attr-defined]
+                    received += 1
+                    if n % 250 == 0:
+                        reply = await client.call("/add_two_ints", {"a": n, "b": 1})
+                        assert reply.sum == n + 1
+                after = rss(process.pid)
+        # Queued without bound, the stalled subscribers would hold 30 MB more by now (the
+        # messages' bytes are shared); bounded, they hold what they held before.
+        assert after - before < 10 * 2**20, (before, after)
+        assert received == 3000
+    finally:
+        for writer in stalled:
+            writer.close()
+        process.kill()
+        await process.wait()
