@@ -542,6 +542,44 @@ class Client:
         """
         return MappingProxyType({name: entry["type"] for name, entry in self._topics.items()})
 
+    async def topic_type(
+        self,
+        name: str,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> type[BaseModel]:
+        """Return the message class of the topic ``name``, as :meth:`subscribe` finds it."""
+        topic = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        deadline = asyncio.get_running_loop().time() + budget
+        link = self._link
+        if link is None:
+            raise self._not_connected(topic)
+        return await self._topic_type(link, topic, None, deadline, budget)
+
+    async def list_topics(
+        self,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> list[TopicInfo]:
+        """Ask the server for every topic it offers (``rpc.discover``), sorted by name."""
+        methods = await self._discover(timeout)
+        found = [
+            TopicInfo.of(
+                canonical_name(entry["name"]),
+                {
+                    "type": entry.get("x-srvwire-type"),
+                    "qos": entry.get("x-srvwire-qos"),
+                    "publish": entry.get("x-srvwire-publish"),
+                },
+            )
+            for entry in methods
+            if isinstance(entry, dict)
+            and entry.get("x-srvwire-kind") == "topic"
+            and isinstance(entry.get("name"), str)
+        ]
+        return sorted(found, key=lambda info: info.name)
+
     def subscribe(
         self,
         name: str,
