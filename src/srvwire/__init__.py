@@ -1,7 +1,7 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
 from srvwire.auth import Identity, TokenAuth
-from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
+from srvwire.client import Client, ServiceInfo, ServiceProxy, Subscription, TopicInfo, connect
 from srvwire.dispatch import Context
 from srvwire.errors import (
     Cancelled,
@@ -34,7 +34,9 @@ from srvwire.loader import (
     load_service,
 )
 from srvwire.models import Action, Message, Service
+from srvwire.pubsub import Publisher
 from srvwire.server import RunningServer, Server, serve
+from srvwire.topics import QoS
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
 from srvwire.typeregistry import TypeRegistry
@@ -62,6 +64,8 @@ __all__ = [
     "Message",
     "ParseError",
     "PermissionDenied",
+    "Publisher",
+    "QoS",
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
@@ -74,7 +78,9 @@ __all__ = [
     "ServiceProxy",
     "ServiceUnavailable",
     "SrvwireError",
+    "Subscription",
     "TokenAuth",
+    "TopicInfo",
     "Transport",
     "TypeRegistry",
     "Unauthenticated",
