@@ -503,3 +503,16 @@ async def test_a_subscriber_that_never_reads_costs_bounded_memory_and_slows_nobo
             writer.close()
         process.kill()
         await process.wait()
+
+
+async def test_closing_a_client_ends_its_subscriptions_quietly(
+    robot: Server, running: RunningServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    robot.topic("/joint_states", JointState)
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        sub = await client.subscribe("/joint_states").start()
+    assert not sub.active and client.in_flight == 0
+    with pytest.raises(StopAsyncIteration):
+        await sub.receive()
+    assert [r for r in caplog.records if r.levelname == "WARNING"] == []

@@ -191,6 +191,8 @@ class Client:
         # Take the link before stopping the supervisor: nothing that happens to the
         # supervisor may make this client forget a connection it still has to close.
         link = self._link
+        for subscription in list(self._subscriptions):
+            subscription._detach()  # ends with the connection: nothing to tell the server
         if self._supervisor is not None:
             self._supervisor.cancel()
             await asyncio.gather(self._supervisor, return_exceptions=True)
@@ -1103,6 +1105,19 @@ class Subscription:
         if isinstance(error, RPCError):
             error.service = self.name
         self._finish(error)
+
+    def _detach(self) -> None:
+        """The client is closing: end quietly, as the connection's end ends it on the server."""
+        self._closed = True
+        self._resuming = False
+        link, id, future = self._link, self._id, self._future
+        self._link = self._id = self._future = None
+        if link is not None and id is not None:
+            link.streams.pop(id, None)
+            link.session.pending.pop(id, None)
+        if future is not None:
+            future.cancel()
+        self._finish(StopAsyncIteration())
 
     def _abandon(self, error: RPCError) -> None:
         """End the subscription from this side with ``error``, telling the server."""
