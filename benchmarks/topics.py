@@ -31,7 +31,7 @@ PAYLOAD = "x" * 1000
 HERE = Path(__file__).resolve()
 
 
-# --- the servers (child processes) -----------------------------------------------------------------
+# --- the servers (child processes) ---------------------------------------------------------
 
 
 async def srvwire_server(count: int) -> None:
@@ -90,7 +90,7 @@ async def raw_server(count: int) -> None:
         await asyncio.Event().wait()
 
 
-# --- the subscribers (this process) ---------------------------------------------------------------
+# --- the subscribers (this process) --------------------------------------------------------
 
 
 async def run_srvwire(port: int, subscribers: int, count: int) -> float:

@@ -7,7 +7,8 @@ code) and the lines of its ``sh`` blocks that start with ``srvwire ``. Each runs
 ``main(argv)`` in a folder holding the files the page assumes. Samples that talk to a server
 get ``$SRVWIRE_URL``: the robot example's ``build_server()`` for the robot's services and for
 ``srvwire service`` and ``srvwire topic``, and a small server of the page's other services
-(``/add_two_ints``, ``/trigger``, ...) for the rest. What cannot run here is listed in ``NOT_RUN``, with the reason.
+(``/add_two_ints``, ``/trigger``, ...) for the rest. What cannot run here is listed in
+``NOT_RUN``, with the reason.
 """
 
 from __future__ import annotations
@@ -228,9 +229,7 @@ def test_sample(
     sample: Sample,
 ) -> None:
     words = sample.command.split()
-    robot = words[1] in ("service", "topic") or (
-        words[1] == "call" and words[2] in ROBOT_SERVICES
-    )
+    robot = words[1] in ("service", "topic") or (words[1] == "call" and words[2] in ROBOT_SERVICES)
     monkeypatch.setenv("SRVWIRE_URL", servers.robot if robot else servers.other)
     command, output = sample.command, sample.output
     if "ws://localhost:9999" in command:  # a server that is not there: a port nobody uses
