@@ -133,3 +133,31 @@ def test_the_topic_benchmark_runs_both_sides() -> None:
         raw, ours, ratio = (float(cell.replace(",", "")) for cell in row[1:])
         assert raw > 0 and ours > 0
         assert ratio == pytest.approx(ours / raw, abs=0.01)
+
+
+def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Path) -> None:
+    out = tmp_path / "sync.json"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "sync_client.py"), "--quick", "--json", out],
+        capture_output=True,
+        text=True,
+        timeout=scaled(300),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    rows = json.loads(out.read_text(encoding="utf-8"))
+    assert [row["measurement"] for row in rows] == [
+        "async",
+        "sync",
+        "async, 4 tasks",
+        "sync, 4 threads",
+        "sync, a connection per call",
+        "the hand-off alone, no call",
+    ]
+    [baseline] = [row["us_per_call"] for row in rows if row["measurement"] == "async"]
+    for row in rows:
+        assert row["rounds"] == 1
+        assert row["ratio_to_async"] == pytest.approx(row["us_per_call"] / baseline)
+        assert row["calls_per_second"] == pytest.approx(1e6 / row["us_per_call"])
+        assert f"{row['measurement']:<30} {row['us_per_call']:>12.1f}" in result.stdout

@@ -1,5 +1,6 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire import sync  # the blocking client: srvwire.sync.connect(url)
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, Subscription, TopicInfo, connect
 from srvwire.dispatch import Context
@@ -33,7 +34,7 @@ from srvwire.loader import (
     load_message,
     load_service,
 )
-from srvwire.models import Action, Message, Service
+from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
 from srvwire.pubsub import Publisher
 from srvwire.server import RunningServer, Server, serve
 from srvwire.topics import QoS
@@ -52,6 +53,7 @@ __all__ = [
     "ErrorCode",
     "Handshake",
     "Identity",
+    "InfNan",
     "InterfaceConflictError",
     "InterfaceError",
     "InterfaceLoader",
@@ -76,6 +78,7 @@ __all__ = [
     "ServiceInfo",
     "ServiceNotFound",
     "ServiceProxy",
+    "ServiceRequest",
     "ServiceUnavailable",
     "SrvwireError",
     "Subscription",
@@ -83,6 +86,7 @@ __all__ = [
     "TopicInfo",
     "Transport",
     "TypeRegistry",
+    "TypedService",
     "Unauthenticated",
     "__version__",
     "connect",
@@ -91,4 +95,5 @@ __all__ = [
     "load_message",
     "load_service",
     "serve",
+    "sync",
 ]

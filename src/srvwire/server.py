@@ -43,7 +43,7 @@ from srvwire.auth import Authenticator
 from srvwire.dispatch import Handler, ServiceRegistry, normalize_name
 from srvwire.errors import RegistrationError, ServiceUnavailable
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
-from srvwire.models import Service
+from srvwire.models import INF_NAN_MODES, InfNan, Service
 from srvwire.pubsub import Publisher, TopicEntry, check_handler, qos_of
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
@@ -58,6 +58,7 @@ from srvwire.transports.base import (
     Options,
     Transport,
     TransportClosed,
+    WriteTimedOut,
 )
 
 __all__ = ["RunningServer", "Server", "serve"]
@@ -90,11 +91,20 @@ class Server:
     it is sent); ``max_batch`` the messages of one batch; ``notification_timeout`` how long a
     notification's handler may run when the notification gives no deadline (None: forever);
     ``max_message_size`` the size of one incoming message in bytes (None: no limit);
+    ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent: past it the
+    connection reads no more calls until its client has read them down to a quarter of it;
+    ``write_timeout`` how long a connection may stay past its budget before it is closed with
+    code 1008 (None: forever; with keepalive on, at most ``ping_interval + ping_timeout``);
+    see ``docs/limits.md`` for what they bound;
     ``grace_period`` how long shutdown waits for calls in flight;
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
     calls down); ``executor`` runs sync handlers (default: the server's own
-    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive).
+    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive);
+    ``inf_nan`` how responses write ``inf``, ``-inf`` and ``nan``: ``"strings"`` (the default;
+    ``"Infinity"``, ``"-Infinity"``, ``"NaN"``), ``"null"`` or ``"constants"`` (the bare tokens
+    Python's :mod:`json` writes, which a browser cannot parse); requests are read in every
+    spelling (see :data:`~srvwire.models.InfNan`).
 
     At the edge (see :mod:`srvwire.handshake` and docs/security.md): ``origins`` lists the
     browser origins allowed besides pages of the server's own host (``"null"``, or ``"*"``
@@ -110,6 +120,8 @@ class Server:
         max_batch: int = 100,
         notification_timeout: float | None = 30.0,
         max_message_size: int | None = 2**20,
+        max_queued_bytes: int = 4 * 2**20,
+        write_timeout: float | None = 30.0,
         grace_period: float = 5.0,
         ping_interval: float | None = 20.0,
         ping_timeout: float | None = 20.0,
@@ -119,6 +131,7 @@ class Server:
         origins: Iterable[str] = (),
         auth: Authenticator | None = None,
         max_connections: int | None = 512,
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         if max_connections is not None and max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
@@ -139,13 +152,21 @@ class Server:
             raise ValueError(
                 f"notification_timeout must be a number of seconds > 0, not {notification_timeout}"
             )
+        if max_queued_bytes < 0:
+            raise ValueError(f"max_queued_bytes must not be negative, not {max_queued_bytes}")
+        if write_timeout is not None and not write_timeout > 0:
+            raise ValueError(
+                f"write_timeout must be a number of seconds > 0 or None, not {write_timeout}"
+            )
         if grace_period < 0:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
-        self.registry = ServiceRegistry()
+        self.registry = ServiceRegistry(inf_nan=inf_nan)
         self.max_in_flight = max_in_flight
         self.max_batch = max_batch
         self.notification_timeout = notification_timeout
         self.max_message_size = max_message_size
+        self.max_queued_bytes = max_queued_bytes
+        self.write_timeout = write_timeout
         self.grace_period = grace_period
         self.ping_interval = ping_interval
         self.ping_timeout = ping_timeout
@@ -165,6 +186,8 @@ class Server:
             ping_interval=self.ping_interval,
             ping_timeout=self.ping_timeout,
             compression=self.compression,
+            max_queued_bytes=self.max_queued_bytes,
+            write_timeout=self.write_timeout,
         )
 
     # --- services ---------------------------------------------------------------------------
@@ -692,6 +715,10 @@ class RunningServer:
             if topics is not None:
                 await transport_connection.send(topics)
             await conn.serve()
+        except WriteTimedOut as exc:
+            log.warning(
+                "closed the connection from %s with code %d: %s", conn.peer, exc.code, exc.reason
+            )
         except TransportClosed as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("connection from %s closed: %s", conn.peer, exc)

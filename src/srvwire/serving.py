@@ -14,9 +14,12 @@ Invariants:
   to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
   reader task takes over. A batch's calls run in tasks of their own, started once the whole
   batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
-* **The reader waits only to send**, which is what pushes back on a client that writes
-  faster than it reads: a reply held by such a client counts in flight until it is sent, so
-  past ``max_in_flight`` the reader answers the next call itself, and waits.
+* **The reader waits only to send, and while the connection is congested**, which is what
+  pushes back on a client that writes faster than it reads: a reply held by such a client
+  counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
+  itself, and waits; and while the bytes waiting to be sent are past the connection's budget
+  (:attr:`~srvwire.transports.base.Connection.congested`), it reads nothing, and a batch's call
+  waits before its handler runs: no reply is built that could not be queued.
 * **A deadline is a cancellation with a reason.** A call's ``_meta.timeout`` is armed as one
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
@@ -71,6 +74,7 @@ class CallRunner:
     """
 
     __slots__ = (
+        "conn",
         "counted",
         "executor",
         "identity",
@@ -87,6 +91,7 @@ class CallRunner:
         session: ServerSession[ServiceEntry],
         send: Callable[[bytes], Awaitable[None]],
         *,
+        conn: Connection,
         peer: Any,
         executor: Executor | None,
         logger: logging.Logger,
@@ -95,6 +100,7 @@ class CallRunner:
     ) -> None:
         self.session = session
         self.send = send
+        self.conn = conn
         self.peer = peer
         self.identity = identity
         self.executor = executor
@@ -217,6 +223,12 @@ class CallRunner:
             if context._cancel_error is not None:  # cancelled before it started
                 reply = session.fail(call, context._cancel_error)
             else:
+                if call.batch is not None and self.conn.congested:  # see the invariants
+                    try:
+                        await self.conn.writable()
+                    except TransportClosed:  # nobody to answer: do not run it
+                        session.forget(call)
+                        return
                 result = await dispatch(
                     entry, call.params, context, executor=self.executor, logger=log
                 )
@@ -287,11 +299,13 @@ class Writer:
 
     The outbox decides the order (control messages first, then subscriptions round-robin) and
     the bounds (``depth`` per subscription, bytes per connection); the writer only takes the
-    next message and sends it, and each send waits while the transport's buffer is past its
-    high-water mark. So what a slow reader costs is what the outbox may hold plus what the
-    transport buffers, and while it waits, the outbox keeps deciding what to drop (best
-    effort) or end (reliable). Replies to calls do not go through it: they are sent at once,
-    so they never wait behind topic data.
+    next message and sends it, and takes none while the connection is
+    :attr:`~srvwire.transports.base.Connection.congested` (past its budget of bytes waiting to
+    be sent). So what a slow reader costs is what the outbox may hold plus the connection's
+    budget, and while the writer waits, the outbox keeps deciding what to drop (best effort)
+    or end (reliable). Replies to calls do not go through it: they are sent at once, never
+    behind the data the outbox holds, and when a drain wakes a reply and the writer together,
+    the reply goes first.
 
     It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
     low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
@@ -315,9 +329,16 @@ class Writer:
 
     async def run(self) -> None:
         outbox = self.outbox
-        send = self.conn.send
+        conn = self.conn
+        send = conn.send
         try:
             while True:
+                if conn.congested:
+                    # Past the connection's budget: hold the data here, where the outbox
+                    # drops or ends per QoS, and let replies woken by the same drain go first.
+                    await conn.writable()
+                    await asyncio.sleep(0)
+                    continue
                 data = outbox.next()
                 if data is None:
                     self.waiter = self.loop.create_future()
@@ -383,6 +404,7 @@ class ServedConnection:
         self.runner = CallRunner(
             self.session,
             self.send,
+            conn=conn,
             peer=conn.remote_address,
             executor=executor,
             logger=logger,
@@ -524,6 +546,8 @@ class ServedConnection:
         assert reader is not None
         while True:
             try:
+                if conn.congested:  # read nothing while what waits to be sent is past the budget
+                    await conn.writable()
                 data = await conn.recv()
             except TransportClosed as exc:
                 if exc.clean:
