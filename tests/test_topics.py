@@ -22,6 +22,7 @@ from srvwire import (
     ResourceExhausted,
     Server,
     ServiceNotFound,
+    ServiceUnavailable,
     TokenAuth,
     connect,
     load_message,
@@ -516,3 +517,48 @@ async def test_closing_a_client_ends_its_subscriptions_quietly(
     with pytest.raises(StopAsyncIteration):
         await sub.receive()
     assert [r for r in caplog.records if r.levelname == "WARNING"] == []
+
+
+async def test_a_reply_goes_ahead_of_topic_data_the_server_holds() -> None:
+    # The connection's budget is small and its client reads nothing at first: the server holds
+    # most of a burst in the outbox. A call sent then is answered long before the burst ends.
+    server = Server(max_queued_bytes=20_000)
+
+    @server.service("/subtract", Subtract)
+    async def answer(request: Any) -> Any:  # async: answered on the reader, no thread
+        return subtract(request)
+
+    flood = server.topic("/flood", String, qos={"depth": 200})
+    transport = MemoryTransport()
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
+        params = {"topic": "/flood"}
+        await wire.send({"jsonrpc": "2.0", "id": 1, "method": "$/subscribe", "params": params})
+        assert (await recv_topic(wire))["method"] == "$/subscribed"
+        for n in range(100):
+            flood.publish({"data": f"{n:05d}" + "x" * 5000})
+        call = {"jsonrpc": "2.0", "id": 2, "method": "/subtract", "params": {"minuend": 5}}
+        await wire.send(call)
+        order = []
+        while len(order) < 101:
+            message = await recv_topic(wire)
+            order.append("reply" if message.get("id") == 2 else message["params"]["seq"])
+        assert order.index("reply") < 20, order  # behind the budget's few messages, not 100
+        assert [seq for seq in order if seq != "reply"] == list(range(1, 101))
+        await wire.ws.close()
+
+
+async def test_wait_for_topic_is_woken_by_the_announcement(
+    robot: Server, running: RunningServer
+) -> None:
+    async with client_of(running) as client:
+        waiting = asyncio.create_task(client.wait_for_topic("/joint_states"))
+        await client.call("/subtract", {"minuend": 1})  # the client is connected and reading
+        assert not waiting.done()
+        robot.topic("/joint_states", JointState)  # $/topics goes to every connection
+        info = await waiting
+        assert info.name == "/joint_states" and info.type == "sensor_msgs/msg/JointState"
+        assert dict(client.topics) == {"/joint_states": "sensor_msgs/msg/JointState"}
+        with pytest.raises(ServiceUnavailable) as caught:  # a topic that never comes
+            await client.wait_for_topic("/never", timeout=scaled(0.2))
+        assert caught.value.message == (f"the topic was not announced within {scaled(0.2):g} s")

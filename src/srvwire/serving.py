@@ -345,7 +345,10 @@ class Writer:
                     await self.waiter
                     self.waiter = None
                     continue
-                await send(data)
+                sending = first_step(send(data))
+                if isinstance(sending, Pending):  # it waited for a drain: so may replies
+                    await finish(sending)
+                    await asyncio.sleep(0)  # those woken by the same drain go first
         except TransportClosed:
             outbox.close()
 
