@@ -35,6 +35,11 @@ Server invariants:
   only: it is not read. ``rpc.discover`` is answered once per batch, so that no reply is much
   larger than its request.
 * **A notification is never answered.** One that cannot run is reported as :class:`Dropped`.
+* **Topic requests go to the topics** (:mod:`srvwire.topics`), after the same closing and
+  credential checks as calls: ``$/subscribe`` starts a subscription in the connection's outbox,
+  whose reply is written when it ends; ``$/publish`` becomes a :class:`Publish` for the shell to
+  validate. Neither is read in a batch, and a subscription's id is in use, for calls too, until
+  it ends; ``$/cancel`` of it ends it with ``CANCELLED``.
 """
 
 from __future__ import annotations
