@@ -37,6 +37,7 @@ from srvwire.loader import (
 from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
 from srvwire.pubsub import Publisher
 from srvwire.server import RunningServer, Server, serve
+from srvwire.threads import HandlerThreads
 from srvwire.topics import QoS
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
@@ -51,6 +52,7 @@ __all__ = [
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "HandlerThreads",
     "Handshake",
     "Identity",
     "InfNan",
