@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import socket
 import sys
@@ -562,3 +563,20 @@ async def test_wait_for_topic_is_woken_by_the_announcement(
         with pytest.raises(ServiceUnavailable) as caught:  # a topic that never comes
             await client.wait_for_topic("/never", timeout=scaled(0.2))
         assert caught.value.message == (f"the topic was not announced within {scaled(0.2):g} s")
+
+
+async def test_topics_work_with_the_access_log_on(caplog: pytest.LogCaptureFixture) -> None:
+    server = Server(access_log=True)
+    server.add_service("/subtract", Subtract, subtract)
+    pub = server.topic("/joint_states", JointState)
+    transport = MemoryTransport()
+    caplog.set_level(logging.INFO, logger="srvwire.access")
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, timeout=scaled(5)) as client:
+            await client.wait_for_topic("/joint_states")
+            async with client.subscribe("/joint_states") as sub:
+                pub.publish(joints(1))
+                assert (await sub.receive()).position == [1.0]
+                await client.call("/subtract", {"minuend": 2})
+    lines = [r.getMessage() for r in caplog.records if r.name == "srvwire.access"]
+    assert any(" /subtract OK " in line for line in lines), lines
