@@ -6,7 +6,7 @@ a keep-last queue of ``depth`` messages. An :class:`Outbox` is what one connecti
 write: control messages (replies that end subscriptions, ``$/subscribed``) first, then the
 queued topic data, one subscription after the other. The asyncio shell
 (:class:`srvwire.serving.Writer`) takes :meth:`Outbox.next` and sends it, one message at a time,
-waiting on the transport's backpressure in between.
+and takes nothing while the connection is past its budget of bytes waiting to be sent.
 
 Invariants:
 
@@ -64,6 +64,7 @@ __all__ = [
     "Subscription",
     "Topic",
     "TopicBoard",
+    "publish_ack",
     "topics_notification",
 ]
 
