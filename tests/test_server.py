@@ -30,6 +30,7 @@ from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import CallRunner, ServedConnection
 from srvwire.transports.base import Options, Transport, TransportClosed
 from srvwire.transports.memory import MemoryTransport
+from srvwire.typeregistry import fingerprint, full_definition
 from support import ROOT, scaled
 
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
@@ -907,9 +908,11 @@ async def test_services_are_announced_on_connect_and_on_change(
     server: Server, running: RunningServer
 ) -> None:
     w = await open_wire(running)
+    # Each with the fingerprint of its type's full definition.
+    echo, subtract, sum_ = (fingerprint(full_definition(t) or {}) for t in (Echo, Subtract, Sum))
     assert w.services == [
-        {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
-        {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+        {"name": "/echo", "type": "srvwire_tests/srv/Echo", "fingerprint": echo},
+        {"name": "/subtract", "type": "srvwire_tests/srv/Subtract", "fingerprint": subtract},
     ]
     server.add_service("/robot1/sum", Sum, lambda r: {"sum": r.a + r.b + r.c})
     note = await w.recv()
@@ -918,9 +921,13 @@ async def test_services_are_announced_on_connect_and_on_change(
         "method": "$/services",
         "params": {
             "services": [
-                {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
-                {"name": "/robot1/sum", "type": "srvwire_tests/srv/Sum"},
-                {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+                {"name": "/echo", "type": "srvwire_tests/srv/Echo", "fingerprint": echo},
+                {"name": "/robot1/sum", "type": "srvwire_tests/srv/Sum", "fingerprint": sum_},
+                {
+                    "name": "/subtract",
+                    "type": "srvwire_tests/srv/Subtract",
+                    "fingerprint": subtract,
+                },
             ]
         },
     }
