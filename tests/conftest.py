@@ -107,7 +107,7 @@ async def open_wire(running: RunningServer | str, **options: Any) -> Wire:
     return wire
 
 
-TRANSPORTS = ["websockets", "memory"]
+TRANSPORTS = ["websockets", "picows", "memory"]
 
 
 def make_transport(name: str) -> Transport:

@@ -30,19 +30,22 @@ from srvwire.transports.base import (
     TransportError,
 )
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
+from srvwire.transports.picows import PicowsTransport
 from srvwire.transports.websockets import WebSocketsTransport, _url
 from support import scaled
 
-SCHEMES = {"websockets": "ws", "memory": "memory"}
+SCHEMES = {"websockets": "ws", "picows": "ws", "memory": "memory"}
 
 # Enough turns of the event loop for anything that can happen without the peer to happen.
 TURNS = 1000
 
 
-@pytest.fixture(params=["websockets", "memory"])
+@pytest.fixture(params=["websockets", "picows", "memory"])
 def transport(request: pytest.FixtureRequest) -> Transport:
     if request.param == "websockets":
         return WebSocketsTransport()
+    if request.param == "picows":
+        return PicowsTransport()
     return MemoryTransport()
 
 
@@ -377,6 +380,7 @@ async def test_connect_to_a_bad_url_raises_transport_error(transport: Transport)
         str(info.value)
         == {
             "websockets": "http://127.0.0.1:1 isn't a valid URI: scheme isn't ws or wss",
+            "picows": "not a WebSocket URL: 'http://127.0.0.1:1' (the scheme must be ws or wss)",
             "memory": "not a memory URL: 'http://127.0.0.1:1' (the scheme is not memory)",
         }[transport.name]
     )

@@ -7,8 +7,11 @@ leaves to its user:
 
 * **Whole messages.** Fragments are joined; a text message is decoded once, and one that is
   not UTF-8 fails the connection with 1007. A message larger than ``max_message_size`` fails it
-  with 1009 (one frame: ``picows``' own frame limit; fragments: counted here). Messages received
-  before either are still delivered.
+  with 1009, with the sizes in the reason. Messages received before either are still
+  delivered. The bytes held for one frame are bounded too: ``picows`` refuses a frame over
+  :data:`FRAME_SLACK` times the limit as soon as its header arrives (1009, with its own
+  reason); a message that arrived in the same read just before that frame is then lost with
+  the connection.
 * **Flow control both ways.** ``send`` writes into the socket's buffer at once (``picows``
   frames it synchronously) and waits only while ``picows`` says the buffer is past its
   high-water mark (``pause_writing``/``resume_writing``). Messages not yet received are held
@@ -54,7 +57,7 @@ from picows import (
     WSUpgradeResponseWithListener,
     ws_connect,
 )
-from picows.picows import WSAutoPingStrategy, WSProtocol
+from picows.picows import WSAutoPingStrategy, WSProtocol  # type: ignore[attr-defined]
 
 from srvwire.transports.base import (
     Admitted,
@@ -80,6 +83,8 @@ CLOSE_TIMEOUT = 10.0
 """Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
 NO_LIMIT = 2**62
 """``picows``' frame limit when ``max_message_size`` is None."""
+FRAME_SLACK = 4
+"""``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
 _TEXT = WSMsgType.TEXT
 _BINARY = WSMsgType.BINARY
@@ -101,7 +106,7 @@ def _code(value: Any) -> int:
     return int(getattr(value, "value", value))
 
 
-class PicowsConnection(WSListener, Connection):  # type: ignore[misc]
+class PicowsConnection(WSListener, Connection):
     """One WebSocket connection, server or client side: ``picows``' listener for it, too.
 
     ``picows`` calls the ``on_ws_*`` methods and ``pause_writing``/``resume_writing`` from the
@@ -247,11 +252,15 @@ class PicowsConnection(WSListener, Connection):  # type: ignore[misc]
     # Helpers.
 
     def _deliver(self, payload: bytes, text: bool) -> None:
+        limit = self._limit
+        if limit is not None and len(payload) > limit:
+            self._fail(1009, f"message of {len(payload)} bytes is over the limit of {limit} bytes")
+            return
         if text:
             try:
                 message: str | bytes = payload.decode()
-            except UnicodeDecodeError:
-                self._fail(1007, "invalid UTF-8 in a text message")
+            except UnicodeDecodeError as exc:
+                self._fail(1007, f"{exc.reason} at position {exc.start}")
                 return
         else:
             message = payload
@@ -266,9 +275,11 @@ class PicowsConnection(WSListener, Connection):  # type: ignore[misc]
         """Keep one fragment; fail with 1009 (and return False) past the size limit."""
         self._parts.append(part)
         self._parts_size += len(part)
-        if self._limit is not None and self._parts_size > self._limit:
+        limit = self._limit
+        if limit is not None and self._parts_size > limit:
             self._parts = []
-            self._fail(1009, f"message over {self._limit} bytes")
+            size = self._parts_size
+            self._fail(1009, f"message of {size} bytes is over the limit of {limit} bytes")
             return False
         return True
 
@@ -280,7 +291,7 @@ class PicowsConnection(WSListener, Connection):  # type: ignore[misc]
     def _send_close(self, code: int, reason: str) -> None:
         assert self._ws is not None
         self._sent = (code, reason)
-        self._ws.send_close(code, reason.encode())
+        self._ws.send_close(code, reason.encode())  # type: ignore[arg-type]  # any code
 
     def _fail(self, code: int, reason: str) -> None:
         """End the connection on this side's error: a close frame, then the TCP connection."""
@@ -319,6 +330,12 @@ class PicowsConnection(WSListener, Connection):  # type: ignore[misc]
         self._fail(1011, "keepalive ping timeout")
 
 
+def _frame_limit(options: Options) -> int:
+    """The frame size at which ``picows`` itself fails the connection (see the module)."""
+    limit = options.max_message_size
+    return NO_LIMIT if limit is None else FRAME_SLACK * limit + 2**16
+
+
 def _decide(gate: Gate, handshake: Handshake) -> Admitted | Answered:
     """Run ``gate`` on ``handshake`` to its end without the event loop (see the module)."""
     coroutine = gate(handshake)
@@ -340,7 +357,7 @@ def _decide(gate: Gate, handshake: Handshake) -> Admitted | Answered:
 
 def _response(answer: Answered) -> WSUpgradeResponse:
     """The plain HTTP response an :class:`Answered` request gets."""
-    response = WSUpgradeResponse.create_error_response(
+    response: WSUpgradeResponse = WSUpgradeResponse.create_error_response(
         400, answer.reason.encode(), list(answer.headers)
     )
     response.status = HTTPStatus(answer.status)  # create_error_response takes only 4xx/5xx
@@ -395,7 +412,7 @@ class PicowsTransport(Transport):
                 await handler(connection)
             except Exception:
                 log.exception("connection handler failed")
-                await connection.close(1011, "internal error")
+                await connection.close(1011)
             else:
                 await connection.close()
 
@@ -424,7 +441,7 @@ class PicowsTransport(Transport):
             ws_protocol = WSProtocol(
                 None, None, False, accept, logger, True, 5.0,
                 False, 20.0, 20.0, WSAutoPingStrategy.PING_WHEN_IDLE, True,
-                options.max_message_size or NO_LIMIT, None, 16 * 1024,
+                _frame_limit(options), None, 16 * 1024,
             )  # fmt: skip
             return ws_protocol
 
@@ -439,20 +456,28 @@ class PicowsTransport(Transport):
         headers: Sequence[tuple[str, str]] = (),
         ssl: _ssl.SSLContext | None = None,
     ) -> PicowsConnection:
-        self.check_url(url)
+        try:
+            self.check_url(url)
+        except ValueError as exc:
+            raise TransportError(str(exc)) from exc
         try:
             _, listener = await ws_connect(
                 lambda: PicowsConnection(options),
                 url,
                 ssl_context=ssl,
                 websocket_handshake_timeout=None,  # the caller bounds the whole opening
-                max_frame_size=options.max_message_size or NO_LIMIT,
+                max_frame_size=_frame_limit(options),
                 extra_headers=list(headers) or None,
                 max_redirects=0,
                 logger_name="client",
             )
         except (OSError, EOFError, WSError) as exc:
             raise _refusal(exc, url) from exc
+        if listener is None:  # the connection ended before the upgrade's answer came
+            hint = "" if url[:4].lower() == "wss:" else "; it may speak TLS (try wss://)"
+            raise TransportError(
+                f"the server closed the connection during the opening handshake{hint}"
+            )
         assert isinstance(listener, PicowsConnection)
         return listener
 
@@ -522,4 +547,3 @@ def _refusal(exc: Exception, url: str) -> TransportError:
             f"it may speak TLS (try wss://): {exc}"
         )
     return TransportError(str(exc) or type(exc).__name__)
-
