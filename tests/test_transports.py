@@ -11,10 +11,13 @@ import asyncio
 import contextlib
 import errno
 import logging
+import sys
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import picows
 import pytest
 from websockets.asyncio.client import connect as websockets_connect
 
@@ -22,7 +25,10 @@ import srvwire
 import srvwire.transports
 from srvwire.transports import get_transport
 from srvwire.transports.base import (
+    Admitted,
+    Answered,
     Connection,
+    Handshake,
     Listener,
     Options,
     Transport,
@@ -499,7 +505,7 @@ def test_get_transport_refuses_an_unknown_name() -> None:
     with pytest.raises(ValueError) as info:
         get_transport("pigeons")
     assert str(info.value) == (
-        "unknown transport 'pigeons': use 'websockets' or a Transport instance, "
+        "unknown transport 'pigeons': use 'websockets', 'picows' or a Transport instance, "
         "such as MemoryTransport()"
     )
 
@@ -642,25 +648,131 @@ async def test_memory_listener_waits_for_its_handlers(memory: MemoryTransport) -
         waiting.cancel()
 
 
-# The WebSocket transport only
+# Real WebSockets: what the websockets and picows transports both do with a raw peer
 
 
-async def test_a_binary_frame_is_received_as_bytes() -> None:
-    transport = WebSocketsTransport()
-    received: asyncio.Queue[str | bytes] = asyncio.Queue()
+@pytest.fixture(params=["websockets", "picows"])
+def real(request: pytest.FixtureRequest) -> Transport:
+    """Each WebSocket transport: they speak the same wire, so a raw peer is the same for both."""
+    return get_transport(request.param)
+
+
+@contextlib.asynccontextmanager
+async def listening(
+    transport: Transport, options: Options | None = None, **listen: Any
+) -> AsyncIterator[tuple[Listener, asyncio.Queue[Connection]]]:
+    """Listen on 127.0.0.1 and yield the listener and a queue of the connections it accepted,
+    each held open until exit."""
+    accepted: asyncio.Queue[Connection] = asyncio.Queue()
+    done = asyncio.Event()
 
     async def handler(connection: Connection) -> None:
-        received.put_nowait(await connection.recv())
+        accepted.put_nowait(connection)
+        await done.wait()
 
-    listener = await transport.listen(handler, "127.0.0.1", 0, Options())
+    listener = await transport.listen(handler, "127.0.0.1", 0, options or Options(), **listen)
     try:
-        async with (
-            asyncio.timeout(scaled(5)),
-            websockets_connect(listener.url, open_timeout=None) as ws,
-        ):
-            await ws.send(b"\x00\xff binary")
-            assert await received.get() == b"\x00\xff binary"
+        yield listener, accepted
     finally:
+        done.set()
         listener.close()
         async with asyncio.timeout(scaled(5)):
             await listener.wait_closed()
+
+
+async def test_a_binary_frame_is_received_as_bytes(real: Transport) -> None:
+    async with (
+        listening(real) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        await ws.send(b"\x00\xff binary")
+        assert await (await accepted.get()).recv() == b"\x00\xff binary"
+
+
+async def test_fragments_are_joined_into_one_message(real: Transport) -> None:
+    async with (
+        listening(real) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        await ws.send(["hé", "llo", " ☃"])  # one text message in three frames
+        await ws.send([b"\x00", b"\xff"])  # one binary message in two
+        await ws.send("after")
+        server = await accepted.get()
+        assert [await server.recv() for _ in range(3)] == ["héllo ☃", b"\x00\xff", "after"]
+
+
+async def test_fragments_over_the_size_limit_close_with_1009(real: Transport) -> None:
+    async with (
+        listening(real, Options(max_message_size=10)) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        await ws.send("small")
+        await ws.send(["x" * 6, "x" * 6])  # every frame is under the limit, the message is not
+        server = await accepted.get()
+        assert await server.recv() == "small"
+        assert (await closed_with(server)).code == 1009
+        await ws.wait_closed()
+        assert ws.close_code == 1009
+
+
+async def test_no_pong_within_the_timeout_closes_with_1011(real: Transport) -> None:
+    # A peer that never answers pings: picows' client with its automatic pong turned off.
+    keepalive = Options(ping_interval=scaled(0.05), ping_timeout=scaled(0.05))
+    async with listening(real, keepalive) as (listener, accepted):
+        silent, _ = await picows.ws_connect(picows.WSListener, listener.url, enable_auto_pong=False)
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+            closed = await closed_with(server)
+            assert (closed.code, closed.reason) == (1011, "keepalive ping timeout")
+        finally:
+            silent.disconnect()
+
+
+@pytest.mark.parametrize(("server", "client"), [("websockets", "picows"), ("picows", "websockets")])
+async def test_each_websocket_transport_talks_to_the_other(server: str, client: str) -> None:
+    async with listening(get_transport(server)) as (listener, accepted):
+        near = await get_transport(client).connect(listener.url, Options())
+        async with asyncio.timeout(scaled(5)):
+            far = await accepted.get()
+            await near.send("ping ☃")
+            assert await far.recv() == "ping ☃"
+            await far.send(b'{"pong": 1}')
+            assert await near.recv() == '{"pong": 1}'
+            await near.close(4000, "done")
+        assert (await closed_with(far)).code == 4000
+        assert (near.close_code, near.close_reason) == (4000, "done")
+
+
+async def test_picows_refuses_a_gate_that_waits_with_500(caplog: pytest.LogCaptureFixture) -> None:
+    async def gate(handshake: Handshake) -> Admitted | Answered:
+        await asyncio.sleep(0)  # an authenticator that asks a database, say
+        return Admitted()
+
+    async with listening(get_transport("picows"), gate=gate) as (listener, _):
+        with pytest.raises(TransportError) as info:
+            await get_transport("picows").connect(listener.url, Options())
+    assert str(info.value) == (
+        "the server refused the connection: HTTP 500: the server failed to check the credentials"
+    )
+    [record] = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "its check waited for I/O" in record.getMessage()
+
+
+def test_get_transport_makes_the_picows_transport() -> None:
+    transport = get_transport("picows")
+    assert isinstance(transport, PicowsTransport)
+    assert transport.name == "picows"
+
+
+def test_a_missing_picows_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "picows", None)  # what importing it does when it is absent
+    monkeypatch.delitem(sys.modules, "srvwire.transports.picows")
+    with pytest.raises(ValueError) as info:
+        get_transport("picows")
+    assert str(info.value) == (
+        "the picows transport needs the picows package: pip install 'srvwire[fast]'"
+    )
