@@ -5,6 +5,7 @@ The handler is ``async`` and returns a typed ``Response`` built from the shared 
 every call pays for what a real srvwire service pays for: request validation, the handler's
 task, response validation and encoding. The only option changed from the defaults is
 ``max_message_size``, so W4's large replies fit on the way back from the server too.
+``--transport picows`` serves on the native transport instead of ``websockets``.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ async def main(args: argparse.Namespace) -> None:
     control = ServerControl()
     server = Server(max_message_size=MAX_MESSAGE)
     server.add_service(SERVICE, RobotStateQuery, get_robot_state)
-    async with serve(server, args.host, 0) as running:
+    async with serve(server, args.host, 0, transport=args.transport) as running:
         emit("listening", port=running.port)
         await control.stopped.wait()
 
