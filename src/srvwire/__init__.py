@@ -1,5 +1,6 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire import sync  # the blocking client: srvwire.sync.connect(url)
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
 from srvwire.dispatch import Context
@@ -85,4 +86,5 @@ __all__ = [
     "load_message",
     "load_service",
     "serve",
+    "sync",
 ]

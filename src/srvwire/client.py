@@ -27,6 +27,9 @@ Invariants:
 * **Options and payload never share a namespace.** A request is one positional value (a model
   or a mapping), so every field name is free; :class:`ServiceProxy` takes fields as keywords
   and holds its options itself.
+* **A client belongs to the event loop that opened it.** When that loop ends, the connection
+  is closed with 1001; used from another loop, the client raises ``RuntimeError`` saying so.
+  Blocking code uses :mod:`srvwire.sync`, which runs a client on a loop of its own.
 * **Always typed.** Every advertised service has a type: the local one, else the one the
   server describes. A mapping is validated locally (:class:`~srvwire.errors.InvalidParams`
   before anything is sent) and the result is the typed ``Response``. A type found in neither
@@ -70,7 +73,7 @@ from srvwire.errors import (
     ServiceNotFound,
     ServiceUnavailable,
 )
-from srvwire.link import Link, LoggerLike
+from srvwire.link import Link, LoggerLike, foreign_loop
 from srvwire.loader import SearchPath, load_message, load_service
 from srvwire.models import Service, error_data, summarize_errors
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
@@ -332,7 +335,11 @@ class Client:
         if codec is None:
             named = srv_type if isinstance(srv_type, str) else advertised
             if named is not None:  # not advertised: the server will say it has no such service
-                codec = await self._type_of(link, method, named, deadline, budget)
+                try:
+                    codec = await self._type_of(link, method, named, deadline, budget)
+                except RPCError as exc:  # asking for the description failed: this call did
+                    exc.service = method
+                    raise
         params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
@@ -499,14 +506,26 @@ class Client:
             self._describing.release()
 
     def _not_connected(self, method: str) -> ConnectionLost:
+        if not self._closed:
+            self._check_loop()  # a client whose loop ended has lost its connection with it
         why = "the client is closed" if self._closed else f"not connected to {self.url}"
         return ConnectionLost(why, {"url": self.url}, service=method)
+
+    def _check_loop(self) -> None:
+        """Raise ``RuntimeError`` when running outside the event loop this client was opened in.
+
+        Only on the paths that wait or fail: asking for the running loop costs a system call
+        on Python 3.11, and a call on a connection checks its loop for free.
+        """
+        if self._loop is not None and self._loop is not asyncio.get_running_loop():
+            raise foreign_loop(self._loop)
 
     async def _wait_until_ready(self, method: str, deadline: float, budget: float) -> None:
         """Wait until connected and ``method`` is advertised, or raise ServiceUnavailable."""
         while self._link is None or method not in self._services:
             if self._closed or (self._link is None and not self.options.reconnect):
                 raise self._not_connected(method)
+            self._check_loop()
             try:
                 async with asyncio.timeout_at(deadline):
                     await self._changed.wait()
@@ -602,11 +621,16 @@ def plaintext_host(url: str) -> str | None:
     return None if loopback else host
 
 
-class connect:
+class connect(Coroutine[Any, Any, Client]):
     """Connect to the srvwire server at ``url``: the options, held once.
 
     Use it as ``async with connect(url) as client:`` (closed on exit) or as
-    ``client = await connect(url)`` (close it with ``await client.close()``).
+    ``client = await connect(url)`` (close it with ``await client.close()``). It is a
+    coroutine too, so what runs a coroutine opens it: ``runner.run(connect(url))`` with an
+    :class:`asyncio.Runner` gives a client that the runner's later ``run`` calls use. A client
+    lives in the event loop that opened it: one opened by ``asyncio.run(connect(url))`` closes
+    its connection when that loop ends, and raises ``RuntimeError`` saying so when used again.
+    From blocking code, use :func:`srvwire.sync.connect`.
 
     * ``timeout``: the default deadline of a call, in seconds; finite.
     * ``open_timeout``: how long opening may take (connection, handshake, the services list).
@@ -716,6 +740,7 @@ class connect:
         )
         self.logger = logger
         self._client: Client | None = None
+        self._opening: Coroutine[Any, Any, Client] | None = None  # when run as a coroutine
 
     def __repr__(self) -> str:
         return f"connect({self.url!r})"
@@ -753,6 +778,22 @@ class connect:
 
     def __await__(self) -> Generator[Any, None, Client]:
         return self._open().__await__()
+
+    # Run as a coroutine (by asyncio.run, a Runner, create_task): open one client.
+
+    def send(self, value: Any, /) -> Any:
+        if self._opening is None:
+            self._opening = self._open()
+        return self._opening.send(value)
+
+    def throw(self, typ: Any, val: Any = None, tb: Any = None, /) -> Any:
+        if self._opening is None:
+            self._opening = self._open()
+        return self._opening.throw(typ, val, tb)
+
+    def close(self) -> None:
+        if self._opening is not None:
+            self._opening.close()
 
     async def __aenter__(self) -> Client:
         return await self._open()

@@ -12,6 +12,8 @@ Invariants:
   ``ConnectionLost`` when the connection ends; the session forgets its id in every case.
 * **Something that is not JSON-RPC fails the connection** (close 1008), found by the reader
   or by a caller decoding a reply the reader left unparsed.
+* **A reader is cancelled only when its event loop ends** (``asyncio.run`` returning): the
+  connection is closed with 1001, and a client used from another loop says so.
 * **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
   background, best effort.
 """
@@ -19,6 +21,7 @@ Invariants:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import ssl as _ssl
 from collections.abc import Coroutine, Sequence
@@ -36,7 +39,15 @@ from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Respons
 from srvwire.session import ClientSession, ServicesChanged, Stray
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
-__all__ = ["CLOSE_PROTOCOL_VIOLATION", "Arrived", "Link", "LoggerLike", "Owner"]
+__all__ = [
+    "CLOSE_PROTOCOL_VIOLATION",
+    "LOOP_ENDED",
+    "Arrived",
+    "Link",
+    "LoggerLike",
+    "Owner",
+    "foreign_loop",
+]
 
 Arrived: TypeAlias = Response | ErrorResponse | RawReply
 """A reply as it reaches its caller: parsed, or routed unparsed."""
@@ -46,6 +57,24 @@ LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
 
 CLOSE_PROTOCOL_VIOLATION = 1008
 """The close code sent when the server breaks the protocol (RFC 6455 "policy violation")."""
+
+LOOP_ENDED = "the client's event loop ended"
+"""The reason of the close (1001) a client's connection ends with when its event loop does."""
+
+
+def foreign_loop(loop: asyncio.AbstractEventLoop) -> RuntimeError:
+    """The error for using a client outside ``loop``, the event loop it was opened in."""
+    if loop.is_closed():
+        return RuntimeError(
+            "this client was opened in an event loop that has ended (asyncio.run() ends its "
+            "loop when it returns): open the client in the coroutine that uses it, with "
+            "'async with srvwire.connect(url) as client', or use srvwire.sync.connect(url) "
+            "from blocking code"
+        )
+    return RuntimeError(
+        "this client belongs to another event loop: call it from the loop it was opened in, "
+        "or use srvwire.sync.connect(url), which any thread can call"
+    )
 
 
 class Owner(Protocol):
@@ -159,6 +188,15 @@ class Link:
                         self.stray(event.reply)
         except TransportClosed as exc:
             cause = exc
+        except asyncio.CancelledError:
+            # Nothing in srvwire cancels a reader: its event loop is ending (asyncio.run()
+            # cancels every task as it returns). The connection ends with the loop, closed
+            # with 1001 so that the server is told, and every call still waiting says why.
+            cause = TransportClosed(1001, LOOP_ENDED)
+            self.lost(None, cause)
+            with contextlib.suppress(Exception):  # however the close goes, the loop ends
+                await conn.close(1001, LOOP_ENDED)
+            raise
         except Exception:  # a bug here must not leave calls waiting for their deadlines
             owner.logger.exception("the reader of %s failed; closing the connection", owner.url)
             self.fail("the client failed to process a message from the server")
@@ -240,13 +278,15 @@ class Link:
                 {"timeout": budget},
                 service=method,
             )
+        task = asyncio.current_task(loop)
+        if task is None:  # not running on this link's loop
+            raise foreign_loop(loop)
         future: asyncio.Future[Arrived] = loop.create_future()
         session = self.session
         id, data = session.request(
             method, params, None if params is None else round(remaining, 6), future
         )
-        task = asyncio.current_task(loop)
-        cancelling = task.cancelling() if task is not None else 0
+        cancelling = task.cancelling()
         try:
             # The send waits only on backpressure, so it is bounded only if it does wait: by a
             # bare timer (Expired is a TimeoutError), with no task of its own.
@@ -255,7 +295,7 @@ class Link:
                 await finish_within(sending, deadline - loop.time())
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
-            if task is not None and task.cancelling() > cancelling:
+            if task.cancelling() > cancelling:
                 # Python 3.11's wait_for returns the result when a cancellation arrives after
                 # the reply did (gh-86296); the caller asked to stop, so stop.
                 raise asyncio.CancelledError
