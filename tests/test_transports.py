@@ -133,6 +133,22 @@ async def test_text_travels_both_ways(transport: Transport) -> None:
         assert await pair.client.recv() == "wörld"
 
 
+async def test_messages_sent_without_a_pause_arrive_whole_and_in_order(
+    transport: Transport,
+) -> None:
+    # The picows server corks them into one write, and writes at once past 64 KiB.
+    sent = [f"small {index}" for index in range(100)] + ["x" * 200_000, "é" * 70_000, "last"]
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+
+        async def send_all() -> None:
+            for message in sent:
+                await pair.server.send(message)
+
+        sending = asyncio.create_task(send_all())
+        assert [await pair.client.recv() for _ in sent] == sent
+        await sending
+
+
 async def test_utf8_bytes_are_received_as_text(transport: Transport) -> None:
     async with connected(transport) as pair, asyncio.timeout(scaled(5)):
         await pair.client.send("héllo ☃".encode())

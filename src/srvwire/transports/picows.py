@@ -12,9 +12,13 @@ leaves to its user:
   :data:`FRAME_SLACK` times the limit as soon as its header arrives (1009, with its own
   reason); a message that arrived in the same read just before that frame is then lost with
   the connection.
-* **Flow control both ways.** ``send`` writes into the socket's buffer at once (``picows``
-  frames it synchronously) and waits only while ``picows`` says the buffer is past its
-  high-water mark (``pause_writing``/``resume_writing``). Messages not yet received are held
+* **Flow control both ways.** ``send`` puts the message in the connection's buffer and waits
+  only while ``picows`` says the socket's buffer is past its high-water mark
+  (``pause_writing``/``resume_writing``). A client's message is framed and written by ``picows``
+  at once (it masks it). A server frames its own messages (unmasked: a header and the bytes)
+  and *corks* them: the replies made while draining one read go out in one write, when
+  ``recv`` finds nothing more to read, at the loop's next turn, or past :data:`CORK_LIMIT`
+  bytes, whichever comes first. Messages not yet received are held
   in a queue; past :data:`READ_HIGH_WATER` of them the socket is not read until ``recv`` has
   taken them down to :data:`READ_LOW_WATER`.
 * **Keepalive** as ``websockets`` does it: a ping every ``ping_interval``; no pong within
@@ -39,6 +43,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import ssl as _ssl
+import struct
 import urllib.parse
 from collections import deque
 from collections.abc import Coroutine, Sequence
@@ -83,6 +88,9 @@ CLOSE_TIMEOUT = 10.0
 """Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
 NO_LIMIT = 2**62
 """``picows``' frame limit when ``max_message_size`` is None."""
+CORK_LIMIT = 2**16
+"""Bytes of corked frames at which ``send`` writes them at once instead of at the end of the
+read (see :meth:`PicowsConnection._flush`)."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
@@ -93,6 +101,18 @@ _CLOSE = WSMsgType.CLOSE
 _PONG = WSMsgType.PONG
 
 log = logging.getLogger(__name__)
+
+
+def _header(size: int) -> bytes:
+    """The header of an unmasked, final text frame of ``size`` bytes (RFC 6455, 5.2)."""
+    if size < 126:
+        return bytes((0x81, size))
+    if size < 2**16:
+        return struct.pack("!BBH", 0x81, 126, size)
+    return struct.pack("!BBQ", 0x81, 127, size)
+
+
+_HEADER = [_header(size) for size in range(126)]
 
 
 def _url(host: str, port: int, tls: bool = False) -> str:
@@ -130,6 +150,9 @@ class PicowsConnection(WSListener, Connection):
         self._parts_size = 0
         self._parts_text = False
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
+        self._corked: list[bytes] = []  # a server's frames not yet written (see _flush)
+        self._corked_size = 0
+        self._framing = False  # whether send frames here: on a server (no mask), once open
         self._received: tuple[int, str] | None = None  # the close frame received
         self._sent: tuple[int, str] | None = None  # the close frame sent
         self._ended: TransportClosed | None = None  # set once the TCP connection is gone
@@ -139,6 +162,7 @@ class PicowsConnection(WSListener, Connection):
 
     def on_ws_connected(self, transport: WSTransport) -> None:
         self._ws = transport
+        self._framing = not transport.is_client_side
         self.remote_address = transport.underlying_transport.get_extra_info("peername")
         if self._ping_interval is not None:
             self._keepalive = self._loop.call_later(self._ping_interval, self._ping)
@@ -202,6 +226,8 @@ class PicowsConnection(WSListener, Connection):
     async def recv(self) -> str | bytes:
         messages = self._messages
         while not messages:
+            if self._corked:
+                self._flush()  # the replies to everything read so far, in one write
             if self._ended is not None:
                 raise TransportClosed(self._ended.code, self._ended.reason)
             waiter = self._waiter = self._loop.create_future()
@@ -219,7 +245,21 @@ class PicowsConnection(WSListener, Connection):
         ws = self._ws
         if ws is None or self._ended is not None or ws.is_close_frame_sent:
             raise self._closing()
-        ws.send(_TEXT, message.encode() if isinstance(message, str) else message)
+        data = message.encode() if isinstance(message, str) else message
+        if self._framing:
+            corked = self._corked
+            if not corked:
+                self._loop.call_soon(self._flush)
+            size = len(data)
+            corked.append(
+                _HEADER[size] if size < 126 else _header(size)  # a text frame, unmasked
+            )
+            corked.append(data)
+            self._corked_size += size
+            if self._corked_size >= CORK_LIMIT:
+                self._flush()
+        else:
+            ws.send(_TEXT, data)
         if self._writable is not None:
             await asyncio.shield(self._writable)
             if self._ended is not None:
@@ -288,8 +328,23 @@ class PicowsConnection(WSListener, Connection):
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
 
+    def _flush(self) -> None:
+        """Write the frames ``send`` corked, in one write: on a server, every reply made while
+        draining one read goes out in one system call instead of one each."""
+        corked = self._corked
+        if not corked:
+            return
+        data = b"".join(corked)
+        corked.clear()
+        self._corked_size = 0
+        ws = self._ws
+        # Nothing may follow a close frame (picows itself may have sent one, on a bad frame).
+        if ws is not None and self._ended is None and not ws.is_close_frame_sent:
+            ws.underlying_transport.write(data)
+
     def _send_close(self, code: int, reason: str) -> None:
         assert self._ws is not None
+        self._flush()
         self._sent = (code, reason)
         self._ws.send_close(code, reason.encode())  # type: ignore[arg-type]  # any code
 
