@@ -451,7 +451,9 @@ def machine() -> dict[str, Any]:
                 model = line.split(":", 1)[1].strip()
                 break
     versions: dict[str, str | None] = {}
-    for package in ("srvwire", "websockets", "pydantic", "pydantic-core", "orjson", "uvloop"):
+    for package in (
+        *("srvwire", "websockets", "picows", "pydantic", "pydantic-core", "orjson", "uvloop"),
+    ):
         try:
             versions[package] = importlib.metadata.version(package)
         except importlib.metadata.PackageNotFoundError:

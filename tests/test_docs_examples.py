@@ -44,6 +44,7 @@ RUN_ELSEWHERE = {
 # any URL written as PORT, since each run listens on a port of its own.
 SCRIPTS = {
     "quickstart.py": "2 + 3 = 5\n",
+    "native_transport.py": "2 + 3 = 5 over picows\n",
     "field_names.py": '{"from":3,"to":0}\n',
     "one_class_per_type.py": (
         "GetStatus_Response: ok=True frame=base\n"

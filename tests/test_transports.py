@@ -778,6 +778,20 @@ async def test_picows_refuses_a_gate_that_waits_with_500(caplog: pytest.LogCaptu
     assert "its check waited for I/O" in record.getMessage()
 
 
+async def test_picows_refuses_compression_on_both_ends() -> None:
+    transport = get_transport("picows")
+    deflate = Options(compression="deflate")
+    message = (
+        "the picows transport has no compression: pass compression=None, "
+        "or use the websockets transport"
+    )
+    with pytest.raises(ValueError) as listening_info:
+        await transport.listen(hold, "127.0.0.1", 0, deflate)
+    with pytest.raises(ValueError) as connecting_info:
+        await transport.connect("ws://127.0.0.1:1", deflate)
+    assert str(listening_info.value) == str(connecting_info.value) == message
+
+
 def test_get_transport_makes_the_picows_transport() -> None:
     transport = get_transport("picows")
     assert isinstance(transport, PicowsTransport)

@@ -385,6 +385,15 @@ class PicowsConnection(WSListener, Connection):
         self._fail(1011, "keepalive ping timeout")
 
 
+def _check_options(options: Options) -> None:
+    """Refuse what ``picows`` cannot do, saying what to do instead."""
+    if options.compression is not None:
+        raise ValueError(
+            "the picows transport has no compression: pass compression=None, "
+            "or use the websockets transport"
+        )
+
+
 def _frame_limit(options: Options) -> int:
     """The frame size at which ``picows`` itself fails the connection (see the module)."""
     limit = options.max_message_size
@@ -457,6 +466,7 @@ class PicowsTransport(Transport):
         gate: Gate | None = None,
         ssl: _ssl.SSLContext | None = None,
     ) -> PicowsListener:
+        _check_options(options)
         loop = asyncio.get_running_loop()
         handlers: set[asyncio.Task[None]] = set()
         logger = logging.getLogger("picows.server")
@@ -511,6 +521,7 @@ class PicowsTransport(Transport):
         headers: Sequence[tuple[str, str]] = (),
         ssl: _ssl.SSLContext | None = None,
     ) -> PicowsConnection:
+        _check_options(options)
         try:
             self.check_url(url)
         except ValueError as exc:
