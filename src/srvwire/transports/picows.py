@@ -18,9 +18,9 @@ leaves to its user:
   at once (it masks it). A server frames its own messages (unmasked: a header and the bytes)
   and *corks* them: the replies made while draining one read go out in one write, when
   ``recv`` finds nothing more to read, at the loop's next turn, or past :data:`CORK_LIMIT`
-  bytes, whichever comes first. Messages not yet received are held
-  in a queue; past :data:`READ_HIGH_WATER` of them the socket is not read until ``recv`` has
-  taken them down to :data:`READ_LOW_WATER`.
+  bytes, whichever comes first. Messages not yet received are held in a queue; past
+  :data:`READ_HIGH_WATER` of them the socket is not read until ``recv`` has taken them down
+  to :data:`READ_LOW_WATER`.
 * **Keepalive** as ``websockets`` does it: a ping every ``ping_interval``; no pong within
   ``ping_timeout`` fails the connection with 1011 ``keepalive ping timeout``.
 * **Closing.** A close frame received is answered with the same code, then the TCP connection
@@ -32,6 +32,8 @@ leaves to its user:
   (:class:`~srvwire.handshake.EdgePolicy`) and a synchronous authenticator never wait. An
   authenticator that does wait is refused with 500 and an error in the log that says so; use
   the ``websockets`` transport for it.
+* **No compression**: ``picows`` has no permessage-deflate, so ``compression="deflate"`` is
+  refused with a ``ValueError`` on both ends.
 
 Exceptions are mapped here and nowhere else: how a connection ended (the close frame received,
 else the one sent, else none) -> :class:`TransportClosed`; ``OSError`` and ``picows``' errors
