@@ -748,6 +748,36 @@ async def test_no_pong_within_the_timeout_closes_with_1011(real: Transport) -> N
             silent.disconnect()
 
 
+class Ponger(picows.WSListener):  # type: ignore[misc]
+    """A raw peer that answers pings by hand and says when it has answered three."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.pings = 0
+        self.three = asyncio.get_running_loop().create_future()
+
+    def on_ws_frame(self, transport: picows.WSTransport, frame: picows.WSFrame) -> None:
+        if frame.msg_type == picows.WSMsgType.PING:
+            transport.send_pong(frame.get_payload_as_bytes())
+            self.pings += 1
+            if self.pings == 3 and not self.three.done():
+                self.three.set_result(None)
+
+
+async def test_pings_go_on_while_pongs_come_back(real: Transport) -> None:
+    keepalive = Options(ping_interval=scaled(0.02), ping_timeout=scaled(1))
+    async with listening(real, keepalive) as (listener, accepted):
+        transport, ponger = await picows.ws_connect(Ponger, listener.url, enable_auto_pong=False)
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+                await ponger.three  # a ping after each pong: the keepalive goes on
+                await server.send("still open")
+            assert server.close_code is None
+        finally:
+            transport.disconnect()
+
+
 @pytest.mark.parametrize(("server", "client"), [("websockets", "picows"), ("picows", "websockets")])
 async def test_each_websocket_transport_talks_to_the_other(server: str, client: str) -> None:
     async with listening(get_transport(server)) as (listener, accepted):

@@ -86,6 +86,8 @@ READ_HIGH_WATER = 64
 """Messages received and not yet taken by ``recv`` at which the socket is no longer read."""
 READ_LOW_WATER = 16
 """Messages still queued at which reading the socket resumes."""
+HANDSHAKE_TIMEOUT = 10.0
+"""Seconds a server waits for a new connection's opening request (as ``websockets``)."""
 CLOSE_TIMEOUT = 10.0
 """Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
 NO_LIMIT = 2**62
@@ -144,7 +146,8 @@ class PicowsConnection(WSListener, Connection):
         self._limit = options.max_message_size
         self._ping_interval = options.ping_interval
         self._ping_timeout = options.ping_timeout
-        self._keepalive: asyncio.TimerHandle | None = None
+        self._keepalive: asyncio.TimerHandle | None = None  # the next ping, or its deadline
+        self._awaiting_pong = False
         self._messages: deque[str | bytes] = deque()
         self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
         self._reading = True
@@ -371,13 +374,17 @@ class PicowsConnection(WSListener, Connection):
         if ws is None or self._ended is not None:
             return
         ws.send_ping()
+        self._awaiting_pong = True
         if self._ping_timeout is not None:
             self._keepalive = self._loop.call_later(self._ping_timeout, self._no_pong)
         else:
             self._keepalive = None
 
     def _pong(self) -> None:
-        if self._keepalive is not None and self._ping_timeout is not None:
+        if not self._awaiting_pong:
+            return  # a pong nobody asked for: the keepalive's timer stays as it is
+        self._awaiting_pong = False
+        if self._keepalive is not None:
             self._keepalive.cancel()
         if self._ping_interval is not None and self._ended is None:
             self._keepalive = self._loop.call_later(self._ping_interval, self._ping)
@@ -506,7 +513,7 @@ class PicowsTransport(Transport):
 
             # picows' own server factory, but with the connection at hand in the gate.
             ws_protocol = WSProtocol(
-                None, None, False, accept, logger, True, 5.0,
+                None, None, False, accept, logger, True, HANDSHAKE_TIMEOUT,
                 False, 20.0, 20.0, WSAutoPingStrategy.PING_WHEN_IDLE, True,
                 _frame_limit(options), None, 16 * 1024,
             )  # fmt: skip
