@@ -51,6 +51,12 @@ SCRIPTS = {
         "built from three sources: map\n"
         "same Header class: True\n"
     ),
+    "camera_frames.py": (
+        "rgb8 640x480: 921600 bytes\n"
+        "exposure: inf\n"
+        "default limit: closed with 1009, the connection closed with code 1009 (over the "
+        "client's max_message_size (frame with 1228922 bytes exceeds limit of 1048576 bytes))\n"
+    ),
     "handling_errors.py": (
         "sum: 3\n"
         "invalid request: b: Input should be a valid integer\n"

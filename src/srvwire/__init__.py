@@ -34,7 +34,7 @@ from srvwire.loader import (
     load_message,
     load_service,
 )
-from srvwire.models import Action, Message, Service
+from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
@@ -51,6 +51,7 @@ __all__ = [
     "ErrorCode",
     "Handshake",
     "Identity",
+    "InfNan",
     "InterfaceConflictError",
     "InterfaceError",
     "InterfaceLoader",
@@ -73,11 +74,13 @@ __all__ = [
     "ServiceInfo",
     "ServiceNotFound",
     "ServiceProxy",
+    "ServiceRequest",
     "ServiceUnavailable",
     "SrvwireError",
     "TokenAuth",
     "Transport",
     "TypeRegistry",
+    "TypedService",
     "Unauthenticated",
     "__version__",
     "connect",

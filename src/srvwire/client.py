@@ -36,6 +36,10 @@ Invariants:
   place is an :class:`~srvwire.errors.InterfaceError`, never plain dicts. Only a service the
   server does not advertise is called with the mapping as it is (and a srvwire server answers
   ``ServiceNotFound``).
+  For a type checker too: :meth:`Client.call` with a generated
+  ``Request`` (a :class:`~srvwire.models.ServiceRequest`), or with a
+  :class:`~srvwire.models.TypedService` as ``srv_type``, returns that service's ``Response``,
+  and so does a :class:`ServiceProxy` made with one.
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ import ssl as _ssl
 import urllib.parse
 from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
 from types import MappingProxyType, TracebackType
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
@@ -75,7 +79,16 @@ from srvwire.errors import (
 )
 from srvwire.link import Link, LoggerLike, foreign_loop
 from srvwire.loader import SearchPath, load_message, load_service
-from srvwire.models import Service, error_data, summarize_errors
+from srvwire.models import (
+    INF_NAN_MODES,
+    InfNan,
+    Message,
+    Service,
+    ServiceRequest,
+    TypedService,
+    error_data,
+    summarize_errors,
+)
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Headers, Options, Transport
@@ -94,6 +107,8 @@ DEFAULT_URL = "ws://localhost:8765"
 
 DEFAULT_TIMEOUT = 10.0
 """The deadline, in seconds, of a call that does not give its own."""
+
+R = TypeVar("R", bound=Message)
 
 # Reconnection backoff: first retry at once, then from this delay, growing to the cap.
 _BACKOFF_INITIAL = 0.05
@@ -123,7 +138,9 @@ class Client:
         self.url = options.url
         self.timeout = options.timeout
         self.logger: LoggerLike = options._log()
-        self._types = ServiceTypes(options.type_resolver, options.message_resolver)
+        self._types = ServiceTypes(
+            options.type_resolver, options.message_resolver, inf_nan=options.inf_nan
+        )
         self._description: tuple[Link, dict[str, dict[str, str]]] | None = None
         self._describing = asyncio.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
@@ -292,10 +309,46 @@ class Client:
 
     # --- calls ------------------------------------------------------------------------------
 
+    @overload
+    async def call(
+        self,
+        name: str,
+        request: ServiceRequest[R],
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
     async def call(
         self,
         name: str,
         request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: type[TypedService[Any, R]],
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
+    async def call(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> Any: ...
+
+    async def call(
+        self,
+        name: str,
+        request: Any = None,  # the overloads say what it may be
         /,
         *,
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
@@ -308,6 +361,8 @@ class Client:
         takes its default). The result is the typed ``Response`` of the service's type:
         ``srv_type``, or the type the server advertised, found as :func:`connect` says (local
         first, then the server's description). For fields as keywords, use :meth:`proxy`.
+        Statically, a generated ``Request`` or a generated service class as ``srv_type`` makes
+        the result that service's ``Response``; otherwise it is ``Any``.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -356,6 +411,17 @@ class Client:
                 service=method,
             ) from None
 
+    @overload
+    def proxy(
+        self,
+        name: str,
+        srv_type: type[TypedService[Any, R]],
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[R]: ...
+
+    @overload
     def proxy(
         self,
         name: str,
@@ -363,11 +429,21 @@ class Client:
         *,
         timeout: float | None = None,
         wait_for_ready: bool = False,
-    ) -> ServiceProxy:
+    ) -> ServiceProxy[Any]: ...
+
+    def proxy(
+        self,
+        name: str,
+        srv_type: SrvType | None = None,
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[Any]:
         """Return a callable for the service ``name`` that takes fields as keywords.
 
         ``await client.proxy("/add_two_ints")(a=1, b=2)``; the options given here apply to
-        every call made through it.
+        every call made through it. With a generated service class as ``srv_type``, a type
+        checker knows its calls return that service's ``Response``.
         """
         return ServiceProxy(self, name, srv_type, timeout=timeout, wait_for_ready=wait_for_ready)
 
@@ -559,11 +635,12 @@ def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
     }
 
 
-class ServiceProxy:
+class ServiceProxy(Generic[R]):
     """A callable bound to one service: ``await proxy(request)`` or ``await proxy(a=1, b=2)``.
 
     Made by :meth:`Client.proxy`; the call options are the proxy's, so every field name,
-    ``timeout`` included, is free for the request.
+    ``timeout`` included, is free for the request. ``R`` is the response type a type checker
+    sees (``Any`` unless the proxy was made with a generated service class).
     """
 
     def __init__(
@@ -583,17 +660,18 @@ class ServiceProxy:
 
     async def __call__(
         self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
-    ) -> Any:
+    ) -> R:
         """Call the service; see :meth:`Client.call`."""
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
-        return await self.client.call(
+        response: R = await self.client.call(
             self.name,
             fields if request is None else request,
             timeout=self.timeout,
             srv_type=self.srv_type,
             wait_for_ready=self.wait_for_ready,
         )
+        return response
 
     async def wait_for_service(
         self,
@@ -648,6 +726,9 @@ class connect(Coroutine[Any, Any, Client]):
     * ``type_resolver``: a function from a service type name to its class, instead of the
       loader; it raises :class:`~srvwire.errors.InterfaceNotFoundError` for a name it does
       not know.
+    * ``inf_nan``: how typed requests write ``inf``, ``-inf`` and ``nan``: ``"strings"`` (the
+      default), ``"null"`` or ``"constants"``, as :class:`~srvwire.server.Server` takes it;
+      responses are read in every spelling.
     * ``logger``: where to log (default: the ``srvwire.client`` logger).
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
@@ -702,6 +783,7 @@ class connect(Coroutine[Any, Any, Client]):
         headers: Mapping[str, str] | Iterable[tuple[str, str]] = (),
         ssl: _ssl.SSLContext | str | os.PathLike[str] | None = None,
         allow_plaintext_token: bool = False,
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         self.transport = get_transport(transport)
         self.transport.check_url(url)
@@ -730,6 +812,9 @@ class connect(Coroutine[Any, Any, Client]):
             ping_timeout=ping_timeout,
             compression=compression,
         )
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        self.inf_nan: InfNan = inf_nan
         self.reconnect = reconnect
         self.search_path = search_path
         self.type_resolver: TypeResolver = type_resolver or functools.partial(

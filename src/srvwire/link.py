@@ -16,6 +16,9 @@ Invariants:
   connection is closed with 1001, and a client used from another loop says so.
 * **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
   background, best effort.
+* **A request larger than** ``max_message_size`` **is never sent**: the call raises
+  :class:`~srvwire.errors.ResourceExhausted` naming the setting, and the connection carries
+  on. The client's limit stands for the server's, which it cannot know.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from srvwire.errors import (
     ConnectionLost,
     DeadlineExceeded,
     InvalidRequest,
+    ResourceExhausted,
     RPCError,
     ServiceUnavailable,
 )
@@ -102,11 +106,12 @@ class Owner(Protocol):
 class Link:
     """One open connection of a client and the calls waiting on it."""
 
-    __slots__ = ("conn", "loop", "owner", "reader", "session")
+    __slots__ = ("conn", "limit", "loop", "owner", "reader", "session")
 
-    def __init__(self, owner: Owner, conn: Connection) -> None:
+    def __init__(self, owner: Owner, conn: Connection, limit: int | None = None) -> None:
         self.owner = owner
         self.conn = conn
+        self.limit = limit  # the largest message sent, in bytes: max_message_size
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
@@ -144,7 +149,7 @@ class Link:
             ) from exc
         except (OSError, TransportClosed) as exc:
             raise ServiceUnavailable(f"cannot connect to {url}: {exc}", {"url": url}) from exc
-        link = cls(owner, conn)
+        link = cls(owner, conn, options.max_message_size)
         try:
             events = link.session.receive(first)
             if not (len(events) == 1 and type(events[0]) is ServicesChanged):
@@ -288,6 +293,8 @@ class Link:
         )
         cancelling = task.cancelling()
         try:
+            if self.limit is not None and len(data) > self.limit:
+                raise self.too_large(method, len(data))
             # The send waits only on backpressure, so it is bounded only if it does wait: by a
             # bare timer (Expired is a TimeoutError), with no task of its own.
             sending = first_step(self.conn.send(data))
@@ -316,6 +323,15 @@ class Link:
             raise
         finally:
             session.pending.pop(id, None)  # answered or given up: forget it
+
+    def too_large(self, method: str, size: int) -> ResourceExhausted:
+        """The error of a request of ``size`` bytes, over ``max_message_size``, not sent."""
+        return ResourceExhausted(
+            f"the request is {size} bytes, over max_message_size={self.limit}; nothing was "
+            "sent (raise max_message_size on the client and on the server for larger messages)",
+            {"size": size, "max_message_size": self.limit},
+            service=method,
+        )
 
     def failure(self, method: str, exc: RPCError | ProtocolViolation) -> RPCError:
         """The error a call to ``method`` raises when decoding its reply raised ``exc``.

@@ -374,7 +374,7 @@ class ServiceProxy:
     proxy's, so every field name, ``timeout`` included, is free for the request.
     """
 
-    def __init__(self, client: Client, proxy: aio.ServiceProxy) -> None:
+    def __init__(self, client: Client, proxy: aio.ServiceProxy[Any]) -> None:
         self.client = client
         self.name = proxy.name
         self._proxy = proxy
