@@ -7,7 +7,9 @@ leaves to its user:
 
 * **Whole messages.** Fragments are joined; a text message is decoded once, and one that is
   not UTF-8 fails the connection with 1007. A message larger than ``max_message_size`` fails it
-  with 1009, with the sizes in the reason. Messages received before either are still
+  with 1009; the reason names the side and the setting (``over the server's
+  max_message_size (message of 2000 bytes, limit 1000 bytes)``), so that the peer's error says
+  what to raise. Messages received before either are still
   delivered. The bytes held for one frame are bounded too: ``picows`` refuses a frame over
   :data:`FRAME_SLACK` times the limit as soon as its header arrives (1009, with its own
   reason); a message that arrived in the same read just before that frame is then lost with
@@ -299,7 +301,7 @@ class PicowsConnection(WSListener, Connection):
     def _deliver(self, payload: bytes, text: bool) -> None:
         limit = self._limit
         if limit is not None and len(payload) > limit:
-            self._fail(1009, f"message of {len(payload)} bytes is over the limit of {limit} bytes")
+            self._fail(1009, self._too_big(len(payload)))
             return
         if text:
             try:
@@ -323,10 +325,15 @@ class PicowsConnection(WSListener, Connection):
         limit = self._limit
         if limit is not None and self._parts_size > limit:
             self._parts = []
-            size = self._parts_size
-            self._fail(1009, f"message of {size} bytes is over the limit of {limit} bytes")
+            self._fail(1009, self._too_big(self._parts_size))
             return False
         return True
+
+    def _too_big(self, size: int) -> str:
+        """The close reason of a message over the limit: the side and the setting to raise."""
+        side = "client" if self._ws is not None and self._ws.is_client_side else "server"
+        limit = self._limit
+        return f"over the {side}'s max_message_size (message of {size} bytes, limit {limit} bytes)"
 
     def _wake(self) -> None:
         waiter = self._waiter
