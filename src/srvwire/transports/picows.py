@@ -360,14 +360,15 @@ class PicowsConnection(WSListener, Connection):
         self._sent = (code, reason)
         self._ws.send_close(code, reason.encode())  # type: ignore[arg-type]  # any code
 
-    def _fail(self, code: int, reason: str) -> None:
-        """End the connection on this side's error: a close frame, then the TCP connection."""
+    def _fail(self, code: int, reason: str, *, graceful: bool = True) -> None:
+        """End the connection on this side's error: a close frame, then the TCP connection
+        (``graceful``: once what is buffered is written; else at once, dropping it)."""
         ws = self._ws
         if ws is None or self._ended is not None:
             return
         if not ws.is_close_frame_sent:
             self._send_close(code, reason)
-        ws.disconnect()
+        ws.disconnect(graceful)
 
     def _closing(self) -> TransportClosed:
         """How the connection ended, or is ending, for ``send`` to raise."""
@@ -398,7 +399,9 @@ class PicowsConnection(WSListener, Connection):
 
     def _no_pong(self) -> None:
         self._keepalive = None
-        self._fail(1011, "keepalive ping timeout")
+        # At once: a peer that does not answer may not read either, and then a graceful
+        # close would wait for the buffer to drain forever.
+        self._fail(1011, "keepalive ping timeout", graceful=False)
 
 
 def _check_options(options: Options) -> None:
