@@ -268,9 +268,22 @@ class PicowsConnection(WSListener, Connection):
         else:
             ws.send(_TEXT, data)
         if self._writable is not None:
+            await self.writable()
+
+    @property
+    def congested(self) -> bool:
+        """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
+        return self._writable is not None
+
+    async def writable(self) -> None:
+        """Wait until the connection is not :attr:`congested`; raise :class:`TransportClosed`
+        when it ended while this waited."""
+        if self._writable is None:
+            return
+        while self._writable is not None:
             await asyncio.shield(self._writable)
-            if self._ended is not None:
-                raise self._closing()
+        if self._ended is not None:
+            raise self._closing()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         ws = self._ws
