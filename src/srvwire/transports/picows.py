@@ -100,6 +100,7 @@ read (see :meth:`PicowsConnection._flush`)."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
+_TLS_HANDSHAKE_RECORD = 0x16  # the first byte of a TLS ClientHello
 _TEXT = WSMsgType.TEXT
 _BINARY = WSMsgType.BINARY
 _CONTINUATION = WSMsgType.CONTINUATION
@@ -535,7 +536,7 @@ class PicowsTransport(Transport):
                 return WSUpgradeResponseWithListener(response, connection)
 
             # picows' own server factory, but with the connection at hand in the gate.
-            ws_protocol = WSProtocol(
+            ws_protocol = _Opening(
                 None, None, False, accept, logger, True, HANDSHAKE_TIMEOUT,
                 False, 20.0, 20.0, WSAutoPingStrategy.PING_WHEN_IDLE, True,
                 _frame_limit(options), None, 16 * 1024,
@@ -587,6 +588,33 @@ class PicowsTransport(Transport):
             raise ValueError(f"not a WebSocket URL: {url!r} ({exc})") from exc
         if parts.scheme.lower() not in ("ws", "wss") or not parts.hostname:
             raise ValueError(f"not a WebSocket URL: {url!r} (the scheme must be ws or wss)")
+
+
+class _Opening(WSProtocol):  # type: ignore[misc]
+    """``picows``' server protocol, which first looks at the opening bytes: a TLS record on a
+    listener without TLS (a ``wss://`` client) is refused at once by closing the connection,
+    where ``picows`` would wait for the end of an HTTP request until its handshake timeout.
+    The client then says its TLS handshake failed and that the server may not speak TLS."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.opening = True  # until the first bytes have been read
+        self.buffer: memoryview | None = None
+
+    def get_buffer(self, size_hint: int) -> memoryview:
+        buffer: memoryview = super().get_buffer(size_hint)
+        if self.opening:
+            self.buffer = buffer
+        return buffer
+
+    def buffer_updated(self, nbytes: int) -> None:
+        if self.opening:
+            self.opening = False
+            first, self.buffer = self.buffer, None
+            if nbytes and first is not None and first[0] == _TLS_HANDSHAKE_RECORD:
+                self.transport.disconnect()
+                return
+        super().buffer_updated(nbytes)
 
 
 class _ServerConnection(PicowsConnection):
