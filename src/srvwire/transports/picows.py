@@ -19,10 +19,13 @@ leaves to its user:
   (``pause_writing``/``resume_writing``). A client's message is framed and written by ``picows``
   at once (it masks it). A server frames its own messages (unmasked: a header and the bytes)
   and *corks* them: the replies made while draining one read go out in one write, when
-  ``recv`` finds nothing more to read, at the loop's next turn, or past :data:`CORK_LIMIT`
-  bytes, whichever comes first. Messages not yet received are held in a queue; past
-  :data:`READ_HIGH_WATER` of them the socket is not read until ``recv`` has taken them down
-  to :data:`READ_LOW_WATER`.
+  ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
+  comes first. The budget (``max_queued_bytes``) is the socket buffer's high-water mark: a
+  ``send`` that finds the connection congested waits before it queues anything, and a
+  connection congested for ``write_timeout`` (or a ping period, when sooner) is dropped at once
+  and ends with :class:`~srvwire.transports.base.WriteTimedOut`. Messages not yet received
+  are held in a queue; past :data:`READ_HIGH_WATER` of them the socket is not read until
+  ``recv`` has taken them down to :data:`READ_LOW_WATER`.
 * **Keepalive** as ``websockets`` does it: a ping every ``ping_interval``; no pong within
   ``ping_timeout`` fails the connection with 1011 ``keepalive ping timeout``.
 * **Closing.** A close frame received is answered with the same code, then the TCP connection
@@ -46,6 +49,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import ssl as _ssl
 import struct
 import urllib.parse
@@ -75,11 +79,13 @@ from srvwire.transports.base import (
     ConnectionHandler,
     Gate,
     Handshake,
+    Hosts,
     Listener,
     Options,
     Transport,
     TransportClosed,
     TransportError,
+    WriteTimedOut,
 )
 
 __all__ = ["PicowsConnection", "PicowsListener", "PicowsTransport"]
@@ -94,9 +100,11 @@ CLOSE_TIMEOUT = 10.0
 """Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
 NO_LIMIT = 2**62
 """``picows``' frame limit when ``max_message_size`` is None."""
-CORK_LIMIT = 2**16
-"""Bytes of corked frames at which ``send`` writes them at once instead of at the end of the
-read (see :meth:`PicowsConnection._flush`)."""
+DEFAULT_BUDGET = 2**16
+"""The budget of bytes waiting to be sent when ``max_queued_bytes`` is None: the socket
+buffer's high-water mark (its low one is a quarter). A server writes its corked frames at
+once past a quarter of it, instead of at the end of the read (see
+:meth:`PicowsConnection._flush`), so at most the budget and a quarter wait, plus one message."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
@@ -165,12 +173,25 @@ class PicowsConnection(WSListener, Connection):
         self._sent: tuple[int, str] | None = None  # the close frame sent
         self._ended: TransportClosed | None = None  # set once the TCP connection is gone
         self._gone: asyncio.Future[None] = self._loop.create_future()
+        budget = options.max_queued_bytes
+        self._budget = DEFAULT_BUDGET if budget is None else budget
+        # How long congestion may last: write_timeout, or a ping period when that is sooner
+        # (a ping cannot be answered through a buffer that does not drain).
+        limits = [options.write_timeout]
+        if options.ping_interval is not None and options.ping_timeout is not None:
+            limits.append(options.ping_interval + options.ping_timeout)
+        self._write_timeout = min((t for t in limits if t is not None), default=None)
+        self._stall: asyncio.TimerHandle | None = None
+        self._timed_out = False
 
     # What picows calls.
 
     def on_ws_connected(self, transport: WSTransport) -> None:
         self._ws = transport
         self._framing = not transport.is_client_side
+        transport.underlying_transport.set_write_buffer_limits(
+            high=self._budget, low=self._budget // 4
+        )
         self.remote_address = transport.underlying_transport.get_extra_info("peername")
         if self._ping_interval is not None:
             self._keepalive = self._loop.call_later(self._ping_interval, self._ping)
@@ -211,7 +232,11 @@ class PicowsConnection(WSListener, Connection):
             if sent is not None:
                 self._sent = (_code(sent.code), sent.reason or "")
         final = self._received if self._received is not None else self._sent
-        self._ended = TransportClosed(None) if final is None else TransportClosed(*final)
+        if self._timed_out:
+            assert self._write_timeout is not None
+            self._ended = WriteTimedOut(self._write_timeout)
+        else:
+            self._ended = TransportClosed(None) if final is None else TransportClosed(*final)
         if self._keepalive is not None:
             self._keepalive.cancel()
             self._keepalive = None
@@ -223,8 +248,13 @@ class PicowsConnection(WSListener, Connection):
     def pause_writing(self) -> None:
         if self._writable is None:
             self._writable = self._loop.create_future()
+            if self._write_timeout is not None and self._ended is None:
+                self._stall = self._loop.call_later(self._write_timeout, self._stalled)
 
     def resume_writing(self) -> None:
+        if self._stall is not None:
+            self._stall.cancel()
+            self._stall = None
         writable, self._writable = self._writable, None
         if writable is not None and not writable.done():
             writable.set_result(None)
@@ -237,7 +267,7 @@ class PicowsConnection(WSListener, Connection):
             if self._corked:
                 self._flush()  # the replies to everything read so far, in one write
             if self._ended is not None:
-                raise TransportClosed(self._ended.code, self._ended.reason)
+                raise self._closing()
             waiter = self._waiter = self._loop.create_future()
             try:
                 await waiter
@@ -250,6 +280,8 @@ class PicowsConnection(WSListener, Connection):
         return message
 
     async def send(self, message: str | bytes) -> None:
+        if self._writable is not None:
+            await self.writable()  # congested: queue nothing until the peer has read
         ws = self._ws
         if ws is None or self._ended is not None or ws.is_close_frame_sent:
             raise self._closing()
@@ -264,12 +296,10 @@ class PicowsConnection(WSListener, Connection):
             )
             corked.append(data)
             self._corked_size += size
-            if self._corked_size >= CORK_LIMIT:
+            if self._corked_size >= self._budget // 4:
                 self._flush()
         else:
             ws.send(_TEXT, data)
-        if self._writable is not None:
-            await self.writable()
 
     @property
     def congested(self) -> bool:
@@ -292,6 +322,9 @@ class PicowsConnection(WSListener, Connection):
             return
         if not ws.is_close_frame_sent:
             self._send_close(code, reason)
+        if not self._reading:  # the peer's close frame, or its dropping, must be read
+            self._reading = True
+            ws.underlying_transport.resume_reading()
         try:
             await asyncio.wait_for(asyncio.shield(self._gone), CLOSE_TIMEOUT)
         except TimeoutError:
@@ -385,11 +418,22 @@ class PicowsConnection(WSListener, Connection):
         ws.disconnect(graceful)
 
     def _closing(self) -> TransportClosed:
-        """How the connection ended, or is ending, for ``send`` to raise."""
+        """How the connection ended, or is ending, for ``recv`` and ``send`` to raise."""
+        if self._timed_out:
+            assert self._write_timeout is not None
+            return WriteTimedOut(self._write_timeout)
         if self._ended is not None:
             return TransportClosed(self._ended.code, self._ended.reason)
         final = self._received if self._received is not None else self._sent
         return TransportClosed(None) if final is None else TransportClosed(*final)
+
+    def _stalled(self) -> None:
+        """Close now: the peer has not read for the write timeout, so a closing handshake
+        would wait for nothing."""
+        self._stall = None
+        self._timed_out = True
+        if self._ws is not None:
+            self._ws.disconnect(graceful=False)
 
     def _ping(self) -> None:
         ws = self._ws
@@ -463,16 +507,31 @@ def _response(answer: Answered) -> WSUpgradeResponse:
 
 class PicowsListener(Listener):
     """A ``picows`` server; closing it keeps the connections it accepted, and
-    :meth:`wait_closed` waits for their handlers too."""
+    :meth:`wait_closed` waits for their handlers too.
 
-    def __init__(self, server: asyncio.Server, handlers: set[asyncio.Task[None]], host: str,
+    ``urls``: for one host name, that name (``localhost`` stays ``localhost``); for several
+    hosts or a wildcard, the address each socket is bound to, IPv4 first (a wildcard stays a
+    wildcard here, where the websockets transport lists the interfaces' addresses).
+    """
+
+    def __init__(self, server: asyncio.Server, handlers: set[asyncio.Task[None]], host: Hosts,
                  tls: bool) -> None:  # fmt: skip
         self._server = server
         self._handlers = handlers
-        address = server.sockets[0].getsockname()
-        self.host = host or address[0]
-        self.port = address[1]
-        self.url = _url(self.host, self.port, tls)
+        sockets = sorted(server.sockets, key=lambda sock: sock.family != socket.AF_INET)
+        port = int(sockets[0].getsockname()[1])
+        if isinstance(host, str) and host not in ("", "0.0.0.0", "::"):
+            self._urls = [_url(host, port, tls)]
+        else:
+            bound = [sock.getsockname()[:2] for sock in sockets]
+            self._urls = list(dict.fromkeys(_url(str(a), int(p), tls) for a, p in bound))
+        self.url = self._urls[0]
+        self.host = self.url.split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
+        self.port = port
+
+    @property
+    def urls(self) -> list[str]:
+        return list(self._urls)
 
     def close(self) -> None:
         self._server.close()
@@ -492,7 +551,7 @@ class PicowsTransport(Transport):
     async def listen(
         self,
         handler: ConnectionHandler,
-        host: str,
+        host: Hosts,
         port: int,
         options: Options,
         *,
@@ -543,7 +602,8 @@ class PicowsTransport(Transport):
             )  # fmt: skip
             return ws_protocol
 
-        server = await loop.create_server(protocol, host, port, ssl=ssl)
+        hosts = list(host) if isinstance(host, Sequence) and not isinstance(host, str) else host
+        server = await loop.create_server(protocol, hosts, port, ssl=ssl)
         return PicowsListener(server, handlers, host, tls=ssl is not None)
 
     async def connect(

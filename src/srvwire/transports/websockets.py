@@ -9,6 +9,17 @@ is prefixed with the side and the setting that refused the message (``over the s
 max_message_size (frame with 2097170 bytes exceeds limit of 1048576 bytes)``), so that the
 peer's error says what to raise.
 
+The budget is websockets' ``write_limit``: the asyncio transport's high-water mark, its low one
+a quarter of it. websockets writes a message into the buffer first and waits for it to drain
+after, so a ``send`` that finds the connection congested waits before it calls websockets.
+websockets' connection classes are subclassed (its ``create_connection``) only to hear the
+transport's ``pause_writing``/``resume_writing``: the write timeout is one timer, armed when
+writing pauses and cancelled when it resumes. This is also what ends a peer that does not read
+when keepalive cannot: websockets writes its ping and then waits for the buffer to drain before
+it starts the pong deadline, so past the high-water mark the ping deadline never starts. With
+keepalive on, a connection congested for a ping interval plus a ping timeout is closed as one
+whose ping went unanswered, when that is sooner than ``write_timeout``.
+
 Exceptions are mapped here and nowhere else:
 
 * ``ConnectionClosed`` (any subclass) -> :class:`TransportClosed`, with the code and reason of
@@ -22,17 +33,30 @@ that plain HTTP response (the upgrade never happens), an :class:`Admitted` one i
 and, through ``select_subprotocol``, its subprotocol. A client's refusal says the HTTP status
 and the server's reason, and a TLS handshake that fails says whether the server may not speak
 TLS.
+
+A listener can listen on several hosts (``asyncio``'s ``create_server`` takes a list), or on
+every interface, IPv4 and IPv6, with ``host=None``; its :attr:`~WebSocketsListener.urls` name
+each address clients can use, with the interfaces' own addresses for a wildcard
+(``0.0.0.0``, ``::``). ``websockets``' own INFO lines (a connection opened, closed, the server
+listening) are left out unless its logger's level was set (:class:`_QuietLogger`); its
+warnings and errors always go through.
 """
 
 from __future__ import annotations
 
+import asyncio
+import ipaddress
 import logging
+import socket
 import ssl as _ssl
+import struct
+import sys
 import weakref
 from collections.abc import Sequence
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.asyncio.connection import Connection as WebSocket
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import (
     ConnectionClosed,
@@ -43,30 +67,92 @@ from websockets.exceptions import (
 )
 from websockets.frames import Close, CloseCode
 from websockets.http11 import Request, Response
-from websockets.protocol import Protocol, Side, State
+from websockets.protocol import OPEN, Protocol, Side, State
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
 from srvwire.transports.base import (
     CREDENTIAL_HEADERS,
+    WRITE_TIMEOUT_CODE,
     Admitted,
     Answered,
     Connection,
     ConnectionHandler,
     Gate,
     Handshake,
+    Hosts,
     Listener,
     Options,
     Transport,
     TransportClosed,
     TransportError,
+    WriteTimedOut,
+    write_timeout_reason,
 )
 
 __all__ = ["WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
 
 
-def _closed(exc: ConnectionClosed) -> TransportClosed:
+DEFAULT_WRITE_LIMIT = 2**15
+"""websockets' own high-water mark, for ``max_queued_bytes=None``."""
+
+
+class _Watched(WebSocket):
+    """What srvwire adds to a websockets connection: it knows when writing is paused, and
+    closes the connection when it stays paused for ``write_timeout`` (None: never)."""
+
+    write_timeout: float | None = None
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.drained = asyncio.Event()  # set while writing is not paused, and once closed
+        self.drained.set()
+        self.stall: asyncio.TimerHandle | None = None
+        self.timed_out = False
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        self.drained.clear()
+        if self.write_timeout is not None:
+            self.stall = self.loop.call_later(self.write_timeout, self.stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        self.drained.set()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        super().connection_lost(exc)
+        self.drained.set()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def stalled(self) -> None:
+        """Close now: the peer does not read, so a closing handshake would wait for nothing."""
+        self.stall = None
+        assert self.write_timeout is not None
+        self.timed_out = True
+        if self.protocol.state is OPEN:  # record the close frame that recv will report
+            self.protocol.fail(WRITE_TIMEOUT_CODE, write_timeout_reason(self.write_timeout))
+        self.transport.abort()
+
+
+class _ServerConnection(_Watched, ServerConnection):
+    pass
+
+
+class _ClientConnection(_Watched, ClientConnection):
+    pass
+
+
+def _closed(exc: ConnectionClosed, ws: _Watched) -> TransportClosed:
     """Translate how ``websockets`` says a connection ended into :class:`TransportClosed`."""
+    if ws.timed_out:
+        assert ws.write_timeout is not None
+        return WriteTimedOut(ws.write_timeout)
     frame = exc.rcvd if exc.rcvd is not None else exc.sent
     if frame is None:
         return TransportClosed(None)
@@ -154,29 +240,140 @@ def _refusal(exc: Exception, url: str) -> TransportError:
     return TransportError(str(exc) or type(exc).__name__)
 
 
+_WILDCARDS = ("", "0.0.0.0", "::")
+_SIOCGIFADDR = 0x8915  # Linux's ioctl for the IPv4 address of an interface
+_LINK_LOCAL_SCOPE = 0x20  # in /proc/net/if_inet6: needs a zone (%eth0) to be used
+
+
+def interface_addresses(family: socket.AddressFamily) -> list[str]:
+    """This machine's addresses in ``family`` (IPv4 or IPv6), loopback first.
+
+    On Linux, every interface's (IPv6 link-local ones left out: they need a zone); elsewhere,
+    what the host name resolves to. Never raises: at worst, loopback alone.
+    """
+    found: list[str] = []
+    if sys.platform.startswith("linux"):
+        found = _linux_ipv4() if family == socket.AF_INET else _linux_ipv6()
+    if not found:
+        try:
+            infos = socket.getaddrinfo(socket.gethostname(), None, family, socket.SOCK_STREAM)
+        except OSError:
+            infos = []
+        found = [str(info[4][0]) for info in infos]
+    loopback = "127.0.0.1" if family == socket.AF_INET else "::1"
+    ordered = [loopback] + [a for a in found if not ipaddress.ip_address(a).is_loopback]
+    return list(dict.fromkeys(ordered))
+
+
+def _linux_ipv4() -> list[str]:
+    import fcntl
+
+    found = []
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        for _, name in socket.if_nameindex():
+            request = struct.pack("256s", name.encode()[:15])
+            try:
+                answer = fcntl.ioctl(probe.fileno(), _SIOCGIFADDR, request)
+            except OSError:  # the interface has no IPv4 address
+                continue
+            found.append(socket.inet_ntoa(answer[20:24]))
+    return found
+
+
+def _linux_ipv6() -> list[str]:
+    try:
+        with open("/proc/net/if_inet6", encoding="ascii") as lines:
+            rows = [line.split() for line in lines]
+    except OSError:
+        return []
+    return [
+        str(ipaddress.IPv6Address(bytes.fromhex(row[0])))
+        for row in rows
+        if len(row) >= 4 and int(row[3], 16) != _LINK_LOCAL_SCOPE
+    ]
+
+
+def _socket_order(sock: socket.socket) -> tuple[bool, bool, Any]:
+    """IPv4 first, then IPv6; in each, a wildcard or loopback first, then by address."""
+    address = ipaddress.ip_address(sock.getsockname()[0])
+    local = address.is_unspecified or address.is_loopback
+    return sock.family != socket.AF_INET, not local, address
+
+
+class _QuietLogger(_Redacting):
+    """``websockets.server`` without its INFO lines unless asked for; warnings always pass;
+    credentials hidden as :class:`_Redacting` hides them.
+
+    A line at INFO or DEBUG goes through only when the level of ``websockets.server`` (or of
+    ``websockets``) was set, to that level or lower: ``logging.basicConfig(level=INFO)`` alone
+    then does not print a line for every connection.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(logging.getLogger("websockets.server"), None)
+
+    def isEnabledFor(self, level: int) -> bool:
+        if level < logging.WARNING:
+            chosen = self.logger.level or logging.getLogger("websockets").level
+            if not chosen or level < chosen:
+                return False
+        return self.logger.isEnabledFor(level)
+
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        return msg, kwargs  # keep the extra websockets adds for each connection
+
+
 class WebSocketsConnection(Connection):
     """One WebSocket connection, server or client side."""
 
     __slots__ = ("_ws", "identity", "remote_address")
 
-    def __init__(self, ws: ServerConnection | ClientConnection, identity: object = None) -> None:
+    def __init__(
+        self,
+        ws: _ServerConnection | _ClientConnection,
+        options: Options,
+        identity: object = None,
+    ) -> None:
         self._ws = ws
         self.remote_address = ws.remote_address
         self.identity = identity
+        ws.write_timeout = _write_timeout(options)
         _name_the_limit(ws.protocol)
 
     async def recv(self) -> str | bytes:
         try:
             return await self._ws.recv()
         except ConnectionClosed as exc:
-            raise _closed(exc) from exc
+            raise _closed(exc, self._ws) from exc
 
     async def send(self, message: str | bytes) -> None:
         # text=True sends bytes as a text frame as they are, and a str as usual.
+        ws = self._ws
         try:
-            await self._ws.send(message, text=True)
+            if ws.paused:  # congested: queue nothing more until it drains
+                await self.writable()
+            await ws.send(message, text=True)
         except ConnectionClosed as exc:
-            raise _closed(exc) from exc
+            raise _closed(exc, ws) from exc
+
+    @property
+    def congested(self) -> bool:
+        return self._ws.paused
+
+    async def writable(self) -> None:
+        ws = self._ws
+        if not ws.paused:
+            return
+        while ws.paused:  # woken together, the first to write may pause it again
+            await ws.drained.wait()
+        if ws.protocol.state is State.CLOSED:
+            raise self.closed()
+
+    def closed(self) -> TransportClosed:
+        if self._ws.timed_out:
+            assert self._ws.write_timeout is not None
+            return WriteTimedOut(self._ws.write_timeout)
+        return super().closed()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         await self._ws.close(code, reason)
@@ -201,19 +398,55 @@ class WebSocketsConnection(Connection):
         return protocol.close_rcvd if protocol.close_rcvd is not None else protocol.close_sent
 
 
+def _write_timeout(options: Options) -> float | None:
+    """How long a connection may stay congested: ``write_timeout``, and with keepalive on, no
+    longer than a ping interval and a ping timeout, in which a ping sent while it is congested
+    would have gone unanswered (websockets starts the pong deadline only once it drained)."""
+    timeouts = [options.write_timeout]
+    if options.ping_interval is not None and options.ping_timeout is not None:
+        timeouts.append(options.ping_interval + options.ping_timeout)
+    return min((t for t in timeouts if t is not None), default=None)
+
+
+def _write_limit(options: Options) -> int:
+    budget = options.max_queued_bytes
+    return DEFAULT_WRITE_LIMIT if budget is None else budget
+
+
 class WebSocketsListener(Listener):
     """A ``websockets`` server; closing it keeps the connections it accepted.
 
-    ``host`` is the name it was asked to listen on (``localhost`` stays ``localhost``), else
-    the address its first socket bound; ``port`` is the port really bound.
+    ``urls`` are the addresses clients can use: for one host name, that name (``localhost``
+    stays ``localhost``); for a wildcard (``0.0.0.0``, ``::``, None), each address of the
+    interfaces of its family, loopback first; for several hosts, each. IPv4 comes before IPv6.
+    ``url`` is the first, and ``host`` and ``port`` are its. With port 0, each socket has a
+    port of its own.
     """
 
-    def __init__(self, server: Server, host: str | None = None, tls: bool = False) -> None:
+    def __init__(self, server: Server, host: Hosts = None, tls: bool = False) -> None:
         self._server = server
-        address = server.sockets[0].getsockname()
-        self.host = host or address[0]
-        self.port = address[1]
-        self.url = _url(self.host, self.port, tls)
+        sockets = sorted(server.sockets, key=_socket_order)  # asyncio's order is a set's
+        if isinstance(host, str) and host not in _WILDCARDS:
+            address = sockets[0].getsockname()
+            self._urls = [_url(host, address[1], tls)]
+            self.host, self.port = host, address[1]
+        else:
+            urls: list[str] = []
+            for sock in sockets:
+                address = sock.getsockname()
+                bound, port = str(address[0]), int(address[1])
+                if ipaddress.ip_address(bound).is_unspecified:
+                    urls += [_url(a, port, tls) for a in interface_addresses(sock.family)]
+                else:
+                    urls.append(_url(bound, port, tls))
+            self._urls = list(dict.fromkeys(urls))
+            self.host = self._urls[0].split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
+            self.port = int(sockets[0].getsockname()[1])
+        self.url = self._urls[0]
+
+    @property
+    def urls(self) -> list[str]:
+        return list(self._urls)
 
     def close(self) -> None:
         self._server.close(close_connections=False)
@@ -230,7 +463,7 @@ class WebSocketsTransport(Transport):
     async def listen(
         self,
         handler: ConnectionHandler,
-        host: str,
+        host: Hosts,
         port: int,
         options: Options,
         *,
@@ -264,13 +497,19 @@ class WebSocketsTransport(Transport):
 
         async def handle(ws: ServerConnection) -> None:
             # When this returns, websockets closes with 1000; when it raises, with 1011.
+            assert isinstance(ws, _ServerConnection)
             answer = admitted.pop(ws, None)
             identity = None if answer is None else answer.identity
-            await handler(WebSocketsConnection(ws, identity))
+            await handler(WebSocketsConnection(ws, options, identity))
 
+        if isinstance(host, Sequence) and not isinstance(host, str):
+            host = list(host)  # create_server takes a list of hosts
+            if not host:
+                raise ValueError("no host to listen on: name one, or None for every interface")
+        hosts: Any = host
         server = await serve(
             handle,
-            host,
+            hosts,
             port,
             compression=options.compression,
             max_size=options.max_message_size,
@@ -279,7 +518,9 @@ class WebSocketsTransport(Transport):
             process_request=process_request,
             select_subprotocol=select_subprotocol,
             ssl=ssl,
-            logger=_Redacting(logging.getLogger("websockets.server")),
+            logger=_QuietLogger(),
+            write_limit=_write_limit(options),
+            create_connection=_ServerConnection,
         )
         return WebSocketsListener(server, host, tls=ssl is not None)
 
@@ -300,14 +541,17 @@ class WebSocketsTransport(Transport):
                 ping_interval=options.ping_interval,
                 ping_timeout=options.ping_timeout,
                 compression=options.compression,
+                write_limit=_write_limit(options),
                 open_timeout=None,
                 additional_headers=list(headers) or None,
                 **tls,
+                create_connection=_ClientConnection,
                 logger=_Redacting(logging.getLogger("websockets.client")),
             )
         except (OSError, EOFError, WebSocketException) as exc:
             raise _refusal(exc, url) from exc
-        return WebSocketsConnection(ws)
+        assert isinstance(ws, _ClientConnection)
+        return WebSocketsConnection(ws, options)
 
     def check_url(self, url: str) -> None:
         try:
