@@ -2,8 +2,9 @@
 
 It starts ``robot_state_server.py`` on a free port in a child process, reads the port from the
 line the server logs once it listens, runs ``robot_command_client.py``'s sequence against it in
-this process, and stops the server whatever happened. The server's own log is shown only when
-something went wrong.
+this process, then publishes a few joint states with ``joint_state_publisher.py`` (a topic the
+server subscribes to), and stops the server whatever happened. The server's own log is shown
+only when something went wrong.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import threading
 from pathlib import Path
 from typing import IO
 
+import joint_state_publisher
 import robot_command_client
 
 HERE = Path(__file__).resolve().parent
@@ -83,6 +85,13 @@ def main() -> int:
         # The client logs each answer; here, to stdout with the rest, so that it pipes as one.
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
         status = robot_command_client.main(["--url", url])
+        if status == 0:
+            print(
+                "make demo: joint_state_publisher.py publishes on /joint_states, "
+                "which the server subscribes to:",
+                flush=True,
+            )
+            status = joint_state_publisher.main(["--url", url, "--count", "3", "--rate", "100"])
     except RuntimeError as exc:
         print(f"make demo: {exc}", file=sys.stderr)
     finally:

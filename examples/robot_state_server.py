@@ -7,6 +7,10 @@ The robot has five joints, a status word and a calibration flag. Two services ex
 * ``/execute_robot_command`` (``advanced_communication_tutorials/srv/RobotCommand``) moves the
   joints, stops the robot, or calibrates it.
 
+Like the ROS original, it also subscribes to ``/joint_states`` (``sensor_msgs/msg/JointState``):
+whatever a client publishes there (``joint_state_publisher.py``) becomes the joint positions it
+reports.
+
 Run it, then call it with ``robot_command_client.py`` or by hand with ``wscat``::
 
     python examples/robot_state_server.py              # ws://127.0.0.1:8765
@@ -24,12 +28,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 # --8<-- [start:load]
-from srvwire.loader import load_service
+from srvwire.loader import load_message, load_service
 from srvwire.server import Server
 
 # Service types come from .srv files, exactly as in ROS 2: the name is package/srv/Type.
 RobotStateQuery = load_service("advanced_communication_tutorials/srv/RobotStateQuery")
 RobotCommand = load_service("advanced_communication_tutorials/srv/RobotCommand")
+# Topics carry messages (.msg files): the joint states clients publish.
+JointState = load_message("sensor_msgs/msg/JointState")
 # --8<-- [end:load]
 
 logger = logging.getLogger("robot_state_server")
@@ -139,6 +145,23 @@ class RobotStateNode:
 
     # --8<-- [end:command]
 
+    # --8<-- [start:joint_states]
+    def on_joint_states(self, msg: Any) -> None:
+        """Keep the joint positions a publisher reports on ``/joint_states``, as the ROS
+        original's subscription does. A plain ``def`` runs on the event loop as each message
+        arrives, in order: keep it quick."""
+        if len(msg.position) != JOINT_COUNT:
+            logger.warning(
+                "ignoring a joint state with %d positions; the robot has %d joints",
+                len(msg.position),
+                JOINT_COUNT,
+            )
+            return
+        self.state.joint_positions = list(msg.position)
+        logger.debug("joint states %s", msg.position)
+
+    # --8<-- [end:joint_states]
+
 
 # --8<-- [start:server]
 def build_server(node: RobotStateNode | None = None) -> Server:
@@ -147,6 +170,9 @@ def build_server(node: RobotStateNode | None = None) -> Server:
     server = Server()
     server.add_service("/get_robot_state", RobotStateQuery, node.get_robot_state)
     server.add_service("/execute_robot_command", RobotCommand, node.execute_robot_command)
+    # Clients publish joint states; a late subscriber (srvwire topic echo) gets the latest one.
+    joint_states_qos = {"depth": 1, "durability": "transient_local"}
+    server.subscription("/joint_states", JointState, qos=joint_states_qos)(node.on_joint_states)
     return server
 
 

@@ -40,7 +40,14 @@ from srvwire.errors import (
 )
 from srvwire.inline import Pending, finish_within, first_step
 from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Response
-from srvwire.session import ClientSession, ServicesChanged, Stray
+from srvwire.session import (
+    ClientSession,
+    ServicesChanged,
+    Stray,
+    Subscribed,
+    TopicMessage,
+    TopicsChanged,
+)
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
 __all__ = [
@@ -50,6 +57,7 @@ __all__ = [
     "Link",
     "LoggerLike",
     "Owner",
+    "Stream",
     "foreign_loop",
 ]
 
@@ -96,6 +104,10 @@ class Owner(Protocol):
         """``link``'s server sent ``$/services``; news only while it is the current link."""
         ...
 
+    def topics_changed(self, link: Link, topics: dict[str, dict[str, Any]]) -> None:
+        """``link``'s server sent ``$/topics``; news only while it is the current link."""
+        ...
+
     def forget(self, link: Link) -> bool:
         """Drop ``link`` if it is the current one; return whether it was."""
         ...
@@ -103,10 +115,18 @@ class Owner(Protocol):
     def spawn(self, coro: Coroutine[Any, Any, None]) -> None: ...
 
 
+class Stream(Protocol):
+    """What a link needs of a subscription: where its ``$/subscribed`` and messages go."""
+
+    def started(self, event: Subscribed) -> None: ...
+
+    def deliver(self, event: TopicMessage) -> None: ...
+
+
 class Link:
     """One open connection of a client and the calls waiting on it."""
 
-    __slots__ = ("conn", "limit", "loop", "owner", "reader", "session")
+    __slots__ = ("conn", "limit", "loop", "owner", "reader", "session", "streams")
 
     def __init__(self, owner: Owner, conn: Connection, limit: int | None = None) -> None:
         self.owner = owner
@@ -115,6 +135,7 @@ class Link:
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
+        self.streams: dict[int, Stream] = {}  # subscriptions on this connection, by id
 
     @classmethod
     async def open(
@@ -182,12 +203,23 @@ class Link:
                     self.violation(exc)
                     break
                 for event in events:
-                    if type(event) is tuple:
+                    kind = type(event)
+                    if kind is TopicMessage:
+                        stream = self.streams.get(event.id)
+                        if stream is not None:  # else cancelled: its last messages are late
+                            stream.deliver(event)
+                    elif kind is tuple:
                         future = event[0]
                         if not future.done():
                             future.set_result(event[1])
-                    elif type(event) is ServicesChanged:
+                    elif kind is ServicesChanged:
                         owner.services_changed(self, event.services)
+                    elif kind is Subscribed:
+                        stream = self.streams.get(event.id)
+                        if stream is not None:
+                            stream.started(event)
+                    elif kind is TopicsChanged:
+                        owner.topics_changed(self, event.topics)
                     else:
                         assert type(event) is Stray
                         self.stray(event.reply)

@@ -52,10 +52,11 @@ from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import DeadlineExceeded, InternalError, RPCError, ServiceError
 from srvwire.inline import Pending, finish, first_step
 from srvwire.protocol import Request
-from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
+from srvwire.session import Call, CancelCall, Dropped, NotificationCall, Publish, ServerSession
+from srvwire.topics import Outbox, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
 
-__all__ = ["AccessLoggedSession", "CallRunner", "ServedConnection"]
+__all__ = ["AccessLoggedSession", "CallRunner", "ServedConnection", "Writer"]
 
 
 DROP_LOG_INTERVAL = 1.0
@@ -294,6 +295,71 @@ class CallRunner:
             self.session.done(note)
 
 
+class Writer:
+    """Sends what one connection's :class:`~srvwire.topics.Outbox` holds, one message at a time.
+
+    The outbox decides the order (control messages first, then subscriptions round-robin) and
+    the bounds (``depth`` per subscription, bytes per connection); the writer only takes the
+    next message and sends it, and takes none while the connection is
+    :attr:`~srvwire.transports.base.Connection.congested` (past its budget of bytes waiting to
+    be sent). So what a slow reader costs is what the outbox may hold plus the connection's
+    budget, and while the writer waits, the outbox keeps deciding what to drop (best effort)
+    or end (reliable). Replies to calls do not go through it: they are sent at once, never
+    behind the data the outbox holds, and when a drain wakes a reply and the writer together,
+    the reply goes first.
+
+    It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
+    low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
+    """
+
+    __slots__ = ("conn", "loop", "outbox", "task", "waiter")
+
+    def __init__(self, conn: Connection, loop: asyncio.AbstractEventLoop) -> None:
+        self.conn = conn
+        self.loop = loop
+        self.outbox = Outbox(self.wake)
+        self.task: asyncio.Task[None] | None = None
+        self.waiter: asyncio.Future[None] | None = None
+
+    def wake(self) -> None:
+        """The outbox has something to send: start the task, or wake it."""
+        if self.task is None:
+            self.task = self.loop.create_task(self.run())
+        elif self.waiter is not None and not self.waiter.done():
+            self.waiter.set_result(None)
+
+    async def run(self) -> None:
+        outbox = self.outbox
+        conn = self.conn
+        send = conn.send
+        try:
+            while True:
+                if conn.congested:
+                    # Past the connection's budget: hold the data here, where the outbox
+                    # drops or ends per QoS, and let replies woken by the same drain go first.
+                    await conn.writable()
+                    await asyncio.sleep(0)
+                    continue
+                data = outbox.next()
+                if data is None:
+                    self.waiter = self.loop.create_future()
+                    await self.waiter
+                    self.waiter = None
+                    continue
+                sending = first_step(send(data))
+                if isinstance(sending, Pending):  # it waited for a drain: so may replies
+                    await finish(sending)
+                    await asyncio.sleep(0)  # those woken by the same drain go first
+        except TransportClosed:
+            outbox.close()
+
+    def stop(self) -> None:
+        """The connection ended: end every subscription and stop the task."""
+        self.outbox.close()
+        if self.task is not None:
+            self.task.cancel()
+
+
 def _peer(address: Any) -> str:
     """``host:port`` (``[v6]:port``) for a TCP peer, else the transport's own name for it."""
     if isinstance(address, tuple) and len(address) >= 2:
@@ -332,21 +398,32 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         scopes: frozenset[str] = frozenset(),
         access_log: logging.Logger,
         peer: Any,
+        topics: Any = None,
+        outbox: Outbox | None = None,
     ) -> None:
-        super().__init__(services, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes)
+        super().__init__(
+            services,
+            max_in_flight=max_in_flight,
+            max_batch=max_batch,
+            scopes=scopes,
+            topics=topics,
+            outbox=outbox,
+        )
         self.access_log = access_log
         self.peer = _peer(peer)
         self.admitted: dict[Call[ServiceEntry], float] = {}  # when, on perf_counter
         self.outcomes: dict[Call[ServiceEntry], str] = {}
         self.refused: RPCError | None = None  # how the request being admitted was answered
 
-    def _admit(self, request: Request, batch: Any, events: list[Any]) -> bytes | Call[ServiceEntry]:
+    def _admit(
+        self, request: Request, batch: Any, events: list[Any]
+    ) -> bytes | Call[ServiceEntry] | None:
         self.refused = None
         admitted = super()._admit(request, batch, events)
         if type(admitted) is bytes:
             refused = self.refused
             self.line(_method(request.method), "OK" if refused is None else _outcome(refused))
-        else:
+        elif admitted is not None:  # None: a subscription started, answered when it ends
             assert isinstance(admitted, Call)
             self.admitted[admitted] = time.perf_counter()
         return admitted
@@ -415,6 +492,7 @@ class ServedConnection:
         "runner",
         "session",
         "tasks",
+        "writer",
     )
 
     def __init__(
@@ -433,10 +511,17 @@ class ServedConnection:
         self.log = logger
         identity = getattr(conn, "identity", None)
         scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
+        self.loop = asyncio.get_running_loop()
+        self.writer = Writer(conn, self.loop)
         self.session: ServerSession[ServiceEntry]
         if access_log is None:
             self.session = ServerSession(
-                registry, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes
+                registry,
+                max_in_flight=max_in_flight,
+                max_batch=max_batch,
+                scopes=scopes,
+                topics=registry.topics,
+                outbox=self.writer.outbox,
             )
         else:
             self.session = AccessLoggedSession(
@@ -446,6 +531,8 @@ class ServedConnection:
                 scopes=scopes,
                 access_log=access_log,
                 peer=conn.remote_address,
+                topics=registry.topics,
+                outbox=self.writer.outbox,
             )
         self.runner = CallRunner(
             self.session,
@@ -461,7 +548,6 @@ class ServedConnection:
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
         self.drops_timer: asyncio.TimerHandle | None = None  # says the count when it fires
-        self.loop = asyncio.get_running_loop()
         # Credentials that expire: past then, the session answers UNAUTHENTICATED.
         expires = getattr(identity, "expires", None)
         self.expiry: asyncio.TimerHandle | None = None
@@ -511,6 +597,7 @@ class ServedConnection:
         for cancel in self.session.cancel_all(error):
             runner.cancel(cancel.call, cancel.error)
         if error is None:
+            self.writer.stop()
             if self.expiry is not None:
                 self.expiry.cancel()
                 self.expiry = None
@@ -628,9 +715,42 @@ class ServedConnection:
                         await self.ignore_cancellation(None)
                 elif kind is CancelCall:
                     runner.cancel(event.call, event.error)
+                elif kind is Publish:
+                    await self.publish(event)
                 else:
                     assert kind is Dropped
                     self.dropped(event)
+
+    async def publish(self, event: Publish) -> None:
+        """A message a client published: validate it, hand it to the server's handlers (an
+        async one in a task of its own), then to the topic's subscribers; acknowledge it when
+        asked. A message that does not fit is answered INVALID_PARAMS, or logged."""
+        topic = event.topic
+        entry = topic.entry  # a srvwire.pubsub.TopicEntry
+        try:
+            message = entry.validate(event.message)
+        except RPCError as exc:
+            if event.id is not None:
+                await self.send(self.session.refuse(event.id, exc))
+            else:
+                self.log.info("dropped a message on %s from %s: %s", topic.name, self.peer, exc)
+            return
+        for handler in entry.handlers:
+            try:
+                result = handler(message)
+                if asyncio.iscoroutine(result):
+                    self.spawn(self.run_topic_handler(topic.name, result))
+            except Exception:
+                self.log.exception("the handler of %s failed", topic.name)
+        topic.publish(entry.write(message))
+        if event.id is not None:
+            await self.send(publish_ack(event.id))
+
+    async def run_topic_handler(self, name: str, coro: Any) -> None:
+        try:
+            await coro
+        except Exception:
+            self.log.exception("the handler of %s failed", name)
 
     def dropped(self, event: Dropped[ServiceEntry]) -> None:
         """Log a dropped notification, or count it if a line about drops was written less than
