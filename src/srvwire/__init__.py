@@ -1,5 +1,6 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire.actions import ClientGoal, GoalHandle, GoalResult
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
 from srvwire.dispatch import Context
@@ -8,6 +9,7 @@ from srvwire.errors import (
     ConnectionLost,
     DeadlineExceeded,
     ErrorCode,
+    GoalRejected,
     InterfaceConflictError,
     InterfaceError,
     InterfaceNotFoundError,
@@ -44,10 +46,14 @@ __all__ = [
     "Action",
     "Cancelled",
     "Client",
+    "ClientGoal",
     "ConnectionLost",
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "GoalHandle",
+    "GoalRejected",
+    "GoalResult",
     "Handshake",
     "Identity",
     "InterfaceConflictError",

@@ -14,6 +14,9 @@ Invariants:
   or by a caller decoding a reply the reader left unparsed.
 * **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
   background, best effort.
+* **A goal's news reaches its goal**: the ``$/goal`` and ``$/feedback`` notifications for a
+  call in :attr:`Link.goals` are handed to it, in the order they came; news for a call no
+  longer there (its outcome arrived) is dropped.
 """
 
 from __future__ import annotations
@@ -31,9 +34,16 @@ from srvwire.errors import (
     RPCError,
     ServiceUnavailable,
 )
+from srvwire.goals import FEEDBACK_METHOD, GOAL_METHOD, GoalNews, goal_news
 from srvwire.inline import Pending, finish_within, first_step
-from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Response
-from srvwire.session import ClientSession, ServicesChanged, Stray
+from srvwire.protocol import (
+    ErrorResponse,
+    ProtocolViolation,
+    RawReply,
+    Response,
+    cancel_notification,
+)
+from srvwire.session import ClientSession, Notice, ServicesChanged, Stray
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
 __all__ = ["CLOSE_PROTOCOL_VIOLATION", "Arrived", "Link", "LoggerLike", "Owner"]
@@ -70,10 +80,16 @@ class Owner(Protocol):
     def spawn(self, coro: Coroutine[Any, Any, None]) -> None: ...
 
 
+class Follower(Protocol):
+    """What follows a goal's news (the client's goal handle is one)."""
+
+    def news(self, news: GoalNews) -> None: ...
+
+
 class Link:
     """One open connection of a client and the calls waiting on it."""
 
-    __slots__ = ("conn", "loop", "owner", "reader", "session")
+    __slots__ = ("conn", "goals", "loop", "owner", "reader", "session")
 
     def __init__(self, owner: Owner, conn: Connection) -> None:
         self.owner = owner
@@ -81,6 +97,7 @@ class Link:
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
+        self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
 
     @classmethod
     async def open(
@@ -154,6 +171,8 @@ class Link:
                             future.set_result(event[1])
                     elif type(event) is ServicesChanged:
                         owner.services_changed(self, event.services)
+                    elif type(event) is Notice:
+                        self.notice(event)
                     else:
                         assert type(event) is Stray
                         self.stray(event.reply)
@@ -164,6 +183,25 @@ class Link:
             self.fail("the client failed to process a message from the server")
         finally:
             self.lost(None, cause)  # nothing to do when this side failed the connection
+
+    def notice(self, notice: Notice) -> None:
+        """Hand a goal's ``$/goal`` or ``$/feedback`` to its goal; drop anything else."""
+        if notice.method not in (GOAL_METHOD, FEEDBACK_METHOD):
+            return
+        news = goal_news(notice.method, notice.params)
+        if news is None:
+            self.owner.logger.debug("dropping a malformed %s", notice.method)
+            return
+        goal = self.goals.get(news.call)
+        if goal is not None:
+            goal.news(news)
+
+    def cancel_goal(self, id: int) -> bytes | None:
+        """The ``$/cancel`` for the goal ``id``, which keeps waiting for its outcome; None
+        when its outcome arrived already."""
+        if id not in self.session.pending:
+            return None
+        return cancel_notification(id).serialize()
 
     def stray(self, reply: Response | ErrorResponse) -> None:
         if reply.id is None and isinstance(reply, ErrorResponse):

@@ -46,7 +46,8 @@ from contextvars import copy_context
 from typing import Any, TypeAlias
 
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
-from srvwire.errors import DeadlineExceeded, InternalError, RPCError
+from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError
+from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
 from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
 from srvwire.transports.base import Connection, TransportClosed
@@ -70,6 +71,7 @@ class CallRunner:
     """
 
     __slots__ = (
+        "channel",
         "counted",
         "executor",
         "identity",
@@ -91,9 +93,11 @@ class CallRunner:
         logger: logging.Logger,
         notification_timeout: float | None = None,
         identity: Any = None,
+        channel: Any = None,
     ) -> None:
         self.session = session
         self.send = send
+        self.channel = channel  # what an action's goal sends its states and feedback through
         self.peer = peer
         self.identity = identity
         self.executor = executor
@@ -137,6 +141,7 @@ class CallRunner:
             peer=self.peer,
             deadline=None if timeout is None else time.monotonic() + timeout,
             identity=self.identity,
+            channel=self.channel,
         )
 
     def arm(self, work: Work) -> asyncio.TimerHandle | None:
@@ -170,6 +175,26 @@ class CallRunner:
         if task is not None and not work.task_cancelled and (work.started or error is None):
             work.task_cancelled = True
             task.cancel()
+
+    def request_cancel(self, work: Work, error: RPCError | None) -> bytes | None:
+        """``$/cancel`` (or shutdown, or the connection's end) reached a call.
+
+        An action's goal that the client cancelled is asked to stop first: its handler sees
+        ``cancel_requested``, and is cancelled only if it has not returned after its grace
+        period. Return the ``$/goal canceling`` to send then. Anything else is cancelled now.
+        """
+        context: Context | None = work.context
+        goal = None if context is None else context.goal
+        if goal is None or type(error) is not Cancelled:
+            self.cancel(work, error)
+            return None
+        canceling: bytes | None = goal.request_cancel(lambda: self.stop_goal(work, error))
+        return canceling
+
+    def stop_goal(self, work: Work, error: RPCError) -> None:
+        """A goal's grace period after its cancellation passed: cancel its handler."""
+        if type(work) is Call and self.session.answering(work):
+            self.cancel(work, error)
 
     @staticmethod
     async def take_back_cancellation() -> None:
@@ -291,11 +316,16 @@ class ServedConnection:
         "drops_logged",
         "drops_timer",
         "expiry",
+        "flusher",
+        "has_feedback",
         "log",
         "loop",
+        "outbox",
+        "quiet",
         "reader",
         "reading",
         "runner",
+        "sending",
         "session",
         "tasks",
     )
@@ -326,7 +356,15 @@ class ServedConnection:
             logger=logger,
             notification_timeout=notification_timeout,
             identity=identity,
+            channel=self,
         )
+        # Goals' feedback: keep-latest per goal, sent when no reply is being sent.
+        self.outbox = FeedbackOutbox()
+        self.sending = 0  # replies and other control messages being sent now
+        self.quiet = asyncio.Event()  # set while nothing is being sent but feedback
+        self.quiet.set()
+        self.has_feedback = asyncio.Event()
+        self.flusher: asyncio.Task[None] | None = None
         self.drops = 0  # notifications dropped and not logged yet
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
@@ -359,10 +397,49 @@ class ServedConnection:
 
     async def send(self, data: bytes) -> None:
         """Send one message; a connection that is gone is not an error here."""
+        self.sending += 1
+        self.quiet.clear()
         try:
             await self.conn.send(data)
         except TransportClosed:
             pass  # the caller left; its calls are being cancelled
+        finally:
+            self.sending -= 1
+            if not self.sending:
+                self.quiet.set()
+
+    # --- goals' feedback (what an action's GoalHandle needs of its connection) ----------------
+
+    @property
+    def executor(self) -> Executor | None:
+        """Where a plain ``def`` action handler runs."""
+        return self.runner.executor
+
+    def feedback(self, call: Any, message: bytes) -> None:
+        """Keep ``message`` as the goal ``call``'s latest feedback, and have it sent."""
+        self.outbox.put(call, message)
+        self.has_feedback.set()
+        if self.flusher is None:
+            self.flusher = self.spawn(self.flush_feedback())
+
+    def goal_done(self, call: Any) -> None:
+        """The goal ``call`` ended: the feedback it had not sent is dropped."""
+        self.outbox.discard(call)
+
+    async def flush_feedback(self) -> None:
+        """Send the goals' feedback, round-robin, whenever no control message is being sent."""
+        outbox = self.outbox
+        while True:
+            await self.has_feedback.wait()
+            await self.quiet.wait()  # replies first: data never delays control
+            message = outbox.take()
+            if message is None:
+                self.has_feedback.clear()
+                continue
+            try:
+                await self.conn.send(message)
+            except TransportClosed:
+                return
 
     def expire(self) -> None:
         """The connection's credentials expired (see :meth:`ServerSession.expire`)."""
@@ -495,7 +572,9 @@ class ServedConnection:
                     if reader.cancelling():
                         await self.ignore_cancellation(None)
                 elif kind is CancelCall:
-                    runner.cancel(event.call, event.error)
+                    canceling = runner.request_cancel(event.call, event.error)
+                    if canceling is not None:
+                        await self.send(canceling)
                 else:
                     assert kind is Dropped
                     self.dropped(event)

@@ -82,6 +82,7 @@ __all__ = [
     "ClientSession",
     "Dropped",
     "Entry",
+    "Notice",
     "NotificationCall",
     "ServerSession",
     "Services",
@@ -477,6 +478,15 @@ class ServicesChanged:
 
 
 @dataclass(slots=True)
+class Notice:
+    """Another notification from the server (a goal's ``$/goal`` or ``$/feedback``), parsed;
+    for whoever follows that method."""
+
+    method: str
+    params: Any
+
+
+@dataclass(slots=True)
 class Stray:
     """A reply no call waits for (its caller gave up), or an error the server sent about a
     message it could not read (``id`` null); for the log."""
@@ -532,7 +542,7 @@ class ClientSession(Generic[W]):
 
     def receive(self, data: str | bytes) -> list[Any]:
         """Read one message from the server; return ``(waiter, reply)`` pairs and news
-        (:class:`ServicesChanged`, :class:`Stray`).
+        (:class:`ServicesChanged`, :class:`Notice`, :class:`Stray`).
 
         A response a call waits for, written as a srvwire server writes it, is handed over
         unparsed (a :class:`~srvwire.protocol.RawReply`, decoded by its caller); anything else
@@ -561,7 +571,9 @@ class ClientSession(Generic[W]):
             if isinstance(message, Notification):
                 if message.method == SERVICES_METHOD:
                     events.append(services.pop(0))
-                continue  # other notifications: for later versions
+                else:
+                    events.append(Notice(message.method, message.params))
+                continue
             id = message.id
             waiter = self.pending.pop(id, None) if type(id) is int else None
             events.append(Stray(message) if waiter is None else (waiter, message))

@@ -59,6 +59,7 @@ EXIT_CODES: Final[Mapping[ErrorCode, ExitCode]] = {
     ErrorCode.RESOURCE_EXHAUSTED: ExitCode.OTHER_RPC_ERROR,
     ErrorCode.UNAUTHENTICATED: ExitCode.OTHER_RPC_ERROR,
     ErrorCode.PERMISSION_DENIED: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.GOAL_REJECTED: ExitCode.SERVICE_FAILED,
 }
 """The exit code for an error from a call, by the error's JSON-RPC code."""
 
@@ -82,7 +83,7 @@ exit codes:
   4    deadline exceeded (DEADLINE_EXCEEDED)
   5    no such service (SERVICE_NOT_FOUND)
   6    request does not fit the service type (INVALID_PARAMS)
-  7    the handler failed (INTERNAL, or an application error)
+  7    the handler failed (INTERNAL, or an application error), or a goal was rejected or aborted
   8    any other error from the server (CANCELLED, RESOURCE_EXHAUSTED, ...)
   130  interrupted with Ctrl-C"""
 
