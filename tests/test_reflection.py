@@ -227,9 +227,9 @@ async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
     described: list[object] = []
     discover_json = ServiceRegistry.discover_json
 
-    def counted(registry: ServiceRegistry) -> str:
+    def counted(registry: ServiceRegistry, scopes: frozenset[str] | None = None) -> str:
         described.append(registry)
-        return discover_json(registry)
+        return discover_json(registry, scopes)
 
     monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
     transport = srvwire.MemoryTransport()
@@ -259,9 +259,9 @@ async def test_the_description_is_asked_again_after_the_services_change(
     described: list[object] = []
     discover_json = ServiceRegistry.discover_json
 
-    def counted(registry: ServiceRegistry) -> str:
+    def counted(registry: ServiceRegistry, scopes: frozenset[str] | None = None) -> str:
         described.append(registry)
-        return discover_json(registry)
+        return discover_json(registry, scopes)
 
     monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
     Reset = build_service(parse_service("---\nbool done\n", "inproc_robot", "Reset"))
