@@ -1,35 +1,46 @@
-"""A simulated robot that answers two services: the robot-state tutorial's server, on srvwire.
+"""A simulated robot that answers two services and an action: the robot-state tutorial's server.
 
 The robot has five joints, a status word and a calibration flag. Two services expose it:
 
 * ``/get_robot_state`` (``advanced_communication_tutorials/srv/RobotStateQuery``) reports the
   joint positions, the status, or the robot's fixed configuration;
 * ``/execute_robot_command`` (``advanced_communication_tutorials/srv/RobotCommand``) moves the
-  joints, stops the robot, or calibrates it.
+  joints, stops the robot, or calibrates it at once;
+
+and one action, for the task that takes a while:
+
+* ``/calibrate`` (``advanced_communication_tutorials/action/Calibrate``) calibrates the joints
+  one by one (5 s in all unless the goal asks otherwise), sends its progress as feedback, and
+  stops early when the client cancels it.
 
 Run it, then call it with ``robot_command_client.py`` or by hand with ``wscat``::
 
     python examples/robot_state_server.py              # ws://127.0.0.1:8765
     python examples/robot_state_server.py --port 0     # any free port; the URL is logged
 
-Once it listens it logs ``serving 2 services on ws://HOST:PORT`` (with the port it got), then
+Once it listens it logs ``serving 3 services on ws://HOST:PORT`` (with the port it got), then
 logs every request and response, and stops cleanly on Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
 # --8<-- [start:load]
-from srvwire.loader import load_service
+from srvwire.actions import GoalHandle
+from srvwire.loader import load_action, load_service
 from srvwire.server import Server
 
 # Service types come from .srv files, exactly as in ROS 2: the name is package/srv/Type.
 RobotStateQuery = load_service("advanced_communication_tutorials/srv/RobotStateQuery")
 RobotCommand = load_service("advanced_communication_tutorials/srv/RobotCommand")
+# An action type comes from an .action file: package/action/Type.
+Calibrate = load_action("advanced_communication_tutorials/action/Calibrate")
 # --8<-- [end:load]
 
 logger = logging.getLogger("robot_state_server")
@@ -37,6 +48,7 @@ logger = logging.getLogger("robot_state_server")
 JOINT_COUNT = 5
 MAX_SPEED = 5.0  # reported by the "configuration" query
 MAX_TORQUE = 10.0
+CALIBRATION_TIME = 5.0  # seconds, as in the original tutorial, unless a goal asks otherwise
 
 
 # --8<-- [start:state]
@@ -139,14 +151,54 @@ class RobotStateNode:
 
     # --8<-- [end:command]
 
+    # --8<-- [start:calibrate]
+    async def calibrate(self, goal: Any, handle: GoalHandle) -> Any:
+        """Run the ``/calibrate`` action: one joint after the other, with progress feedback.
+
+        Each joint takes an equal share of ``goal.duration`` (``CALIBRATION_TIME`` when 0).
+        A cancellation stops it between joints; the result says how far it got.
+        """
+        duration = goal.duration if goal.duration > 0 else CALIBRATION_TIME
+        joints = len(self.state.joint_positions)
+        logger.info("calibrating %d joints over %g s", joints, duration)
+        started = time.monotonic()
+        self.state.status = "CALIBRATING"
+        self.state.calibrated = False
+        done = 0
+        for joint in range(joints):
+            await handle.feedback({"current_joint": f"joint_{joint}", "progress": joint / joints})
+            try:  # the joint's share of the time, unless the client cancels first
+                await asyncio.wait_for(handle.cancelled(), duration / joints)
+            except TimeoutError:
+                done += 1
+                continue
+            break  # cancelled
+        elapsed = round(time.monotonic() - started, 3)
+        if done == joints:
+            self.state.status, self.state.calibrated = "CALIBRATED", True
+            message = "Robot calibrated"
+        else:
+            self.state.status = "STOPPED"
+            message = f"Calibration canceled after {done} of {joints} joints"
+        logger.info("calibrate -> %s", message)
+        return {
+            "success": done == joints,
+            "message": message,
+            "execution_time": elapsed,
+            "joints_done": done,
+        }
+
+    # --8<-- [end:calibrate]
+
 
 # --8<-- [start:server]
 def build_server(node: RobotStateNode | None = None) -> Server:
-    """Create a srvwire server offering the robot's two services."""
+    """Create a srvwire server offering the robot's two services and its action."""
     node = node if node is not None else RobotStateNode()
     server = Server()
     server.add_service("/get_robot_state", RobotStateQuery, node.get_robot_state)
     server.add_service("/execute_robot_command", RobotCommand, node.execute_robot_command)
+    server.add_action("/calibrate", Calibrate, node.calibrate)
     return server
 
 
@@ -177,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     logging.getLogger("websockets").setLevel(logging.WARNING)  # srvwire already says it all
     server = build_server()
-    # run() logs "serving 2 services on ws://HOST:PORT" once it listens, then blocks until
+    # run() logs "serving 3 services on ws://HOST:PORT" once it listens, then blocks until
     # Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.
     server.run(args.host, args.port)
     return 0

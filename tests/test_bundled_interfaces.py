@@ -45,7 +45,10 @@ _PLAIN = sorted(
 
 EXPECTED: dict[str, dict[str, list[str]]] = {
     "action_msgs": {"msg": ["GoalInfo", "GoalStatus", "GoalStatusArray"], "srv": ["CancelGoal"]},
-    "advanced_communication_tutorials": {"srv": ["RobotCommand", "RobotStateQuery"]},
+    "advanced_communication_tutorials": {
+        "action": ["Calibrate"],
+        "srv": ["RobotCommand", "RobotStateQuery"],
+    },
     "builtin_interfaces": {"msg": ["Duration", "Time"]},
     "diagnostic_msgs": {
         "msg": ["DiagnosticArray", "DiagnosticStatus", "KeyValue"],

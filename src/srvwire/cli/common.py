@@ -63,6 +63,13 @@ EXIT_CODES: Final[Mapping[ErrorCode, ExitCode]] = {
 }
 """The exit code for an error from a call, by the error's JSON-RPC code."""
 
+GOAL_EXIT_CODES: Final[Mapping[str, ExitCode]] = {
+    "succeeded": ExitCode.OK,
+    "aborted": ExitCode.SERVICE_FAILED,
+    "canceled": ExitCode.OTHER_RPC_ERROR,
+}
+"""The exit code of ``srvwire action send_goal``, by the goal's final status."""
+
 
 def exit_code_for(error: RPCError) -> ExitCode:
     """Return the exit code for ``error``, chosen by its JSON-RPC code."""
