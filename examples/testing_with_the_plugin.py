@@ -81,12 +81,12 @@ async def test_a_handler_that_raises(
     srvwire_client: srvwire.Client,
     srvwire_handler_errors: list[logging.LogRecord],
 ) -> None:
-    async def calibrate(request: Any, response: Any) -> Any:
+    async def home(request: Any, response: Any) -> Any:
         raise RuntimeError("the arm is stuck")
 
-    srvwire_server.add_service("/calibrate", Trigger, calibrate)  # the server being served
+    srvwire_server.add_service("/home", Trigger, home)  # the server being served
     with pytest.raises(srvwire.InternalError):
-        await srvwire_client.call("/calibrate")
+        await srvwire_client.call("/home")
 
     [record] = srvwire_handler_errors  # what the server logged, with the traceback
     assert record.exc_info is not None and str(record.exc_info[1]) == "the arm is stuck"

@@ -90,7 +90,7 @@ exit codes:
   4    deadline exceeded (DEADLINE_EXCEEDED)
   5    no such service (SERVICE_NOT_FOUND)
   6    request does not fit the service type (INVALID_PARAMS)
-  7    the handler failed (INTERNAL, or an application error), or a goal was rejected or aborted
+  7    the handler failed (INTERNAL, or an application error); a goal GOAL_REJECTED or aborted
   8    any other error from the server (CANCELLED, RESOURCE_EXHAUSTED, ...)
   130  interrupted with Ctrl-C"""
 
