@@ -416,9 +416,10 @@ def test_the_outbox_keeps_the_latest_feedback_per_goal_round_robin() -> None:
     assert outbox.put(2, b"b1") is False
     assert outbox.put(1, b"a2") is False  # replaces a1, keeps goal 1's turn
     assert outbox.replaced == 1 and len(outbox) == 2
-    assert outbox.take() == b"a2"
+    assert 1 in outbox and 3 not in outbox
+    assert outbox.take() == (1, b"a2")
     outbox.put(1, b"a3")  # goal 1 had its turn: behind goal 2 now
-    assert outbox.take() == b"b1"
+    assert outbox.take() == (2, b"b1")
     outbox.discard(1)
     assert outbox.take() is None and len(outbox) == 0
 

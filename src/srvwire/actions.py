@@ -18,6 +18,8 @@ Server invariants:
   any other ``succeeded``. An exception is the call's error, as for a service.
 * **Feedback is validated and written once**, by the handler's own thread, then handed to
   the connection's keep-latest outbox; feedback given after the outcome is ignored.
+  ``await handle.feedback(...)`` returns once that message left the outbox (sent, replaced,
+  or the goal ended); ``publish_feedback`` never waits.
 
 Client invariants:
 
@@ -140,6 +142,10 @@ class GoalChannel(Protocol):
         """The call's outcome is written: its pending feedback is dropped."""
         ...
 
+    async def feedback_flushed(self, call: Any) -> None:
+        """Wait until the call has no feedback waiting to be sent."""
+        ...
+
 
 class GoalHandle:
     """What an action's handler holds for its goal: feedback out, cancellation in.
@@ -203,12 +209,16 @@ class GoalHandle:
     # --- feedback -------------------------------------------------------------------------------
 
     async def feedback(self, feedback: BaseModel | dict[str, Any]) -> None:
-        """Send ``feedback`` (a ``Feedback`` or a dict of its fields); keep-latest."""
+        """Send ``feedback`` (a ``Feedback`` or a dict of its fields), and wait until the
+        connection took it: sent, or superseded by newer feedback. So an ``async`` handler
+        that reports in a loop goes at the pace of its client, and holds one message."""
         self.publish_feedback(feedback)
+        await self.channel.feedback_flushed(self.call)
 
     def publish_feedback(self, feedback: BaseModel | dict[str, Any]) -> None:
-        """Send ``feedback`` from any thread; never waits. An older feedback not sent yet is
-        replaced. Raise ``ValueError`` (pydantic's) for feedback that does not fit."""
+        """Send ``feedback`` from any thread (a plain ``def`` handler's too); never waits. An
+        older feedback not sent yet is replaced (keep-latest). Raise ``ValueError``
+        (pydantic's) for feedback that does not fit."""
         if self._closed:
             return
         model = self.feedback_model
@@ -367,6 +377,7 @@ class GoalLink(Protocol):
     """What a client's goal needs of its connection (a :class:`srvwire.link.Link` is one)."""
 
     loop: asyncio.AbstractEventLoop
+    goals: dict[int, Any]
 
     def give_up(self, method: str, id: int, future: asyncio.Future[Any]) -> None: ...
 
@@ -504,6 +515,7 @@ class ClientGoal(Generic[R]):
             raise self._error
         if not self.reply.done():
             await self._wait(asyncio.wait((self.reply,)))
+        self.link.goals.pop(self.id, None)  # its done-callback may not have run yet
         try:
             outcome = self.reply.result().decode(self.decoder)
         except RPCError as exc:

@@ -157,6 +157,10 @@ class FeedbackOutbox:
     def __len__(self) -> int:
         return len(self._slots)
 
+    def __contains__(self, call: object) -> bool:
+        """Whether ``call`` has feedback waiting to be sent."""
+        return call in self._slots
+
     def put(self, call: Any, message: bytes) -> bool:
         """Keep ``message`` as ``call``'s next feedback; return whether the outbox was empty."""
         slots = self._slots
@@ -166,12 +170,11 @@ class FeedbackOutbox:
         slots[call] = message  # an update keeps its turn: it does not wait behind others
         return was_empty
 
-    def take(self) -> bytes | None:
-        """Return the next message to send (the longest-waiting goal's), or None."""
+    def take(self) -> tuple[Any, bytes] | None:
+        """Return the next goal to send for and its message (the longest-waiting), or None."""
         if not self._slots:
             return None
-        _, message = self._slots.popitem(last=False)
-        return message
+        return self._slots.popitem(last=False)
 
     def discard(self, call: Any) -> None:
         """Forget the feedback ``call`` had not sent: its outcome is written."""

@@ -316,6 +316,7 @@ class ServedConnection:
         "drops_logged",
         "drops_timer",
         "expiry",
+        "flushed",
         "flusher",
         "has_feedback",
         "log",
@@ -365,6 +366,7 @@ class ServedConnection:
         self.quiet.set()
         self.has_feedback = asyncio.Event()
         self.flusher: asyncio.Task[None] | None = None
+        self.flushed: dict[Any, list[asyncio.Future[None]]] = {}  # feedback_flushed's waiters
         self.drops = 0  # notifications dropped and not logged yet
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
@@ -417,14 +419,31 @@ class ServedConnection:
 
     def feedback(self, call: Any, message: bytes) -> None:
         """Keep ``message`` as the goal ``call``'s latest feedback, and have it sent."""
+        if call in self.outbox:
+            self.release(call)  # its waiting message is superseded
         self.outbox.put(call, message)
         self.has_feedback.set()
         if self.flusher is None:
             self.flusher = self.spawn(self.flush_feedback())
 
+    async def feedback_flushed(self, call: Any) -> None:
+        """Wait until the goal ``call`` has no feedback waiting: it went out, was superseded,
+        or the goal ended."""
+        if call not in self.outbox:
+            return
+        waiter: asyncio.Future[None] = self.loop.create_future()
+        self.flushed.setdefault(call, []).append(waiter)
+        await waiter
+
+    def release(self, call: Any) -> None:
+        for waiter in self.flushed.pop(call, ()):
+            if not waiter.done():
+                waiter.set_result(None)
+
     def goal_done(self, call: Any) -> None:
         """The goal ``call`` ended: the feedback it had not sent is dropped."""
         self.outbox.discard(call)
+        self.release(call)
 
     async def flush_feedback(self) -> None:
         """Send the goals' feedback, round-robin, whenever no control message is being sent."""
@@ -432,14 +451,17 @@ class ServedConnection:
         while True:
             await self.has_feedback.wait()
             await self.quiet.wait()  # replies first: data never delays control
-            message = outbox.take()
-            if message is None:
+            taken = outbox.take()
+            if taken is None:
                 self.has_feedback.clear()
                 continue
+            call, message = taken
             try:
                 await self.conn.send(message)
             except TransportClosed:
                 return
+            finally:
+                self.release(call)
 
     def expire(self) -> None:
         """The connection's credentials expired (see :meth:`ServerSession.expire`)."""
