@@ -44,7 +44,7 @@ def url() -> Iterator[str]:
 
 def run(capsys: pytest.CaptureFixture[str], url: str, *argv: str) -> tuple[int, str, str]:
     capsys.readouterr()
-    code = main(["action", *argv[:1], *argv[1:], "--url", url, "--timeout", "5"])
+    code = main(["action", *argv, "--url", url, "--timeout", "5"])
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -52,6 +52,7 @@ def run(capsys: pytest.CaptureFixture[str], url: str, *argv: str) -> tuple[int, 
 def test_action_list_shows_only_actions(capsys: pytest.CaptureFixture[str], url: str) -> None:
     assert run(capsys, url, "list") == (ExitCode.OK, "/fibonacci\n/forever\n", "")
     code, out, _ = run(capsys, url, "list", "-t")
+    assert code == ExitCode.OK
     assert out == (
         "/fibonacci [example_interfaces/action/Fibonacci]\n"
         "/forever [example_interfaces/action/Fibonacci]\n"
