@@ -44,6 +44,18 @@ async def test_a_misspelt_service_name(srvwire_client: srvwire.Client) -> None:
 # --8<-- [end:client]
 
 
+# --8<-- [start:sync]
+def test_with_the_blocking_client(srvwire_sync_client: srvwire.sync.Client) -> None:
+    stop = srvwire_sync_client.proxy("/execute_robot_command")
+    assert stop(command_type="stop").message == "Robot stopped"
+
+    response = srvwire_sync_client.call("/get_robot_state", {"query_type": "status"})
+    assert response.message == "Robot status: STOPPED"
+
+
+# --8<-- [end:sync]
+
+
 # --8<-- [start:wire]
 async def test_the_reply_on_the_wire(srvwire_wire: Wire) -> None:
     reply = await srvwire_wire.request("/get_robot_state", {"query_type": "status"}, id=7)

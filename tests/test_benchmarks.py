@@ -113,3 +113,31 @@ def test_a_bad_choice_is_refused_before_anything_runs() -> None:
     assert "--compare takes two of: baseline, floor, srvwire" in done.stderr
     done = harness("--workloads", "W9")
     assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
+
+
+def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Path) -> None:
+    out = tmp_path / "sync.json"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "sync_client.py"), "--quick", "--json", out],
+        capture_output=True,
+        text=True,
+        timeout=scaled(300),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    rows = json.loads(out.read_text(encoding="utf-8"))
+    assert [row["measurement"] for row in rows] == [
+        "async",
+        "sync",
+        "async, 4 tasks",
+        "sync, 4 threads",
+        "sync, a connection per call",
+        "the hand-off alone, no call",
+    ]
+    [baseline] = [row["us_per_call"] for row in rows if row["measurement"] == "async"]
+    for row in rows:
+        assert row["rounds"] == 1
+        assert row["ratio_to_async"] == pytest.approx(row["us_per_call"] / baseline)
+        assert row["calls_per_second"] == pytest.approx(1e6 / row["us_per_call"])
+        assert f"{row['measurement']:<30} {row['us_per_call']:>12.1f}" in result.stdout

@@ -20,6 +20,7 @@ from srvwire.errors import InterfaceError, InterfaceNotFoundError
 from srvwire.idl import ArrayKind, FieldSpec, InterfaceKind, MessageSpec, Scalar, TypeSpec, Value
 from srvwire.loader import InterfaceLoader, bundled_interfaces
 from srvwire.models import Action, Message, Service
+from srvwire.typeregistry import TypeRegistry
 from support import ROOT
 
 BUNDLE = bundled_interfaces()
@@ -512,7 +513,8 @@ def test_a_package_of_the_same_name_hides_the_whole_bundled_one(tmp_path: Path) 
     twist = tmp_path / "geometry_msgs" / "msg" / "Twist.msg"
     twist.parent.mkdir(parents=True)
     twist.write_text("# Only a linear speed.\nfloat64 speed\n", encoding="utf-8")
-    loader = InterfaceLoader([tmp_path, BUNDLE])
+    # A world of its own: this process already has the bundled Twist, a different definition.
+    loader = InterfaceLoader([tmp_path, BUNDLE], use_default_path=False, types=TypeRegistry())
     assert loader.packages()["geometry_msgs"] == tmp_path / "geometry_msgs"
     assert loader.types("geometry_msgs") == ["geometry_msgs/msg/Twist"]
     assert list(loader.load_message("geometry_msgs/msg/Twist").model_fields) == ["speed"]

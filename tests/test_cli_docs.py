@@ -43,6 +43,19 @@ NOT_RUN = {
     "srvwire serve examples/robot_state_server.py:build_server --factory": (
         "serves until Ctrl-C; test_cli.py's serve tests cover --factory"
     ),
+    "srvwire serve app.py --host 0.0.0.0 --certfile cert.pem --keyfile key.pem "
+    "--client-ca clients.pem": (
+        "serves until Ctrl-C, with certificates of its own; test_cli_security.py's "
+        "test_serve_with_client_certificates_may_listen_publicly serves the same way"
+    ),
+    'srvwire call /status --url wss://robot.example.com:8765 --cacert ca.pem --token "$TOKEN"': (
+        "needs a TLS server with its certificates; test_cli_security.py's "
+        "test_serve_tls_and_call_it_with_the_ca calls one with --cacert"
+    ),
+    "srvwire serve app.py --port 8765 --origin https://robot.example.com": (
+        "serves until Ctrl-C; test_cli_security.py's test_serve_refuses_a_bad_origin and "
+        "test_nginx.py serve with --origin"
+    ),
 }
 """Samples that are not run, each with the reason."""
 
@@ -76,7 +89,7 @@ def page_samples(page: Path) -> list[Sample]:
     lines = page.read_text(encoding="utf-8").splitlines()
     language = None
     for number, line in enumerate(lines):
-        fence = re.match(r"^```(\w*)$", line)
+        fence = re.match(r"^```(\S*)", line)  # ```sh, or ```{.python title="..."}
         if fence:
             language = None if language is not None else fence.group(1) or "text"
             continue

@@ -36,6 +36,8 @@ RUN_ELSEWHERE = {
     "testing_services.py": "a pytest file: test_the_testing_page_passes_under_pytest",
     "testing_with_the_plugin.py": "a pytest file: test_the_testing_page_passes_under_pytest",
     "conftest.py": "the srvwire_server of testing_with_the_plugin.py, run with it",
+    "sync_client.py": "needs the robot server: tests/test_examples.py",
+    "notebook.py": "a notebook's cells (top-level await): tests/test_notebook.py runs them",
 }
 
 # The scripts run here, with what each must print: its whole standard output, with the port of
@@ -47,6 +49,12 @@ SCRIPTS = {
         "GetStatus_Response: ok=True frame=base\n"
         "built from three sources: map\n"
         "same Header class: True\n"
+    ),
+    "camera_frames.py": (
+        "rgb8 640x480: 921600 bytes\n"
+        "exposure: inf\n"
+        "default limit: closed with 1009, the connection closed with code 1009 (over the "
+        "client's max_message_size (frame with 1228922 bytes exceeds limit of 1048576 bytes))\n"
     ),
     "handling_errors.py": (
         "sum: 3\n"
@@ -120,7 +128,7 @@ def test_handling_errors_logs_the_lost_connection() -> None:
 
 
 @pytest.mark.parametrize(
-    ("example", "tests"), [("testing_services.py", 7), ("testing_with_the_plugin.py", 6)]
+    ("example", "tests"), [("testing_services.py", 7), ("testing_with_the_plugin.py", 7)]
 )
 def test_the_testing_page_passes_under_pytest(example: str, tests: int) -> None:
     # An examples/ file is not collected by the suite (testpaths is tests/): run it on its own.

@@ -63,6 +63,10 @@ COMMANDS: dict[str, str] = {
     r"(\.venv/bin/)?python examples/robot_state_server\.py( &)?": (
         "serves until stopped: tests/test_examples.py runs it in a child process"
     ),
+    r"python examples/sync_client\.py": (
+        "needs the robot server: tests/test_examples.py's test_the_blocking_client_script runs "
+        "it against one and compares its output with the page"
+    ),
     r"\.venv/bin/python examples/robot_command_client\.py": (
         "needs the robot server: tests/test_examples.py runs it against one"
     ),
@@ -106,10 +110,41 @@ EXPLAINED: dict[tuple[str, str], str] = {
     ("interfaces.md", "my_robot/"): "a folder tree, not a file",
     (
         "interfaces.md",
+        "no message 'Pose' in package 'geometry_msgs' (/home/me/ws/geometry_msgs hides the "
+        "bundled package 'geometry_msgs' in .../srvwire/interfaces, which has it: a package is "
+        "taken whole from the first folder that holds it)",
+    ): "the overlay error: tests/test_loader.py asserts its text",
+    (
+        "interfaces.md",
+        "two different definitions of std_msgs/msg/Header: .../srvwire/interfaces/std_msgs/msg/"
+        "Header.msg and server ws://robot:8765 (declaration 1: 'builtin_interfaces/Time stamp' "
+        "against 'uint32 seq'); a type name has one definition per process",
+    ): "the conflict error: tests/test_typeregistry.py and tests/test_reflection.py assert it",
+    (
+        "security.md",
+        "cannot connect to ws://127.0.0.1:8765: the server refused the connection: HTTP 401: "
+        "the token is not valid",
+    ): "a refused handshake: tests/test_docs_examples.py runs examples/secure_server.py for it",
+    (
+        "security.md",
+        "srvwire: error: refusing to listen on 0.0.0.0 without authentication: any host that can "
+        "reach it could call every service. Give the Server an authenticator "
+        "(Server(auth=srvwire.TokenAuth(...))), require client certificates (--client-ca), or "
+        "pass --allow-unauthenticated on a network you trust",
+    ): (
+        "serve's refusal: test_cli_security.py's "
+        "test_serve_refuses_a_public_address_without_authentication asserts it"
+    ),
+    (
+        "interfaces.md",
         "srv/RobotCommand.srv:3:7: 'Command_type' is an invalid field name: it must start with a "
         "lowercase letter and contain only lowercase letters, digits and underscores, with no "
         "double or trailing underscore",
     ): "the parser's errors: test_the_parser_errors_on_the_interfaces_page gives each of them",
+    ("sync.md", "Current joint positions: [0.0, 0.0, 0.0, 0.0, 0.0]"): (
+        "what examples/sync_client.py prints: tests/test_examples.py's "
+        "test_the_blocking_client_script compares it"
+    ),
     ("tutorial.md", "make demo: robot_state_server.py is serving on ws://127.0.0.1:41111"): (
         "make demo's output: tests/test_examples.py's test_make_demo_runs_the_whole_tutorial"
     ),

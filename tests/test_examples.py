@@ -270,6 +270,46 @@ def test_the_url_is_read_from_the_server_log_whatever_the_count(
             assert match and match.group(1) == "ws://127.0.0.1:1234", (pattern, line)
 
 
+def sync_client_transcript() -> str:
+    """What docs/sync.md shows ``python examples/sync_client.py`` printing."""
+    page = (ROOT / "docs" / "sync.md").read_text(encoding="utf-8")
+    match = re.search(
+        r"\npython examples/sync_client.py\n```\n\n```text\n(.*?)```\n",
+        page,
+        re.DOTALL,
+    )
+    assert match, "docs/sync.md no longer shows what examples/sync_client.py prints"
+    return match.group(1)
+
+
+def test_the_blocking_client_script(robot_server: RunningServer) -> None:
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "sync_client.py"), "--url", robot_server.url],
+        capture_output=True,
+        text=True,
+        timeout=scaled(30),
+        check=False,
+    )
+    assert (result.returncode, result.stderr) == (0, "")
+    assert result.stdout == sync_client_transcript()
+    assert "command 'move'" in robot_server.log()
+
+
+def test_the_blocking_client_script_without_a_server() -> None:
+    with socket.socket() as unused:
+        unused.bind(("127.0.0.1", 0))
+        url = f"ws://127.0.0.1:{unused.getsockname()[1]}"
+        result = subprocess.run(
+            [sys.executable, str(EXAMPLES / "sync_client.py"), "--url", url],
+            capture_output=True,
+            text=True,
+            timeout=scaled(30),
+            check=False,
+        )
+    assert (result.returncode, result.stdout) == (1, "")
+    assert result.stderr.startswith(f"ServiceUnavailable: cannot connect to {url}: ")
+
+
 # --- the client when things go wrong ---------------------------------------------------------
 
 

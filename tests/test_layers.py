@@ -40,6 +40,7 @@ LAYERS: dict[str, int] = {
     "serving": 4,
     "client": 4,
     "server": 5,
+    "sync": 5,
     "cli": 6,
     "testing": 6,
     "__init__": 6,
@@ -109,6 +110,8 @@ def test_imports_point_down() -> None:
 def test_the_asyncio_shells_never_import_each_other() -> None:
     assert "client" not in srvwire_imports(MODULES["server"])
     assert "server" not in srvwire_imports(MODULES["client"])
+    assert "server" not in srvwire_imports(MODULES["sync"])
+    assert "sync" not in srvwire_imports(MODULES["server"])
 
 
 def test_the_layer_table_in_the_design_page_agrees() -> None:

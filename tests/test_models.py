@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import typing
 import warnings
 from typing import Any
 
@@ -29,12 +30,16 @@ from srvwire.models import (
     MAX_LISTED_ERRORS,
     PRIMITIVE_ALIASES,
     Action,
+    InfNan,
     Message,
     Service,
+    ServiceRequest,
+    TypedService,
     build_action,
     build_message,
     build_service,
     error_data,
+    json_writer,
     python_name,
     summarize_errors,
     unencodable_strings,
@@ -179,15 +184,73 @@ def test_float32_range_is_the_largest_finite_float32() -> None:
 
 
 @pytest.mark.parametrize("name", ["float32", "float64"])
-def test_floats_allow_inf_and_nan_and_write_them_as_json_constants(name: str) -> None:
+def test_floats_allow_inf_and_nan_and_write_them_as_strings(name: str) -> None:
     cls = one(fixed(name, 3))
     m = cls(v=[math.inf, -math.inf, math.nan])
     text = m.model_dump_json()
-    assert text == '{"v":[Infinity,-Infinity,NaN]}'
+    assert text == '{"v":["Infinity","-Infinity","NaN"]}'
     back = cls.model_validate_json(text).v
     assert back[:2] == [math.inf, -math.inf]
     assert math.isnan(back[2])
-    assert json.loads(text)["v"][:2] == [math.inf, -math.inf]  # what Python's json reads too
+    json.loads(text, parse_constant=pytest.fail)  # standard JSON: no bare NaN token
+
+
+@pytest.mark.parametrize("name", ["float32", "float64"])
+@pytest.mark.parametrize(
+    ("mode", "written"),
+    [
+        ("strings", '{"v":["Infinity","-Infinity","NaN",1.5]}'),
+        ("null", '{"v":[null,null,null,1.5]}'),
+        ("constants", '{"v":[Infinity,-Infinity,NaN,1.5]}'),
+    ],
+)
+def test_a_json_writer_writes_non_finite_floats_in_its_mode(
+    name: str, mode: InfNan, written: str
+) -> None:
+    cls = one(fixed(name, 4))
+    m = cls(v=[math.inf, -math.inf, math.nan, 1.5])
+    assert json_writer(cls, mode)(m).decode() == written
+    assert json_writer(cls, mode, strict=True)(m).decode() == written
+    back = cls.model_validate_json(written).v  # every mode's output is read back
+    assert math.isnan(back[2])
+    assert back[3] == 1.5
+    if mode == "null":  # which value it was is lost
+        assert math.isnan(back[0]) and math.isnan(back[1])
+    else:
+        assert back[:2] == [math.inf, -math.inf]
+
+
+def test_a_json_writer_reaches_nested_messages_and_leaves_the_class_alone() -> None:
+    point = build_message(msg("Point", FieldSpec(t("float64"), "x")))
+    path = build_message(
+        msg(
+            "Path",
+            FieldSpec(t("Point", package="geo"), "first"),
+            FieldSpec(unbounded("Point", package="geo"), "rest"),
+        ),
+        lambda type_: point,
+    )
+    value = path(first={"x": math.nan}, rest=[{"x": math.inf}])
+    assert json_writer(path, "null")(value) == b'{"first":{"x":null},"rest":[{"x":null}]}'
+    assert json_writer(path, "constants")(value) == b'{"first":{"x":NaN},"rest":[{"x":Infinity}]}'
+    assert value.model_dump_json() == '{"first":{"x":"NaN"},"rest":[{"x":"Infinity"}]}'
+    assert point(x=math.inf).model_dump_json() == '{"x":"Infinity"}'
+    with pytest.raises(ValueError, match="inf_nan must be one of strings, null, constants"):
+        json_writer(path, "none")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("name", ["float32", "float64"])
+def test_floats_read_every_spelling_of_non_finite_values(name: str) -> None:
+    cls = one(unbounded(name))
+    spelled = '{"v": ["NaN", "Infinity", "-Infinity", null, NaN, Infinity, -Infinity, 2]}'
+    for value in (cls.model_validate_json(spelled), cls.model_validate(json.loads(spelled))):
+        v = value.v
+        assert [v[1], v[2], v[5], v[6], v[7]] == [math.inf, -math.inf, math.inf, -math.inf, 2.0]
+        assert all(math.isnan(v[i]) for i in (0, 3, 4))
+    for bad in ("nan", "inf", "Inf", "+Infinity", "1.5", ""):
+        assert errors_of(cls, {"v": [bad]}) == [
+            {"path": "v[0]", "message": "Input should be a valid number", "type": "float_type"}
+        ]
 
 
 @pytest.mark.parametrize("name", ["float32", "float64"])
@@ -201,7 +264,7 @@ def test_floats_accept_ints_as_floats(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", ["float32", "float64"])
-@pytest.mark.parametrize("bad", [True, "1.5", None, [1.0]])
+@pytest.mark.parametrize("bad", [True, "1.5", "nan", [1.0], {}])
 def test_floats_are_strict(name: str, bad: Any) -> None:
     assert error_types(one(t(name)), {"v": bad}) == ["float_type"]
 
@@ -284,29 +347,59 @@ def test_unbounded_arrays_take_any_length_and_tuples() -> None:
 
 
 @pytest.mark.parametrize("name", ["byte", "uint8"])
-def test_byte_arrays_accept_base64_and_bytes(name: str) -> None:
+def test_byte_arrays_are_bytes_written_as_base64(name: str) -> None:
     cls = one(unbounded(name))
-    assert cls(v="AQID/w==").v == [1, 2, 3, 255]
-    assert cls.model_validate_json('{"v": "AQID/w=="}').v == [1, 2, 3, 255]
-    assert cls(v=b"\x00\xff").v == [0, 255]
-    assert cls(v=bytearray(b"ab")).v == [97, 98]
-    assert cls(v="").v == []
-    assert cls(v="AQID").model_dump_json() == '{"v":[1,2,3]}'  # always written as a list
+    assert cls(v="AQID/w==").v == b"\x01\x02\x03\xff"
+    assert cls.model_validate_json('{"v": "AQID/w=="}').v == b"\x01\x02\x03\xff"
+    assert cls.model_validate_json('{"v": [1, 2, 3, 255]}').v == b"\x01\x02\x03\xff"
+    assert cls(v=[0, 255]).v == b"\x00\xff"
+    assert cls(v=(0, 255)).v == b"\x00\xff"
+    assert cls(v=bytearray(b"ab")).v == b"ab"
+    assert cls(v=memoryview(b"ab")).v == b"ab"
+    assert cls(v="").v == b""
+    assert cls().v == b""
+    assert cls(v="-_8=").v == b"\xfb\xff"  # the URL-safe alphabet, which pydantic writes
+    assert cls(v=[251, 255]).model_dump_json() == '{"v":"+/8="}'  # the standard alphabet
+    assert cls(v=b"ab").model_dump() == {"v": b"ab"}
+
+
+def test_a_list_for_a_byte_array_is_checked_element_by_element() -> None:
+    cls = one(unbounded("uint8"))
+    assert errors_of(cls, {"v": [1, 256, True, "a"]}) == [
+        {
+            "path": "v[1]",
+            "message": "Input should be less than or equal to 255",
+            "type": "less_than_equal",
+        },
+        {"path": "v[2]", "message": "Input should be a valid integer", "type": "int_type"},
+        {"path": "v[3]", "message": "Input should be a valid integer", "type": "int_type"},
+    ]
+    assert errors_of(cls, {"v": 5}) == [
+        {
+            "path": "v",
+            "message": "Input should be base64 text, bytes or a list of integers",
+            "type": "bytes_type",
+        }
+    ]
 
 
 @pytest.mark.parametrize("bad", ["AQI", "AQ!D", "AQ ID", "é"])
 def test_invalid_base64_is_a_validation_error(bad: str) -> None:
     errors = errors_of(one(unbounded("uint8")), {"v": bad})
     assert [(e["path"], e["type"]) for e in errors] == [("v", "base64")]
-    assert errors[0]["message"].startswith("Input should be a list of integers or base64 text")
+    assert errors[0]["message"].startswith("Input should be base64 text, bytes or a list of ")
 
 
 def test_base64_obeys_the_array_bounds() -> None:
     exact = one(fixed("uint8", 3))
-    assert exact(v=base64.b64encode(b"abc").decode()).v == [97, 98, 99]
-    assert error_types(exact, {"v": base64.b64encode(b"ab").decode()}) == ["too_short"]
-    assert error_types(exact, {"v": base64.b64encode(b"abcd").decode()}) == ["too_long"]
-    assert error_types(one(bounded("byte", 2)), {"v": "AQID"}) == ["too_long"]
+    assert exact(v=base64.b64encode(b"abc").decode()).v == b"abc"
+    assert error_types(exact, {"v": base64.b64encode(b"ab").decode()}) == ["bytes_too_short"]
+    assert error_types(exact, {"v": base64.b64encode(b"abcd").decode()}) == ["bytes_too_long"]
+    assert error_types(exact, {"v": [1, 2]}) == ["bytes_too_short"]
+    assert errors_of(one(bounded("byte", 2)), {"v": "AQID"}) == [
+        {"path": "v", "message": "Data should have at most 2 bytes", "type": "bytes_too_long"}
+    ]
+    assert exact().v == b"\x00\x00\x00"
 
 
 def test_base64_is_only_for_byte_arrays() -> None:
@@ -319,7 +412,7 @@ def test_base64_is_only_for_byte_arrays() -> None:
 def test_base64_round_trip_is_exact(data: bytes) -> None:
     cls = one(unbounded("byte"))
     m = cls.model_validate_json(json.dumps({"v": base64.b64encode(data).decode()}))
-    assert bytes(m.v) == data
+    assert m.v == data
     assert cls.model_validate_json(m.model_dump_json()) == m
 
 
@@ -327,11 +420,14 @@ def test_byte_array_schema_offers_base64_only_for_input() -> None:
     cls = one(bounded("uint8", 4))
     field = cls.model_json_schema()["properties"]["v"]
     array, text = field["anyOf"]
-    assert array["maxItems"] == 4
+    assert array == {
+        "type": "array",
+        "items": {"type": "integer", "minimum": 0, "maximum": 255},
+        "maxItems": 4,
+    }
     assert text == {"type": "string", "contentEncoding": "base64"}
     written = cls.model_json_schema(mode="serialization")["properties"]["v"]
-    assert written["type"] == "array"
-    assert "anyOf" not in written
+    assert written == {"type": "string", "contentEncoding": "base64", "default": "", "title": "V"}
 
 
 # --- defaults ------------------------------------------------------------------------------------
@@ -539,6 +635,21 @@ def test_class_names_modules_and_type_names() -> None:
     assert srv.Request.spec is SERVICE.request
 
 
+def test_a_service_names_its_parts_in_generic_bases_and_nothing_else() -> None:
+    srv = build_service(SERVICE)
+    assert issubclass(srv, TypedService)
+    assert typing.get_args(srv.__orig_bases__[0]) == (srv.Request, srv.Response)
+    assert issubclass(srv.Request, ServiceRequest)
+    assert typing.get_args(srv.Request.__orig_bases__[1]) == (srv.Response,)
+    assert not issubclass(srv.Response, ServiceRequest)
+    # The generic base adds no field, config or state: the request is the plain message.
+    assert srv.Request.model_fields.keys() == {f.name for f in SERVICE.request.fields}
+    assert srv.Request.model_config == Message.model_config
+    assert not hasattr(srv.Request(), "__dict__") or srv.Request().__dict__.keys() == (
+        srv.Request.model_fields.keys()
+    )
+
+
 # --- documentation ---------------------------------------------------------------------------
 
 
@@ -590,7 +701,7 @@ def test_nested_messages_validate_from_dicts_and_instances() -> None:
 
 def test_validation_errors_point_into_the_payload() -> None:
     pose_cls = geo_resolver()(t("Pose", package="geo"))
-    bad = {"position": {"x": "far", "z": 1}, "points": [{}, {"y": None}], "extra": 1}
+    bad = {"position": {"x": "far", "z": 1}, "points": [{}, {"y": True}], "extra": 1}
     assert errors_of(pose_cls, bad) == [
         {"path": "position.x", "message": "Input should be a valid number", "type": "float_type"},
         {
@@ -789,8 +900,8 @@ def test_corpus_defaults_and_constants_match_the_files() -> None:
     assert error == [
         {
             "path": "uint8_values",
-            "message": "List should have at most 3 items after validation, not 4",
-            "type": "too_long",
+            "message": "Data should have at most 3 bytes",
+            "type": "bytes_too_long",
         }
     ]
 

@@ -144,7 +144,7 @@ async def test_a_client_calls_through_nginx_with_tls_and_a_token(
     url = f"wss://localhost:{port}"
     async with connect(url, ssl=nginx_in_front["cafile"], token=TOKEN, timeout=scaled(5)) as c:
         assert sorted(c.services) == ["/add", "/arm"]
-        assert (await c.call("/arm", {"minuend": 7, "subtrahend": 2}))["difference"] == 5
+        assert (await c.call("/arm", {"minuend": 7, "subtrahend": 2})).difference == 5
     async with connect(url, ssl=nginx_in_front["cafile"], token=READER_TOKEN) as c:
         assert list(c.services) == ["/add"]
     assert robot.calls == [("/arm", Identity("operator", {"robot:write"}))]

@@ -185,6 +185,79 @@ def test_a_mistake_in_the_marker_stops_the_run(
     result.stderr.fnmatch_lines([message])
 
 
+# --- the blocking client ----------------------------------------------------------------------
+
+SYNC_TESTS = """
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+import srvwire
+
+
+def test_a_typed_blocking_call(srvwire_sync_client, handler_loops):
+    response = srvwire_sync_client.call("/add_two_ints", {"a": 2, "b": 3})
+    assert (type(response).__name__, response.sum) == ("AddTwoInts_Response", 5)
+    assert srvwire_sync_client.proxy("/divide")(dividend=7, divisor=2).quotient == 3
+    assert srvwire_sync_client.url == "memory://127.0.0.1:1"
+    assert len(handler_loops) == 1
+
+
+def test_from_several_threads(srvwire_sync_client):
+    with ThreadPoolExecutor(4) as pool:
+        sums = list(pool.map(
+            lambda i: srvwire_sync_client.call("/add_two_ints", {"a": i, "b": i}).sum, range(40)
+        ))
+    assert sums == [2 * i for i in range(40)]
+
+
+async def test_in_an_async_test(srvwire_sync_client):
+    assert srvwire_sync_client.call("/add_two_ints", {"a": 1, "b": 2}).sum == 3
+
+
+@pytest.mark.srvwire(transport="websockets")
+def test_over_a_websocket(srvwire_sync_client):
+    assert srvwire_sync_client.url.startswith("ws://127.0.0.1:")
+    assert srvwire_sync_client.call("/add_two_ints", {"a": 1, "b": 1}).sum == 2
+
+
+def test_typed_errors(srvwire_sync_client):
+    with pytest.raises(srvwire.InvalidParams):
+        srvwire_sync_client.call("/divide", {"dividend": "seven", "divisor": 1})
+
+
+def test_a_handler_that_raises(srvwire_sync_client):
+    with pytest.raises(srvwire.InternalError):
+        srvwire_sync_client.call("/divide", {"dividend": 1, "divisor": 0})
+
+
+async def test_with_the_async_fixtures(srvwire_sync_client, srvwire_client):
+    pass
+"""
+
+
+def test_the_blocking_client_fixture(pytester: pytest.Pytester) -> None:
+    project(pytester, test_blocking=SYNC_TESTS)
+    result = pytester.runpytest("-p", "no:logging")
+    result.assert_outcomes(passed=5, failed=1, errors=1)
+    result.stdout.fnmatch_lines(
+        [
+            "*ERROR at setup of test_with_the_async_fixtures*",
+            "srvwire_sync_client serves srvwire_server from a thread of its own, and this test "
+            "also serves it on its event loop (srvwire_running, which srvwire_client, "
+            "srvwire_wire and srvwire_url use): a blocking call would hold that loop. Use "
+            "srvwire_sync_client or the async fixtures in one test, not both",
+            "*_ test_a_handler_that_raises _*",
+            "srvwire_server logged 1 error while the test ran; its callers saw only InternalError:",
+            "",
+            "srvwire.server ERROR: handler for /divide raised an exception (request id 2)",
+            "Traceback (most recent call last):",
+            '*return {"quotient": request.dividend // request.divisor}*',
+            "ZeroDivisionError: integer division or modulo by zero",
+        ]
+    )
+
+
 # --- handler errors -----------------------------------------------------------------------------
 
 ERROR_TESTS = """
@@ -330,6 +403,11 @@ def test_the_fixtures_run_on_the_tests_event_loop(
 # --- contract tests -----------------------------------------------------------------------------
 
 CONTRACT_TESTS = """
+def test_a_blocking_call(srvwire_sync_client, srvwire_url):
+    assert srvwire_sync_client.url == srvwire_url
+    assert srvwire_sync_client.call("/add_two_ints", {"a": 3, "b": 2}).sum == 5
+
+
 async def test_a_call(srvwire_client, srvwire_url):
     assert srvwire_client.url == srvwire_url
     assert (await srvwire_client.call("/add_two_ints", {"a": 2, "b": 2})).sum == 4
@@ -362,7 +440,7 @@ async def test_contract_tests_run_against_a_server_given_by_its_url(
         result = await asyncio.to_thread(
             pytester.runpytest_subprocess, f"--srvwire-url={running.url}", timeout=scaled(60)
         )
-    result.assert_outcomes(passed=2, errors=1)
+    result.assert_outcomes(passed=3, errors=1)
     result.stdout.fnmatch_lines(
         [
             "*ERROR at setup of test_the_running_server*",

@@ -272,7 +272,7 @@ async def test_the_right_token_reaches_the_handler_as_an_identity(
 ) -> None:
     robot, running = authed_robot
     async with connect(running.url, token=TOKEN, timeout=scaled(5)) as client:
-        assert (await client.call("/arm", {"minuend": 5, "subtrahend": 3}))["difference"] == 2
+        assert (await client.call("/arm", {"minuend": 5, "subtrahend": 3})).difference == 2
     assert robot.calls == [("/arm", Identity("operator", {"robot:write"}))]
 
 
@@ -465,7 +465,7 @@ async def test_tls_round_trip_with_a_ca_file(ca: trustme.CA, tmp_path: Path) -> 
             "only programs on this machine can connect (loopback); no authentication; over TLS"
         )
         async with connect(running.url, ssl=cafile, timeout=scaled(5)) as client:
-            assert (await client.call("/add", {"minuend": 3, "subtrahend": 1}))["difference"] == 2
+            assert (await client.call("/add", {"minuend": 3, "subtrahend": 1})).difference == 2
         with pytest.raises(ServiceUnavailable) as exc:
             await connect(running.url, timeout=scaled(5))
         assert exc.value.message.startswith(
@@ -535,7 +535,7 @@ async def test_past_max_connections_the_handshake_is_503_and_the_others_carry_on
                 "too many connections (the limit is 1); try again later\n",
             )
             assert answer["retry-after"] == "5"
-            assert (await first.call("/add", {"minuend": 2, "subtrahend": 1}))["difference"] == 1
+            assert (await first.call("/add", {"minuend": 2, "subtrahend": 1})).difference == 1
         # The first one left: there is room again.
         async with connect(running.url, timeout=scaled(5)) as second:
             await second.call("/add", {"minuend": 2, "subtrahend": 1})
@@ -569,7 +569,7 @@ async def test_healthz_while_serving_and_while_draining() -> None:
             "5",
         )
         release.set()
-        assert (await call)["difference"] == 0
+        assert (await call).difference == 0
         await finish(closing)
 
 

@@ -229,7 +229,9 @@ async def test_arrays_round_trip(ros_wire: Wire) -> None:
     }
     result = (await ros_wire.call(request("arrays", params)))["result"]
     for name, value in params.items():
-        assert result[name] == value, name
+        if name != "byte_values":
+            assert result[name] == value, name
+    assert result["byte_values"] == "AAH/"  # bytes travel as base64 text
     assert result["uint64_values_default"] == [0, 1, 2**64 - 1]
     assert result["string_values_default"] == ["", "max value", "min value"]
 
@@ -869,7 +871,9 @@ async def test_a_response_with_a_lone_surrogate_is_internal_and_the_reason_is_lo
         }
         assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
     returned = "dict" if shape == "dict" else "Echo_Response"
-    assert caplog.messages == [
+    # At ERROR only: closing may also warn about the thread of /subtract, which can still be
+    # winding down after its reply went out.
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == [
         f"handler for /unencodable returned {returned}, which is not a valid "
         "srvwire_tests/srv/Echo response: text: String should not contain the lone surrogate "
         "'\\udc80' (at index 4): it cannot be written as UTF-8"

@@ -264,8 +264,13 @@ async def test_message_over_the_size_limit_closes_with_1009(transport: Transport
         for end in (pair.server, pair.client):
             closed = await closed_with(end)
             assert closed.code == 1009
-            if transport.name == "memory":
-                assert closed.reason == "message of 1001 bytes is over the limit of 1000 bytes"
+            # The reason names the side and the setting that refused the message.
+            assert closed.reason == (
+                "over the server's max_message_size (message of 1001 bytes, limit 1000 bytes)"
+                if transport.name == "memory"
+                else "over the server's max_message_size (frame with 1001 bytes exceeds limit of "
+                "1000 bytes)"
+            )
 
 
 async def test_the_receivers_size_limit_counts(transport: Transport) -> None:

@@ -1,5 +1,6 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
+from srvwire import sync  # the blocking client: srvwire.sync.connect(url)
 from srvwire.actions import ClientGoal, GoalHandle, GoalResult
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
@@ -35,7 +36,7 @@ from srvwire.loader import (
     load_message,
     load_service,
 )
-from srvwire.models import Action, Message, Service
+from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
@@ -56,6 +57,7 @@ __all__ = [
     "GoalResult",
     "Handshake",
     "Identity",
+    "InfNan",
     "InterfaceConflictError",
     "InterfaceError",
     "InterfaceLoader",
@@ -78,11 +80,13 @@ __all__ = [
     "ServiceInfo",
     "ServiceNotFound",
     "ServiceProxy",
+    "ServiceRequest",
     "ServiceUnavailable",
     "SrvwireError",
     "TokenAuth",
     "Transport",
     "TypeRegistry",
+    "TypedService",
     "Unauthenticated",
     "__version__",
     "connect",
@@ -91,4 +95,5 @@ __all__ = [
     "load_message",
     "load_service",
     "serve",
+    "sync",
 ]

@@ -20,7 +20,9 @@ from pydantic_core import PydanticSerializationError
 from srvwire.errors import InterfaceError, InterfaceNotFoundError, InvalidParams
 from srvwire.idl import MessageSpec, TypeSpec
 from srvwire.models import (
+    INF_NAN_MODES,
     Action,
+    InfNan,
     Message,
     ModelDecoder,
     Service,
@@ -141,7 +143,12 @@ def encode_request(
     try:
         if not isinstance(value, BaseModel):
             return encode_json(dict(value))
-        text = dump_json(value).decode()
+        if codec is None:
+            text = dump_json(value).decode()
+        elif type(value) is codec.service.Request:
+            text = codec.write(value).decode()
+        else:  # a subclass: by its own class, in the client's mode
+            text = json_writer(type(value), codec.inf_nan)(value).decode()
     except PydanticSerializationError as exc:
         # A string with a lone surrogate validates, but cannot be written as UTF-8.
         errors = unencodable_strings(value) or [
@@ -158,14 +165,15 @@ def encode_request(
 
 class ServiceCodec:
     """A service type with what its calls need at hand: its response decoder, its request's
-    writer."""
+    writer, which writes non-finite floats as ``inf_nan`` says (built once, here)."""
 
-    __slots__ = ("decoder", "service", "write")
+    __slots__ = ("decoder", "inf_nan", "service", "write")
 
-    def __init__(self, service: type[Service]) -> None:
+    def __init__(self, service: type[Service], inf_nan: InfNan = INF_NAN_MODES[0]) -> None:
         self.service = service
+        self.inf_nan: InfNan = inf_nan
         self.decoder: ModelDecoder[Message] = ModelDecoder(service.Response)
-        self.write: Callable[[Any], bytes] = json_writer(service.Request)
+        self.write: Callable[[Any], bytes] = json_writer(service.Request, inf_nan)
 
 
 class ServiceTypes:
@@ -192,10 +200,12 @@ class ServiceTypes:
         resolve: TypeResolver,
         resolve_message: MessageResolver,
         types: TypeRegistry | None = None,
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         self._resolve = resolve
         self._resolve_message = resolve_message
         self._types = process_types() if types is None else types
+        self._inf_nan: InfNan = inf_nan
         self._by_name: dict[str, ServiceCodec] = {}
         self._by_class: dict[type[Service], ServiceCodec] = {}
 
@@ -272,7 +282,7 @@ class ServiceTypes:
     def _codec(self, service: type[Service]) -> ServiceCodec:
         codec = self._by_class.get(service)
         if codec is None:
-            codec = self._by_class[service] = ServiceCodec(service)
+            codec = self._by_class[service] = ServiceCodec(service, self._inf_nan)
         return codec
 
 

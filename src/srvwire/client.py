@@ -27,12 +27,19 @@ Invariants:
 * **Options and payload never share a namespace.** A request is one positional value (a model
   or a mapping), so every field name is free; :class:`ServiceProxy` takes fields as keywords
   and holds its options itself.
+* **A client belongs to the event loop that opened it.** When that loop ends, the connection
+  is closed with 1001; used from another loop, the client raises ``RuntimeError`` saying so.
+  Blocking code uses :mod:`srvwire.sync`, which runs a client on a loop of its own.
 * **Always typed.** Every advertised service has a type: the local one, else the one the
   server describes. A mapping is validated locally (:class:`~srvwire.errors.InvalidParams`
   before anything is sent) and the result is the typed ``Response``. A type found in neither
   place is an :class:`~srvwire.errors.InterfaceError`, never plain dicts. Only a service the
   server does not advertise is called with the mapping as it is (and a srvwire server answers
   ``ServiceNotFound``).
+  For a type checker too: :meth:`Client.call` with a generated
+  ``Request`` (a :class:`~srvwire.models.ServiceRequest`), or with a
+  :class:`~srvwire.models.TypedService` as ``srv_type``, returns that service's ``Response``,
+  and so does a :class:`ServiceProxy` made with one.
 """
 
 from __future__ import annotations
@@ -47,7 +54,7 @@ import ssl as _ssl
 import urllib.parse
 from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
 from types import MappingProxyType, TracebackType
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
@@ -73,9 +80,20 @@ from srvwire.errors import (
     ServiceUnavailable,
 )
 from srvwire.inline import Pending, finish_within, first_step
-from srvwire.link import Link, LoggerLike
+from srvwire.link import Link, LoggerLike, foreign_loop
 from srvwire.loader import SearchPath, load_action, load_message, load_service
-from srvwire.models import Action, ModelDecoder, Service, error_data, summarize_errors
+from srvwire.models import (
+    INF_NAN_MODES,
+    Action,
+    InfNan,
+    Message,
+    ModelDecoder,
+    Service,
+    ServiceRequest,
+    TypedService,
+    error_data,
+    summarize_errors,
+)
 from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
 from srvwire.transports import get_transport
 from srvwire.transports.base import Headers, Options, Transport, TransportClosed
@@ -94,6 +112,8 @@ DEFAULT_URL = "ws://localhost:8765"
 
 DEFAULT_TIMEOUT = 10.0
 """The deadline, in seconds, of a call that does not give its own."""
+
+R = TypeVar("R", bound=Message)
 
 # Reconnection backoff: first retry at once, then from this delay, growing to the cap.
 _BACKOFF_INITIAL = 0.05
@@ -123,7 +143,9 @@ class Client:
         self.url = options.url
         self.timeout = options.timeout
         self.logger: LoggerLike = options._log()
-        self._types = ServiceTypes(options.type_resolver, options.message_resolver)
+        self._types = ServiceTypes(
+            options.type_resolver, options.message_resolver, inf_nan=options.inf_nan
+        )
         self._description: tuple[Link, dict[str, dict[str, str]]] | None = None
         self._describing = asyncio.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None  # the loop it was opened in
@@ -292,10 +314,46 @@ class Client:
 
     # --- calls ------------------------------------------------------------------------------
 
+    @overload
+    async def call(
+        self,
+        name: str,
+        request: ServiceRequest[R],
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
     async def call(
         self,
         name: str,
         request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: type[TypedService[Any, R]],
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
+    async def call(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> Any: ...
+
+    async def call(
+        self,
+        name: str,
+        request: Any = None,  # the overloads say what it may be
         /,
         *,
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
@@ -308,6 +366,8 @@ class Client:
         takes its default). The result is the typed ``Response`` of the service's type:
         ``srv_type``, or the type the server advertised, found as :func:`connect` says (local
         first, then the server's description). For fields as keywords, use :meth:`proxy`.
+        Statically, a generated ``Request`` or a generated service class as ``srv_type`` makes
+        the result that service's ``Response``; otherwise it is ``Any``.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -335,7 +395,11 @@ class Client:
         if codec is None:
             named = srv_type if isinstance(srv_type, str) else advertised
             if named is not None:  # not advertised: the server will say it has no such service
-                codec = await self._type_of(link, method, named, deadline, budget)
+                try:
+                    codec = await self._type_of(link, method, named, deadline, budget)
+                except RPCError as exc:  # asking for the description failed: this call did
+                    exc.service = method
+                    raise
         params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
@@ -384,13 +448,16 @@ class Client:
             raise service_not_found(method, self._services)
         action = await self._action_of(link, method, named, deadline, budget)
         service = goal_service(action)
-        codec = ServiceCodec(service)
+        codec = ServiceCodec(service, self.options.inf_nan)
         params = encode_request(method, codec, goal)
         remaining = deadline - loop.time()
         handle: ClientGoal[Any] = ClientGoal(
             link, method, action, ModelDecoder(service.Response), deadline, budget
         )
         handle.id, data = link.session.request(method, params, round(remaining, 6), handle.reply)
+        if link.limit is not None and len(data) > link.limit:
+            link.session.pending.pop(handle.id, None)
+            raise link.too_large(method, len(data))
         link.goals[handle.id] = handle
         handle.reply.add_done_callback(reply_done(link.goals, handle.id))
         try:
@@ -437,6 +504,17 @@ class Client:
         source = f"server {self.url}"
         return self._types.remote_action(method, named, described[1].get(method), source)
 
+    @overload
+    def proxy(
+        self,
+        name: str,
+        srv_type: type[TypedService[Any, R]],
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[R]: ...
+
+    @overload
     def proxy(
         self,
         name: str,
@@ -444,11 +522,21 @@ class Client:
         *,
         timeout: float | None = None,
         wait_for_ready: bool = False,
-    ) -> ServiceProxy:
+    ) -> ServiceProxy[Any]: ...
+
+    def proxy(
+        self,
+        name: str,
+        srv_type: SrvType | None = None,
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[Any]:
         """Return a callable for the service ``name`` that takes fields as keywords.
 
         ``await client.proxy("/add_two_ints")(a=1, b=2)``; the options given here apply to
-        every call made through it.
+        every call made through it. With a generated service class as ``srv_type``, a type
+        checker knows its calls return that service's ``Response``.
         """
         return ServiceProxy(self, name, srv_type, timeout=timeout, wait_for_ready=wait_for_ready)
 
@@ -587,14 +675,26 @@ class Client:
             self._describing.release()
 
     def _not_connected(self, method: str) -> ConnectionLost:
+        if not self._closed:
+            self._check_loop()  # a client whose loop ended has lost its connection with it
         why = "the client is closed" if self._closed else f"not connected to {self.url}"
         return ConnectionLost(why, {"url": self.url}, service=method)
+
+    def _check_loop(self) -> None:
+        """Raise ``RuntimeError`` when running outside the event loop this client was opened in.
+
+        Only on the paths that wait or fail: asking for the running loop costs a system call
+        on Python 3.11, and a call on a connection checks its loop for free.
+        """
+        if self._loop is not None and self._loop is not asyncio.get_running_loop():
+            raise foreign_loop(self._loop)
 
     async def _wait_until_ready(self, method: str, deadline: float, budget: float) -> None:
         """Wait until connected and ``method`` is advertised, or raise ServiceUnavailable."""
         while self._link is None or method not in self._services:
             if self._closed or (self._link is None and not self.options.reconnect):
                 raise self._not_connected(method)
+            self._check_loop()
             try:
                 async with asyncio.timeout_at(deadline):
                     await self._changed.wait()
@@ -628,11 +728,12 @@ def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
     }
 
 
-class ServiceProxy:
+class ServiceProxy(Generic[R]):
     """A callable bound to one service: ``await proxy(request)`` or ``await proxy(a=1, b=2)``.
 
     Made by :meth:`Client.proxy`; the call options are the proxy's, so every field name,
-    ``timeout`` included, is free for the request.
+    ``timeout`` included, is free for the request. ``R`` is the response type a type checker
+    sees (``Any`` unless the proxy was made with a generated service class).
     """
 
     def __init__(
@@ -652,17 +753,18 @@ class ServiceProxy:
 
     async def __call__(
         self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
-    ) -> Any:
+    ) -> R:
         """Call the service; see :meth:`Client.call`."""
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
-        return await self.client.call(
+        response: R = await self.client.call(
             self.name,
             fields if request is None else request,
             timeout=self.timeout,
             srv_type=self.srv_type,
             wait_for_ready=self.wait_for_ready,
         )
+        return response
 
     async def wait_for_service(
         self,
@@ -690,11 +792,16 @@ def plaintext_host(url: str) -> str | None:
     return None if loopback else host
 
 
-class connect:
+class connect(Coroutine[Any, Any, Client]):
     """Connect to the srvwire server at ``url``: the options, held once.
 
     Use it as ``async with connect(url) as client:`` (closed on exit) or as
-    ``client = await connect(url)`` (close it with ``await client.close()``).
+    ``client = await connect(url)`` (close it with ``await client.close()``). It is a
+    coroutine too, so what runs a coroutine opens it: ``runner.run(connect(url))`` with an
+    :class:`asyncio.Runner` gives a client that the runner's later ``run`` calls use. A client
+    lives in the event loop that opened it: one opened by ``asyncio.run(connect(url))`` closes
+    its connection when that loop ends, and raises ``RuntimeError`` saying so when used again.
+    From blocking code, use :func:`srvwire.sync.connect`.
 
     * ``timeout``: the default deadline of a call, in seconds; finite.
     * ``open_timeout``: how long opening may take (connection, handshake, the services list).
@@ -712,6 +819,9 @@ class connect:
     * ``type_resolver``: a function from a service type name to its class, instead of the
       loader; it raises :class:`~srvwire.errors.InterfaceNotFoundError` for a name it does
       not know.
+    * ``inf_nan``: how typed requests write ``inf``, ``-inf`` and ``nan``: ``"strings"`` (the
+      default), ``"null"`` or ``"constants"``, as :class:`~srvwire.server.Server` takes it;
+      responses are read in every spelling.
     * ``logger``: where to log (default: the ``srvwire.client`` logger).
     * ``transport``: ``"websockets"`` (the default) or a
       :class:`~srvwire.transports.base.Transport` instance, such as the
@@ -766,6 +876,7 @@ class connect:
         headers: Mapping[str, str] | Iterable[tuple[str, str]] = (),
         ssl: _ssl.SSLContext | str | os.PathLike[str] | None = None,
         allow_plaintext_token: bool = False,
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         self.transport = get_transport(transport)
         self.transport.check_url(url)
@@ -794,6 +905,9 @@ class connect:
             ping_timeout=ping_timeout,
             compression=compression,
         )
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        self.inf_nan: InfNan = inf_nan
         self.reconnect = reconnect
         self.search_path = search_path
         self.type_resolver: TypeResolver = type_resolver or functools.partial(
@@ -804,6 +918,7 @@ class connect:
         )
         self.logger = logger
         self._client: Client | None = None
+        self._opening: Coroutine[Any, Any, Client] | None = None  # when run as a coroutine
 
     def __repr__(self) -> str:
         return f"connect({self.url!r})"
@@ -841,6 +956,22 @@ class connect:
 
     def __await__(self) -> Generator[Any, None, Client]:
         return self._open().__await__()
+
+    # Run as a coroutine (by asyncio.run, a Runner, create_task): open one client.
+
+    def send(self, value: Any, /) -> Any:
+        if self._opening is None:
+            self._opening = self._open()
+        return self._opening.send(value)
+
+    def throw(self, typ: Any, val: Any = None, tb: Any = None, /) -> Any:
+        if self._opening is None:
+            self._opening = self._open()
+        return self._opening.throw(typ, val, tb)
+
+    def close(self) -> None:
+        if self._opening is not None:
+            self._opening.close()
 
     async def __aenter__(self) -> Client:
         return await self._open()

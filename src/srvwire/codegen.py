@@ -27,8 +27,9 @@ Invariants
 * **No name capture.** An imported helper whose name equals a generated class (``std_msgs``
   has ``String``, ``Int32`` and ``Bool``) is reached through its module, imported under a
   leading underscore (``import srvwire.models as _models``, then ``_models.String``). In a
-  class with a field named ``list``, ``list[...]`` is written ``_builtins.list[...]``. Constants
-  and ``type_name`` come before the fields, so a field named ``str`` or ``bool`` shadows nothing.
+  class with a field named ``list`` or ``bytes``, that builtin is written ``_builtins.list``
+  (``_builtins.bytes``). Constants and ``type_name`` come before the fields, so a field named
+  ``str`` or ``bool`` shadows nothing.
   A constant named like a class that the same message nests cannot be written and is refused.
 * **Deterministic.** The output depends only on the input: same specs, same text.
 * **Lint-clean as written.** The module passes ruff (its default rules, and ``E,F,W,I,B,UP,
@@ -64,6 +65,7 @@ from srvwire.idl import (
 from srvwire.models import Action, Message, Service, default_value, python_name
 from srvwire.primitives import PRIMITIVE_ALIASES
 from srvwire.pysource import (
+    LINE,
     Call,
     Expr,
     Keyword,
@@ -103,6 +105,8 @@ _HELPERS = {
         "Action",
         "Message",
         "Service",
+        "ServiceRequest",
+        "TypedService",
         *sorted(PRIMITIVE_ALIASES.values()),
     ),
 }
@@ -335,15 +339,27 @@ class _Writer:
                 body.append(self.message(item.spec, item.type_name))
                 specs.append(self.assign_spec(item.type_name, item.spec))
                 continue
+            answered_by = None
+            if isinstance(item.spec, ServiceSpec):  # the Request names its Response class
+                answered_by = self.class_names[_part_type_name(item, item.spec.response)]
             for part in item.parts:
-                body.append(self.message(part, _part_type_name(item, part)))
+                is_request = isinstance(item.spec, ServiceSpec) and part is item.spec.request
+                body.append(
+                    self.message(
+                        part, _part_type_name(item, part), answered_by if is_request else None
+                    )
+                )
             body.append(self.group(item))
             specs.append(self.assign_spec(item.type_name, item.spec))
             for part in item.parts:
                 attribute = _part_attribute(item, part)
                 specs.append(
-                    f"{self.class_names[_part_type_name(item, part)]}.spec = "
-                    f"{self.class_names[item.type_name]}.spec.{attribute}"
+                    statement(
+                        "",
+                        f"{self.class_names[_part_type_name(item, part)]}.spec",
+                        None,
+                        f"{self.class_names[item.type_name]}.spec.{attribute}",
+                    ).rstrip("\n")
                 )
         if docstring is None:
             listed = "\n".join(f"* ``{item.type_name}``" for item in self.plan.requested)
@@ -400,7 +416,7 @@ class _Writer:
 
     # classes ---------------------------------------------------------------------------------
 
-    def message(self, spec: MessageSpec, type_name: str) -> str:
+    def message(self, spec: MessageSpec, type_name: str, answered_by: str | None = None) -> str:
         class_name = self.class_names[type_name]
         nested = {
             self.class_of(f.type.qualified_name) for f in spec.fields if not f.type.is_primitive
@@ -417,8 +433,11 @@ class _Writer:
                     f"{type_name}: constant {constant.name} has the name of the class of one of "
                     "its fields, so the module cannot name both; rename one"
                 )
-        shadowed_list = any(python_name(f.name) == "list" for f in spec.fields)
-        lines = [f"class {class_name}({self.name('Message')}):"]
+        shadowed = {python_name(f.name) for f in spec.fields} & {"list", "bytes"}
+        bases = [self.name("Message")]
+        if answered_by is not None:  # defined after this class, so named as a string
+            bases.append(f'{self.name("ServiceRequest")}["{answered_by}"]')
+        lines = [_class_line(class_name, bases)]
         if spec.doc:
             doc = as_docstring(spec.doc, "    ")
             lines.append(doc or statement("    ", "__doc__", None, Text(spec.doc)))
@@ -437,12 +456,17 @@ class _Writer:
         if spec.fields:
             lines.append("")
         for field in spec.fields:
-            lines.append(self.field(field, shadowed_list))
+            lines.append(self.field(field, shadowed))
         return "\n".join(lines)
 
-    def field(self, field: FieldSpec, shadowed_list: bool) -> str:
+    def field(self, field: FieldSpec, shadowed: set[str]) -> str:
         type_ = field.type
-        if type_.is_primitive:
+        # A field named `list` or `bytes` hides the builtin in the class body.
+        list_, bytes_ = (self.builtin(name, shadowed) for name in ("list", "bytes"))
+        is_bytes = type_.is_array and type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES
+        if is_bytes:
+            element = bytes_
+        elif type_.is_primitive:
             element = self.name(PRIMITIVE_ALIASES[type_.name])
             if type_.string_bound is not None:
                 element = (
@@ -451,13 +475,9 @@ class _Writer:
                 )
         else:
             element = self.class_of(type_.qualified_name)
-        list_ = "list"
-        if shadowed_list:  # the field named `list` hides the builtin in the class body
-            self.builtins_used = True
-            list_ = "_builtins.list"
         annotation: Expr = element
         if type_.is_array:
-            annotation = f"{list_}[{element}]"
+            annotation = element if is_bytes else f"{list_}[{element}]"
             metadata: list[str] = []
             if type_.array is ArrayKind.FIXED:
                 metadata.append(
@@ -465,7 +485,7 @@ class _Writer:
                 )
             elif type_.array is ArrayKind.BOUNDED:
                 metadata.append(f"{self.name('Field')}(max_length={type_.size})")
-            if type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES:
+            if is_bytes:
                 metadata.append(self.name("AcceptBase64"))
             if metadata:
                 annotation = Call(f"{self.name('Annotated')}[", (annotation, *metadata), "]")
@@ -478,12 +498,13 @@ class _Writer:
         default: Keyword
         if type_.is_primitive:
             value = default_value(field)
+            written = _bytes_value(value, bytes_) if isinstance(value, bytes) else None
             if isinstance(value, list):
                 default = Keyword("default_factory", self.list_value(field, value, list_))
             elif not keywords:
-                return statement("    ", name, annotation, expression(value))
+                return statement("    ", name, annotation, written or expression(value))
             else:
-                default = Keyword("default", expression(value))
+                default = Keyword("default", written or expression(value))
         elif not type_.is_array:
             default = Keyword("default_factory", f"lambda: {element}()")
         elif type_.array is ArrayKind.FIXED:
@@ -495,6 +516,13 @@ class _Writer:
         call = Call(f"{self.name('Field')}(", (default, *keywords))
         return statement("    ", name, annotation, call)
 
+    def builtin(self, name: str, shadowed: set[str]) -> str:
+        """The builtin ``name`` as the class body can reach it: ``_builtins.name`` if shadowed."""
+        if name not in shadowed:
+            return name
+        self.builtins_used = True
+        return f"_builtins.{name}"
+
     def list_value(self, field: FieldSpec, value: list[Scalar], list_: str) -> Expr:
         if not value:
             return list_  # `lambda: []` would be a lambda that only calls `list`
@@ -505,9 +533,13 @@ class _Writer:
     def group(self, item: _Item) -> str:
         spec = item.spec
         assert not isinstance(spec, MessageSpec)
-        base = "Service" if isinstance(spec, ServiceSpec) else "Action"
+        if isinstance(spec, ServiceSpec):
+            request, response = (self.class_names[_part_type_name(item, p)] for p in item.parts)
+            base = f"{self.name('TypedService')}[{request}, {response}]"
+        else:
+            base = self.name("Action")
         class_var = self.name("ClassVar")
-        lines = [f"class {self.class_names[item.type_name]}({self.name(base)}):"]
+        lines = [_class_line(self.class_names[item.type_name], [base])]
         for part in item.parts:
             attribute = _part_attribute(item, part).capitalize()
             target = self.class_names[_part_type_name(item, part)]
@@ -538,6 +570,34 @@ class _Writer:
         if isinstance(value, enum.Enum):
             return f"{self.name(type(value).__name__)}.{value.name}"
         return expression(value)
+
+
+def _class_line(name: str, bases: list[str]) -> str:
+    """``class name(bases):``, split as ruff format splits a line that is too long.
+
+    A single base that is a subscript (``TypedService[A, B]``) is split inside its brackets.
+    """
+    line = f"class {name}({', '.join(bases)}):"
+    if len(line) <= LINE:
+        return line
+    inner = "    " + ", ".join(bases)
+    if len(inner) <= LINE:
+        return f"class {name}(\n{inner}\n):"
+    if len(bases) == 1 and bases[0].endswith("]"):
+        head, _, arguments = bases[0][:-1].partition("[")
+        items = arguments.split(", ")
+        if len(f"        {arguments}") <= LINE:
+            return f"class {name}(\n    {head}[\n        {arguments}\n    ],\n):"
+        listed = "".join(f"        {item},\n" for item in items)
+        return f"class {name}(\n    {head}[\n{listed}    ],\n):"
+    return f"class {name}(\n" + "".join(f"    {base},\n" for base in bases) + "):"
+
+
+def _bytes_value(value: bytes, bytes_: str) -> Expr:
+    """Spell a ``bytes`` default: ``bytes(4)`` for zeros, else a literal (``b"\\x00\\xff"``)."""
+    if value and not any(value):
+        return f"{bytes_}({len(value)})"
+    return 'b"' + "".join(f"\\x{octet:02x}" for octet in value) + '"'
 
 
 def _as_written(type_name: str, value: Scalar) -> Scalar:

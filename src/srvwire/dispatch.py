@@ -23,7 +23,8 @@ Invariants:
   response is ``INTERNAL`` too, with the reason logged.
 * **A response is written as the handler built it.** An instance of the response model, or of a
   subclass of it, is serialized by its own class (``by_alias``), so the fields a subclass adds
-  reach the caller; a dict is validated into the response model first.
+  reach the caller; a dict is validated into the response model first. Non-finite floats are
+  written in the registry's ``inf_nan`` mode, by a writer each entry builds once.
 * **Only a cancelled call ends in CancelledError.** :func:`dispatch` lets
   :class:`asyncio.CancelledError` through only while its own task is being cancelled
   (``Task.cancelling()``): the server cancelled the call, and knows what to answer. A
@@ -70,10 +71,12 @@ from srvwire.errors import (
     ServiceNotFound,
 )
 from srvwire.models import (
+    INF_NAN_MODES,
+    InfNan,
     Message,
     Service,
-    dump_json,
     error_data,
+    json_writer,
     summarize_errors,
     unencodable_strings,
     validate_python,
@@ -264,6 +267,9 @@ class ServiceEntry:
     request_model: type[BaseModel]
     response_model: type[BaseModel]
     field_names: tuple[str, ...]
+    write_response: Callable[[BaseModel], bytes]
+    """Writes an instance of exactly ``response_model`` as JSON, in the registry's mode."""
+    inf_nan: InfNan
     scopes: frozenset[str] = frozenset()
     """What a connection's identity must hold to call it (empty: anyone who may connect)."""
     _description: dict[str, Any] = field(default_factory=dict, repr=False)
@@ -443,9 +449,17 @@ def service_not_found(name: str, names: Iterable[str]) -> ServiceNotFound:
 
 
 class ServiceRegistry:
-    """The services one server offers, by canonical name."""
+    """The services one server offers, by canonical name.
 
-    def __init__(self, types: TypeRegistry | None = None) -> None:
+    ``inf_nan`` is how their responses write non-finite floats (:data:`~srvwire.models.InfNan`).
+    """
+
+    def __init__(
+        self, types: TypeRegistry | None = None, *, inf_nan: InfNan = INF_NAN_MODES[0]
+    ) -> None:
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        self.inf_nan: InfNan = inf_nan
         self._entries: dict[str, ServiceEntry] = {}
         self._discovery: dict[frozenset[str] | None, str] = {}  # by the scopes it shows
         self.types = process_types() if types is None else types
@@ -504,6 +518,8 @@ class ServiceRegistry:
                 info.alias or field_name for field_name, info in request_model.model_fields.items()
             ),
             scopes=frozenset(scopes),
+            write_response=json_writer(response_model, self.inf_nan, strict=True),
+            inf_nan=self.inf_nan,
         )
         self._entries[canonical] = entry
         self._discovery.clear()
@@ -601,7 +617,10 @@ def _encode_response(
             raise _invalid_return(entry, result, _reasons(validation_errors(exc)), logger) from None
     if isinstance(response, model):  # a model the handler built is not validated again
         try:
-            return dump_json(response, strict=True)
+            if type(response) is model:
+                return entry.write_response(response)
+            # A subclass: by its own class, so that the fields it adds are written too.
+            return json_writer(type(response), entry.inf_nan, strict=True)(response)
         except PydanticSerializationError as exc:
             # A lone surrogate in a string passes validation and fails here; say where it is.
             reason = _reasons(unencodable_strings(response)) or str(exc)

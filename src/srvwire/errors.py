@@ -273,8 +273,10 @@ class ConnectionLost(ServiceUnavailable):
 class ResourceExhausted(RPCError):
     """Raised when the server refused the call: too many calls in flight on its connection.
 
-    An oversized message is not answered with this error: the server closes the connection with
-    1009 (message too big), so the client sees :class:`ConnectionLost` instead.
+    Also raised by the client itself, before sending, for a request larger than its
+    ``max_message_size`` (``data`` holds ``size`` and ``max_message_size``). An oversized
+    message that is sent is not answered with this error: the side that refuses it closes the
+    connection with 1009 (message too big), so the client sees :class:`ConnectionLost`.
     """
 
     code = ErrorCode.RESOURCE_EXHAUSTED

@@ -12,8 +12,13 @@ Invariants:
   ``ConnectionLost`` when the connection ends; the session forgets its id in every case.
 * **Something that is not JSON-RPC fails the connection** (close 1008), found by the reader
   or by a caller decoding a reply the reader left unparsed.
+* **A reader is cancelled only when its event loop ends** (``asyncio.run`` returning): the
+  connection is closed with 1001, and a client used from another loop says so.
 * **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
   background, best effort.
+* **A request larger than** ``max_message_size`` **is never sent**: the call raises
+  :class:`~srvwire.errors.ResourceExhausted` naming the setting, and the connection carries
+  on. The client's limit stands for the server's, which it cannot know.
 * **A goal's news reaches its goal**: the ``$/goal`` and ``$/feedback`` notifications for a
   call in :attr:`Link.goals` are handed to it, in the order they came; news for a call no
   longer there (its outcome arrived) is dropped.
@@ -22,6 +27,7 @@ Invariants:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import ssl as _ssl
 from collections.abc import Coroutine, Sequence
@@ -31,6 +37,7 @@ from srvwire.errors import (
     ConnectionLost,
     DeadlineExceeded,
     InvalidRequest,
+    ResourceExhausted,
     RPCError,
     ServiceUnavailable,
 )
@@ -46,7 +53,15 @@ from srvwire.protocol import (
 from srvwire.session import ClientSession, Notice, ServicesChanged, Stray
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
-__all__ = ["CLOSE_PROTOCOL_VIOLATION", "Arrived", "Link", "LoggerLike", "Owner"]
+__all__ = [
+    "CLOSE_PROTOCOL_VIOLATION",
+    "LOOP_ENDED",
+    "Arrived",
+    "Link",
+    "LoggerLike",
+    "Owner",
+    "foreign_loop",
+]
 
 Arrived: TypeAlias = Response | ErrorResponse | RawReply
 """A reply as it reaches its caller: parsed, or routed unparsed."""
@@ -56,6 +71,24 @@ LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
 
 CLOSE_PROTOCOL_VIOLATION = 1008
 """The close code sent when the server breaks the protocol (RFC 6455 "policy violation")."""
+
+LOOP_ENDED = "the client's event loop ended"
+"""The reason of the close (1001) a client's connection ends with when its event loop does."""
+
+
+def foreign_loop(loop: asyncio.AbstractEventLoop) -> RuntimeError:
+    """The error for using a client outside ``loop``, the event loop it was opened in."""
+    if loop.is_closed():
+        return RuntimeError(
+            "this client was opened in an event loop that has ended (asyncio.run() ends its "
+            "loop when it returns): open the client in the coroutine that uses it, with "
+            "'async with srvwire.connect(url) as client', or use srvwire.sync.connect(url) "
+            "from blocking code"
+        )
+    return RuntimeError(
+        "this client belongs to another event loop: call it from the loop it was opened in, "
+        "or use srvwire.sync.connect(url), which any thread can call"
+    )
 
 
 class Owner(Protocol):
@@ -89,11 +122,12 @@ class Follower(Protocol):
 class Link:
     """One open connection of a client and the calls waiting on it."""
 
-    __slots__ = ("conn", "goals", "loop", "owner", "reader", "session")
+    __slots__ = ("conn", "goals", "limit", "loop", "owner", "reader", "session")
 
-    def __init__(self, owner: Owner, conn: Connection) -> None:
+    def __init__(self, owner: Owner, conn: Connection, limit: int | None = None) -> None:
         self.owner = owner
         self.conn = conn
+        self.limit = limit  # the largest message sent, in bytes: max_message_size
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
@@ -132,7 +166,7 @@ class Link:
             ) from exc
         except (OSError, TransportClosed) as exc:
             raise ServiceUnavailable(f"cannot connect to {url}: {exc}", {"url": url}) from exc
-        link = cls(owner, conn)
+        link = cls(owner, conn, options.max_message_size)
         try:
             events = link.session.receive(first)
             if not (len(events) == 1 and type(events[0]) is ServicesChanged):
@@ -178,6 +212,15 @@ class Link:
                         self.stray(event.reply)
         except TransportClosed as exc:
             cause = exc
+        except asyncio.CancelledError:
+            # Nothing in srvwire cancels a reader: its event loop is ending (asyncio.run()
+            # cancels every task as it returns). The connection ends with the loop, closed
+            # with 1001 so that the server is told, and every call still waiting says why.
+            cause = TransportClosed(1001, LOOP_ENDED)
+            self.lost(None, cause)
+            with contextlib.suppress(Exception):  # however the close goes, the loop ends
+                await conn.close(1001, LOOP_ENDED)
+            raise
         except Exception:  # a bug here must not leave calls waiting for their deadlines
             owner.logger.exception("the reader of %s failed; closing the connection", owner.url)
             self.fail("the client failed to process a message from the server")
@@ -278,14 +321,18 @@ class Link:
                 {"timeout": budget},
                 service=method,
             )
+        task = asyncio.current_task(loop)
+        if task is None:  # not running on this link's loop
+            raise foreign_loop(loop)
         future: asyncio.Future[Arrived] = loop.create_future()
         session = self.session
         id, data = session.request(
             method, params, None if params is None else round(remaining, 6), future
         )
-        task = asyncio.current_task(loop)
-        cancelling = task.cancelling() if task is not None else 0
+        cancelling = task.cancelling()
         try:
+            if self.limit is not None and len(data) > self.limit:
+                raise self.too_large(method, len(data))
             # The send waits only on backpressure, so it is bounded only if it does wait: by a
             # bare timer (Expired is a TimeoutError), with no task of its own.
             sending = first_step(self.conn.send(data))
@@ -293,7 +340,7 @@ class Link:
                 await finish_within(sending, deadline - loop.time())
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
-            if task is not None and task.cancelling() > cancelling:
+            if task.cancelling() > cancelling:
                 # Python 3.11's wait_for returns the result when a cancellation arrives after
                 # the reply did (gh-86296); the caller asked to stop, so stop.
                 raise asyncio.CancelledError
@@ -314,6 +361,15 @@ class Link:
             raise
         finally:
             session.pending.pop(id, None)  # answered or given up: forget it
+
+    def too_large(self, method: str, size: int) -> ResourceExhausted:
+        """The error of a request of ``size`` bytes, over ``max_message_size``, not sent."""
+        return ResourceExhausted(
+            f"the request is {size} bytes, over max_message_size={self.limit}; nothing was "
+            "sent (raise max_message_size on the client and on the server for larger messages)",
+            {"size": size, "max_message_size": self.limit},
+            service=method,
+        )
 
     def failure(self, method: str, exc: RPCError | ProtocolViolation) -> RPCError:
         """The error a call to ``method`` raises when decoding its reply raised ``exc``.

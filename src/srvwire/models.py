@@ -16,8 +16,9 @@ Invariants
   a generated one validate, serialize and describe themselves (JSON schema) identically.
 * **Constraints live in pydantic-core.** Ranges, lengths and strictness are declared with
   ``Strict()`` and ``Field(ge=, le=, min_length=, max_length=)``, so validation runs in Rust.
-  Only two checks call Python: the ``float32`` range (it must let ``inf`` and ``nan`` through,
-  which a ``ge``/``le`` pair cannot) and the base64 decoding of byte arrays (once per field).
+  Only a few checks call Python: the ``float32`` range (it must let ``inf`` and ``nan``
+  through, which a ``ge``/``le`` pair cannot), a non-finite float spelled as a string or
+  ``null``, and the reading and writing of byte arrays (once per field).
 * **Every field has a default.** A written default is used; otherwise the field takes its ROS
   zero value. Scalars share their immutable default; every list and nested message comes from
   a ``default_factory``, so two instances never share a mutable value. ``Request()`` with no
@@ -29,13 +30,24 @@ Invariants
   locations use the name the input used.
 * **No module state.** Each ``build_*`` call builds new classes; callers that want one class per
   type (the loader) cache them.
+* **A request knows its response, statically.** A service's ``Request`` class also derives
+  from :class:`ServiceRequest` parametrized with its ``Response`` class, and the service class
+  from :class:`TypedService` parametrized with both, so that a type checker can tell what
+  ``client.call(name, SetSpeed.Request(...))`` returns. These generic bases hold nothing at
+  run time (pydantic sees no field or config in them).
 
 Decisions (``docs/types.md`` explains them for users): integers, floats, booleans and strings
 are strict (no ``"5"`` for an int, no ``5.0`` or ``True`` for an int, no ``1`` for a bool; an
 int is accepted for a float and becomes a float); ``float32`` and ``float64`` allow ``inf`` and
-``nan``, which JSON output writes as ``Infinity``/``NaN`` like Python's :mod:`json`; string
-bounds count characters (code points); ``byte``/``uint8`` arrays also accept base64 text and
-``bytes`` and always serialize as a list of integers.
+``nan``, which JSON output writes as the strings ``"Infinity"``/``"NaN"`` (a server or client
+can choose ``null`` or the bare tokens instead: :data:`InfNan`, :func:`json_writer`) and input
+reads in all three spellings; string bounds count characters (code points); ``byte``/``uint8``
+arrays are ``bytes``, written as base64 text, and also read from lists of integers.
+
+The JSON written for one :data:`InfNan` mode comes from a serializer built for that mode once
+(:func:`json_writer`), from the class's own core schema with every model's
+``ser_json_inf_nan`` set to the mode: pydantic chooses the spelling when it builds a
+serializer, not per call.
 """
 
 from __future__ import annotations
@@ -48,6 +60,7 @@ from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
 from pydantic import ConfigDict, Field
+from pydantic_core import SchemaSerializer
 
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
@@ -64,6 +77,7 @@ from srvwire.idl import (
 )
 from srvwire.primitives import (
     FLOAT32_MAX,
+    INF_NAN_MODES,
     PRIMITIVE_ALIASES,
     PRIMITIVE_ANNOTATIONS,
     AcceptBase64,
@@ -72,6 +86,7 @@ from srvwire.primitives import (
     Char,
     Float32,
     Float64,
+    InfNan,
     Int8,
     Int16,
     Int32,
@@ -86,6 +101,7 @@ from srvwire.primitives import (
 
 __all__ = [
     "FLOAT32_MAX",
+    "INF_NAN_MODES",
     "MAX_LISTED_ERRORS",
     "PRIMITIVE_ALIASES",
     "AcceptBase64",
@@ -95,6 +111,7 @@ __all__ = [
     "Char",
     "Float32",
     "Float64",
+    "InfNan",
     "Int8",
     "Int16",
     "Int32",
@@ -103,7 +120,9 @@ __all__ = [
     "ModelDecoder",
     "Resolver",
     "Service",
+    "ServiceRequest",
     "String",
+    "TypedService",
     "UInt8",
     "UInt16",
     "UInt32",
@@ -148,15 +167,20 @@ def zero_value(type_: TypeSpec) -> Scalar:
     raise InterfaceError(f"{type_} is not a primitive type, so it has no zero value")
 
 
-def default_value(field: FieldSpec) -> Scalar | list[Scalar]:
+def default_value(field: FieldSpec) -> Scalar | list[Scalar] | bytes:
     """Return the default of a primitive field: its written default, else the ROS zero value.
 
-    Arrays give a new list (``N`` zero values for a fixed array ``T[N]``, else empty); floats
-    are always floats. A nested message field has no such value: it defaults to a new instance.
+    Arrays give a new list (``N`` zero values for a fixed array ``T[N]``, else empty), and
+    ``byte``/``uint8`` arrays ``bytes`` instead; floats are always floats. A nested message field
+    has no such value: it defaults to a new instance.
     """
     type_ = field.type
     if not type_.is_primitive:
         raise InterfaceError(f"field {field.name!r} has the nested type {type_}, not a primitive")
+    if _is_bytes(type_):
+        if isinstance(field.default, tuple):
+            return bytes(item for item in field.default if isinstance(item, int))
+        return bytes(type_.size or 0) if type_.array is ArrayKind.FIXED else b""
     if isinstance(field.default, tuple):
         return [_normalize(type_.name, item) for item in field.default]
     if field.default is not None:
@@ -166,6 +190,11 @@ def default_value(field: FieldSpec) -> Scalar | list[Scalar]:
     if type_.array is ArrayKind.FIXED:
         return [zero_value(type_)] * (type_.size or 0)
     return []
+
+
+def _is_bytes(type_: TypeSpec) -> bool:
+    """Whether a field of this type is ``bytes``: an array of ``byte`` or ``uint8``."""
+    return type_.is_array and type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES
 
 
 # --- the base classes --------------------------------------------------------------------------
@@ -185,7 +214,8 @@ class Message(pydantic.BaseModel):
         validate_by_alias=True,
         serialize_by_alias=True,
         validate_assignment=True,
-        ser_json_inf_nan="constants",
+        ser_json_inf_nan=INF_NAN_MODES[0],
+        ser_json_bytes="base64",  # only for the JSON schema's defaults: AcceptBase64 writes them
         protected_namespaces=(),
     )
 
@@ -193,6 +223,22 @@ class Message(pydantic.BaseModel):
     """What the interface file says: fields, constants, defaults, comments."""
     type_name: ClassVar[str]
     """``pkg/msg/Name``; ``pkg/srv/Name_Request`` and so on for the parts of a service/action."""
+
+
+Req = TypeVar("Req", bound=Message)
+Resp = TypeVar("Resp", bound=Message)
+Resp_co = TypeVar("Resp_co", bound=Message, covariant=True)
+
+
+class ServiceRequest(Generic[Resp_co]):
+    """The second base of a service's ``Request`` class, naming its ``Response`` class.
+
+    ``class SetSpeed_Request(Message, ServiceRequest["SetSpeed_Response"])``: for type checkers
+    only, so that ``await client.call(name, SetSpeed.Request(...))`` is a ``SetSpeed.Response``.
+    It adds no field, method or state.
+    """
+
+    __slots__ = ()
 
 
 class Service:
@@ -205,6 +251,17 @@ class Service:
     spec: ClassVar[ServiceSpec]
     text: ClassVar[str]
     """The text of the .srv file."""
+
+
+class TypedService(Service, Generic[Req, Resp]):
+    """The base of a service class whose parts a type checker knows:
+    ``class SetSpeed(TypedService[SetSpeed_Request, SetSpeed_Response])``.
+
+    Every service class :func:`build_service` builds or ``srvwire gen`` writes derives from it,
+    so that ``client.proxy(name, SetSpeed)`` calls return ``SetSpeed.Response``. A class
+    known only as ``type[Service]`` (what :func:`~srvwire.loader.load_service` returns) gives
+    its calls the static type ``Any``.
+    """
 
 
 class Action:
@@ -275,12 +332,16 @@ def _annotation(type_: TypeSpec, element: Any) -> Any:
     if not type_.is_array:
         return element
     metadata: list[Any] = []
+    if _is_bytes(type_):
+        if type_.array is ArrayKind.FIXED:
+            metadata.append(Field(min_length=type_.size, max_length=type_.size))
+        elif type_.array is ArrayKind.BOUNDED:
+            metadata.append(Field(max_length=type_.size))
+        return Annotated[(bytes, *metadata, AcceptBase64)]
     if type_.array is ArrayKind.FIXED:
         metadata.append(Field(min_length=type_.size, max_length=type_.size))
     elif type_.array is ArrayKind.BOUNDED:
         metadata.append(Field(max_length=type_.size))
-    if type_.is_primitive and type_.name in ARRAY_PRIMITIVES_AS_BYTES:
-        metadata.append(AcceptBase64)
     if not metadata:
         return list[element]
     return Annotated[(list[element], *metadata)]
@@ -349,7 +410,11 @@ def _filler(namespace: dict[str, Any]) -> Callable[[dict[str, Any]], None]:
 
 
 def _build(
-    spec: MessageSpec, resolve: Resolver | None, type_name: str, module: str
+    spec: MessageSpec,
+    resolve: Resolver | None,
+    type_name: str,
+    module: str,
+    bases: tuple[Any, ...] = (Message,),
 ) -> type[Message]:
     annotations: dict[str, Any] = {"spec": ClassVar[MessageSpec], "type_name": ClassVar[str]}
     namespace: dict[str, Any] = {
@@ -368,7 +433,7 @@ def _build(
         name = python_name(field.name)
         annotations[name] = _annotation(field.type, element)
         namespace[name] = _field_info(spec, field, element)
-    cls = cast("type[Message]", types.new_class(spec.name, (Message,), {}, _filler(namespace)))
+    cls = cast("type[Message]", types.new_class(spec.name, bases, {}, _filler(namespace)))
     _check_defaults(cls, spec)
     return cls
 
@@ -391,16 +456,25 @@ def build_service(spec: ServiceSpec, resolve: Resolver | None = None) -> type[Se
     ``pkg/srv/Name_Request``/``pkg/srv/Name_Response``; see :func:`build_message`.
     """
     module = f"{spec.package}.srv"
+    response = _build(spec.response, resolve, _part_name(spec, spec.response), module)
+    request = _build(
+        spec.request,
+        resolve,
+        _part_name(spec, spec.request),
+        module,
+        (Message, ServiceRequest[response]),  # type: ignore[valid-type]
+    )
     namespace: dict[str, Any] = {
         "__module__": module,
         "__qualname__": spec.name,
-        "Request": _build(spec.request, resolve, _part_name(spec, spec.request), module),
-        "Response": _build(spec.response, resolve, _part_name(spec, spec.response), module),
+        "Request": request,
+        "Response": response,
         "type_name": spec.type_name,
         "spec": spec,
         "text": spec.text,
     }
-    return cast("type[Service]", types.new_class(spec.name, (Service,), {}, _filler(namespace)))
+    base = TypedService[request, response]  # type: ignore[valid-type]
+    return cast("type[Service]", types.new_class(spec.name, (base,), {}, _filler(namespace)))
 
 
 def build_action(spec: ActionSpec, resolve: Resolver | None = None) -> type[Action]:
@@ -561,12 +635,38 @@ def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
     return serializer.to_json(value, by_alias=True)
 
 
-def json_writer(model: type[M]) -> Callable[[M], bytes]:
-    """:func:`dump_json` for instances of exactly ``model``, with no lookup per call."""
-    write: Callable[[M], bytes] = functools.partial(
-        model.__pydantic_serializer__.to_json, by_alias=True
-    )
+def json_writer(
+    model: type[M], inf_nan: InfNan | None = None, *, strict: bool = False
+) -> Callable[[M], bytes]:
+    """:func:`dump_json` for instances of exactly ``model``, with no lookup per call.
+
+    ``inf_nan`` chooses how non-finite floats are written (None: as the class writes them);
+    a mode the class does not write already costs one serializer, built here, never per call.
+    """
+    serializer = model.__pydantic_serializer__
+    if inf_nan is not None and model.model_config.get("ser_json_inf_nan") != inf_nan:
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        schema = _with_inf_nan(model.__pydantic_core_schema__, inf_nan)
+        serializer = SchemaSerializer(schema, {"ser_json_inf_nan": inf_nan}, _use_prebuilt=False)
+    write: Callable[[M], bytes]
+    if strict:
+        write = functools.partial(serializer.to_json, by_alias=True, warnings="error")
+    else:
+        write = functools.partial(serializer.to_json, by_alias=True)
     return write
+
+
+def _with_inf_nan(schema: Any, inf_nan: InfNan) -> Any:
+    """A copy of a core schema in which every model writes non-finite floats as ``inf_nan``."""
+    if isinstance(schema, list):
+        return [_with_inf_nan(item, inf_nan) for item in schema]
+    if not isinstance(schema, dict):
+        return schema
+    copied = {key: _with_inf_nan(value, inf_nan) for key, value in schema.items()}
+    if schema.get("type") == "model" and isinstance(schema.get("config"), dict):
+        copied["config"] = {**schema["config"], "ser_json_inf_nan": inf_nan}
+    return copied
 
 
 class ModelDecoder(Generic[M]):

@@ -158,8 +158,8 @@ def decode_json(data: str | bytes) -> Any:
 
     Bytes must be UTF-8. Trailing text and nesting deeper than :data:`MAX_DEPTH` are refused.
     Integers of any size are read exactly. The tokens ``NaN``, ``Infinity`` and ``-Infinity``
-    are accepted, as Python's ``json`` accepts them, because srvwire's models write non-finite
-    floats that way.
+    are accepted, as Python's ``json`` accepts them, because a peer in the ``"constants"``
+    ``inf_nan`` mode writes non-finite floats that way.
     """
     if isinstance(data, memoryview):
         data = data.tobytes()

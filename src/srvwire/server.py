@@ -42,7 +42,7 @@ from srvwire.auth import Authenticator
 from srvwire.dispatch import Handler, ServiceRegistry, normalize_name
 from srvwire.errors import RegistrationError, ServiceUnavailable
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
-from srvwire.models import Action, Service
+from srvwire.models import INF_NAN_MODES, Action, InfNan, Service
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
 from srvwire.transports import get_transport
@@ -89,7 +89,11 @@ class Server:
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
     calls down); ``executor`` runs sync handlers (default: the server's own
-    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive).
+    :class:`~srvwire.threads.HandlerThreads`, whose threads never keep the process alive);
+    ``inf_nan`` how responses write ``inf``, ``-inf`` and ``nan``: ``"strings"`` (the default;
+    ``"Infinity"``, ``"-Infinity"``, ``"NaN"``), ``"null"`` or ``"constants"`` (the bare tokens
+    Python's :mod:`json` writes, which a browser cannot parse); requests are read in every
+    spelling (see :data:`~srvwire.models.InfNan`).
 
     At the edge (see :mod:`srvwire.handshake` and docs/security.md): ``origins`` lists the
     browser origins allowed besides pages of the server's own host (``"null"``, or ``"*"``
@@ -114,6 +118,7 @@ class Server:
         origins: Iterable[str] = (),
         auth: Authenticator | None = None,
         max_connections: int | None = 512,
+        inf_nan: InfNan = INF_NAN_MODES[0],
     ) -> None:
         if max_connections is not None and max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
@@ -136,7 +141,7 @@ class Server:
             )
         if grace_period < 0:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
-        self.registry = ServiceRegistry()
+        self.registry = ServiceRegistry(inf_nan=inf_nan)
         self.max_in_flight = max_in_flight
         self.max_batch = max_batch
         self.notification_timeout = notification_timeout

@@ -12,6 +12,8 @@ ask for the rest:
 * ``srvwire_url``: where clients connect;
 * ``srvwire_client``: an open :class:`~srvwire.client.Client`, whose calls give up after
   :data:`TIMEOUT`;
+* ``srvwire_sync_client``: an open :class:`srvwire.sync.Client`, the blocking client, for
+  plain ``def`` tests; it serves ``srvwire_server`` from an event loop in a thread of its own;
 * ``srvwire_wire``: a :class:`Wire`, JSON in and out with no client in between;
 * ``srvwire_handler_errors``: the errors the server logged during the test.
 
@@ -25,6 +27,11 @@ Rules:
   in ``srvwire_handler_errors``. What is left in it when the test's body ends fails the test
   with the tracebacks; what is logged later, during teardown, fails the teardown. The test
   accepts them by clearing the list, or by ``@pytest.mark.srvwire(handler_errors="allow")``.
+* **A blocking client's server runs in a thread.** A blocking call holds the thread it is made
+  from, and with it the test's event loop, so ``srvwire_sync_client`` serves
+  ``srvwire_server`` on the loop its client runs on, in a thread of its own; it cannot share
+  a test with ``srvwire_running`` (or what needs it: ``srvwire_client``, ``srvwire_wire``,
+  ``srvwire_url``), which serve on the test's loop. With ``--srvwire-url`` it connects there.
 * **The fixtures run on the test's event loop.** pytest-asyncio runs an async fixture on the
   loop of its ``loop_scope``, fixed when the fixture is defined, so each async fixture here is
   defined once per loop scope (``_srvwire_client_module``, ...), and the public fixture, a
@@ -38,12 +45,13 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import AsyncIterator, Generator
+from collections.abc import AsyncIterator, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import pytest
 
+from srvwire import sync
 from srvwire.client import Client, connect
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports import get_transport
@@ -63,6 +71,9 @@ HOST = "127.0.0.1"
 TIMEOUT = 5.0
 """Seconds: the default deadline of a ``srvwire_client`` call, and how long a :class:`Wire`
 waits for a message. A call that hangs fails the test instead of hanging pytest."""
+
+SHUTDOWN = 30.0
+"""Seconds ``srvwire_sync_client`` waits for its server's graceful shutdown after the test."""
 
 TRANSPORTS = ("memory", "websockets")
 HANDLER_ERRORS = ("fail", "allow")
@@ -85,6 +96,15 @@ srvwire_server in your conftest.py, for example
         return my_app.build_server()
 
 or run the tests against a server that is already running, with --srvwire-url ws://HOST:PORT"""
+
+SYNC_AND_ASYNC = (
+    "srvwire_sync_client serves srvwire_server from a thread of its own, and this test also "
+    "serves it on its event loop (srvwire_running, which srvwire_client, srvwire_wire and "
+    "srvwire_url use): a blocking call would hold that loop. Use srvwire_sync_client or the "
+    "async fixtures in one test, not both"
+)
+
+ON_THE_TESTS_LOOP = {"srvwire_running", "srvwire_client", "srvwire_wire", "srvwire_url"}
 
 NO_PYTEST_ASYNCIO = (
     "the srvwire fixtures are async and need pytest-asyncio: pip install pytest-asyncio"
@@ -210,6 +230,37 @@ def srvwire_client(request: pytest.FixtureRequest) -> Client:
     """An open Client to ``srvwire_url``, closed after the test; calls time out after TIMEOUT."""
     client: Client = _on_the_tests_loop(request, "client")
     return client
+
+
+@pytest.fixture
+def srvwire_sync_client(request: pytest.FixtureRequest) -> Iterator[sync.Client]:
+    """An open blocking client to ``srvwire_server``, served in a thread; closed after the test."""
+    url = _url(request.config)
+    if url is not None:
+        with sync.connect(url, timeout=TIMEOUT) as client:
+            yield client
+        return
+    if ON_THE_TESTS_LOOP & set(request.fixturenames):
+        pytest.fail(SYNC_AND_ASYNC, pytrace=False)
+    server = request.getfixturevalue("srvwire_server")
+    if not isinstance(server, Server):
+        pytest.fail(f"srvwire_server returned {server!r}, not a srvwire.Server", pytrace=False)
+    transport: Transport = request.getfixturevalue("srvwire_transport")
+    errors: list[logging.LogRecord] = request.getfixturevalue("srvwire_handler_errors")
+    thread = sync.LoopThread("srvwire_sync_client")
+    serving = contextlib.AsyncExitStack()
+    try:
+        running = thread.run(
+            serving.enter_async_context(_serving(server, transport, errors)), TIMEOUT
+        )
+        options = connect(running.url, transport=transport, timeout=TIMEOUT)
+        with sync.Client(options, loop=thread) as client:
+            yield client
+    finally:
+        try:
+            thread.run(serving.aclose(), SHUTDOWN)
+        finally:
+            thread.stop()
 
 
 @pytest.fixture

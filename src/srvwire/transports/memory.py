@@ -99,15 +99,19 @@ class MemoryConnection(Connection):
         "_peer",
         "_reason",
         "_receiver",
+        "_side",
         "_unread",
         "_writable",
         "identity",
         "remote_address",
     )
 
-    def __init__(self, remote_address: Any, max_message_size: int | None, high_water: int) -> None:
+    def __init__(
+        self, remote_address: Any, max_message_size: int | None, high_water: int, side: str
+    ) -> None:
         self.remote_address = remote_address
         self.identity: Any = None
+        self._side = side  # "client" or "server", for the close reason
         self._peer = self
         self._limit = max_message_size
         self._high = high_water
@@ -158,7 +162,11 @@ class MemoryConnection(Connection):
         limit = peer._limit
         if limit is not None and size > limit:
             # Sent, then refused by the peer: the sender learns it from the close, as on a socket.
-            self._end(1009, f"message of {size} bytes is over the limit of {limit} bytes")
+            self._end(
+                1009,
+                f"over the {peer._side}'s max_message_size "
+                f"(message of {size} bytes, limit {limit} bytes)",
+            )
             return
         peer._inbox.append((message, size))
         peer._unread += size
@@ -323,9 +331,11 @@ class MemoryTransport(Transport):
                 )
             identity = answer.identity
         client = MemoryConnection(
-            (listener.host, listener.port), options.max_message_size, self.high_water
+            (listener.host, listener.port), options.max_message_size, self.high_water, "client"
         )
-        server = MemoryConnection(peer, listener._options.max_message_size, self.high_water)
+        server = MemoryConnection(
+            peer, listener._options.max_message_size, self.high_water, "server"
+        )
         server.identity = identity
         client._peer = server
         server._peer = client

@@ -4,7 +4,10 @@ A :class:`WebSocketsConnection` is a thin wrapper on one ``websockets`` connecti
 and ``send`` are one call each, with no extra ``await``, because every call of srvwire goes
 through them. ``websockets`` already keeps the rules of :mod:`srvwire.transports.base`: its
 write buffer gives the backpressure, ``max_size`` the 1009, UTF-8 checks the 1007, and
-``close`` waits for the closing handshake (within its ``close_timeout``).
+``close`` waits for the closing handshake (within its ``close_timeout``). Its 1009 close reason
+is prefixed with the side and the setting that refused the message (``over the server's
+max_message_size (frame with 2097170 bytes exceeds limit of 1048576 bytes)``), so that the
+peer's error says what to raise.
 
 Exceptions are mapped here and nowhere else:
 
@@ -38,9 +41,9 @@ from websockets.exceptions import (
     InvalidURI,
     WebSocketException,
 )
-from websockets.frames import Close
+from websockets.frames import Close, CloseCode
 from websockets.http11 import Request, Response
-from websockets.protocol import State
+from websockets.protocol import Protocol, Side, State
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
@@ -68,6 +71,20 @@ def _closed(exc: ConnectionClosed) -> TransportClosed:
     if frame is None:
         return TransportClosed(None)
     return TransportClosed(frame.code, frame.reason)
+
+
+def _name_the_limit(protocol: Protocol) -> None:
+    """Make the close reason of a message over ``max_size`` name the setting and the side."""
+    fail = protocol.fail
+    side = "server" if protocol.side is Side.SERVER else "client"
+
+    def fail_naming_the_limit(code: int, reason: str = "") -> None:
+        if code == CloseCode.MESSAGE_TOO_BIG:
+            # A close reason holds at most 123 bytes; this one is ASCII.
+            reason = f"over the {side}'s max_message_size ({reason})"[:123]
+        fail(code, reason)
+
+    protocol.fail = fail_naming_the_limit  # type: ignore[method-assign]
 
 
 def _url(host: str, port: int, tls: bool = False) -> str:
@@ -146,6 +163,7 @@ class WebSocketsConnection(Connection):
         self._ws = ws
         self.remote_address = ws.remote_address
         self.identity = identity
+        _name_the_limit(ws.protocol)
 
     async def recv(self) -> str | bytes:
         try:

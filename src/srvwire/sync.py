@@ -1,0 +1,394 @@
+"""The blocking client: srvwire's async client, driven from plain code and from any thread.
+
+``with srvwire.sync.connect(url) as client: client.call(...)``. :func:`connect` takes the
+options of :func:`srvwire.connect` (it passes them on, so they are never written twice) and
+returns a :class:`Client` that is already open. Each client runs the async
+:class:`~srvwire.client.Client` on an event loop of its own, in a daemon thread of its own
+(a :class:`LoopThread`); every blocking method hands its coroutine to that loop with
+``asyncio.run_coroutine_threadsafe`` and waits for the answer. One loop per client, not one
+shared by all: a client's loop and thread begin and end with it, and no state is kept between
+clients.
+
+Invariants:
+
+* **One connection, many threads.** Calls from several threads run at once on the one
+  connection, as concurrent calls do on the async client; a call never opens a connection.
+* **The async client keeps the time.** A call's deadline is the async client's (its
+  ``timeout``, or the call's own); the blocking wait only backs it up, waiting at most
+  :data:`BACKSTOP` seconds past it, so it ends even if the loop thread is stuck. A call
+  pending when the loop ends (the client closed from another thread, or the thread dying)
+  fails at once with :class:`~srvwire.errors.ConnectionLost`.
+* **Nothing waits for itself.** A blocking call from the client's own loop thread (a type
+  resolver, a log handler) raises ``RuntimeError`` instead of waiting forever.
+* **An unclosed client never keeps the process alive.** Its thread is a daemon thread; when
+  the client is garbage-collected, or the interpreter exits, its loop is stopped, which
+  closes the connection with 1001.
+* **Works where a loop is already running**, as in Jupyter: the client's loop is not the
+  caller's, so a blocking call from a thread that runs an event loop still finishes (that
+  loop waits meanwhile; there, ``await`` the async client instead).
+
+The same exception classes as the async client's are raised, with the same meaning.
+
+Topics and goals are not part of srvwire's client yet. When they are, their blocking forms
+come here in the same way: a subscription as a plain iterator whose ``next`` waits on the
+loop, and a goal as an object whose methods block.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import functools
+import threading
+import weakref
+from collections.abc import Callable, Coroutine, Mapping
+from types import TracebackType
+from typing import Any, ParamSpec, TypeVar
+
+from pydantic import BaseModel
+
+from srvwire import client as aio
+from srvwire.calls import ServiceInfo, SrvType, check_timeout
+from srvwire.errors import ConnectionLost, DeadlineExceeded
+
+__all__ = [
+    "BACKSTOP",
+    "Client",
+    "LoopEnded",
+    "LoopThread",
+    "LoopTimeout",
+    "ServiceProxy",
+    "connect",
+]
+
+BACKSTOP = 1.0
+"""Seconds a blocking call waits past its deadline for the loop's answer before giving up."""
+
+CLOSE_WITHIN = 10.0
+"""Seconds :meth:`Client.close` waits for the connection's closing handshake."""
+
+T = TypeVar("T")
+P = ParamSpec("P")
+
+
+class LoopTimeout(TimeoutError):
+    """Raised by :meth:`LoopThread.run` when the loop did not finish the coroutine in time."""
+
+
+class LoopEnded(RuntimeError):
+    """Raised by :meth:`LoopThread.run` when the loop ended before the coroutine did."""
+
+
+class LoopThread:
+    """An event loop running in a daemon thread, and blocking calls into it from other threads.
+
+    The loop runs until :meth:`stop`; then, as :func:`asyncio.run` does, the tasks still there
+    are cancelled and finish, and the loop is closed.
+    """
+
+    def __init__(self, name: str = "srvwire event loop") -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self.thread.start()
+
+    def __repr__(self) -> str:
+        return f"<LoopThread {self.thread.name!r} {'running' if self.running else 'ended'}>"
+
+    @property
+    def running(self) -> bool:
+        """Whether the loop still runs (it may be stopping)."""
+        return self.thread.is_alive()
+
+    def _run(self) -> None:
+        loop = self.loop
+        try:
+            loop.run_forever()
+        finally:
+            try:
+                # Again while cancelling makes more: a call handed over as the loop stopped.
+                while tasks := asyncio.all_tasks(loop):
+                    for task in tasks:
+                        task.cancel()
+                    loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+                loop.run_until_complete(loop.shutdown_asyncgens())
+            finally:
+                loop.close()
+
+    def run(self, coro: Coroutine[Any, Any, T], within: float) -> T:
+        """Run ``coro`` on the loop and return its result, or raise its exception.
+
+        Raise :class:`LoopTimeout` (and cancel it) if it has not finished after ``within``
+        seconds, :class:`LoopEnded` if the loop ended first, and ``RuntimeError`` when called
+        from the loop's own thread, which would wait for itself. An exception that interrupts
+        the wait (``KeyboardInterrupt``) cancels the coroutine.
+        """
+        if threading.current_thread() is self.thread:
+            coro.close()
+            raise RuntimeError(
+                "a blocking srvwire call from its client's own event loop thread would wait "
+                "for itself; await the async client there instead"
+            )
+        try:
+            future = asyncio.run_coroutine_threadsafe(coro, self.loop)
+        except RuntimeError:  # the loop is closed
+            coro.close()
+            raise LoopEnded("the event loop has ended") from None
+        except BaseException:  # interrupted (Ctrl-C) once handed over: find it to cancel it
+            self.loop.call_soon_threadsafe(_cancel_the_task_of, coro)
+            raise
+        try:
+            future.exception(within)  # waits; the coroutine's own error is raised below
+        except concurrent.futures.CancelledError:
+            # Only the loop cancels a coroutine this thread still waits for: it is ending.
+            raise LoopEnded("the event loop ended before the call finished") from None
+        except TimeoutError:
+            future.cancel()
+            raise LoopTimeout(f"the event loop did not finish within {within:g} s") from None
+        except BaseException:
+            future.cancel()
+            raise
+        return future.result()
+
+    def stop(self, within: float = CLOSE_WITHIN) -> None:
+        """Stop the loop and wait up to ``within`` seconds for its thread to end; idempotent.
+
+        From the loop's own thread, only ask it to stop.
+        """
+        try:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+        except RuntimeError:
+            pass  # closed already
+        if threading.current_thread() is not self.thread:
+            self.thread.join(within)
+
+
+def _cancel_the_task_of(coro: Coroutine[Any, Any, Any]) -> None:
+    """Cancel the task running ``coro`` on this loop, if there is one."""
+    for task in asyncio.all_tasks():
+        if task.get_coro() is coro:
+            task.cancel()
+
+
+def _takes_the_options_of(
+    async_connect: Callable[P, object],
+) -> Callable[[Callable[..., Client]], Callable[P, Client]]:
+    """Give a function ``async_connect``'s parameters, for type checkers and ``help()``."""
+
+    def decorate(function: Callable[..., Client]) -> Callable[P, Client]:
+        functools.update_wrapper(function, async_connect, assigned=(), updated=())
+        return function
+
+    return decorate
+
+
+@_takes_the_options_of(aio.connect)
+def connect(*args: Any, **kwargs: Any) -> Client:
+    """Open a blocking client to the srvwire server at ``url``, with srvwire.connect's options.
+
+    The options are those of :func:`srvwire.connect` (``timeout``, ``reconnect``,
+    ``transport``, ...), passed on to it as they are.
+
+    Use it as ``with connect(url) as client:`` (closed on exit), or as
+    ``client = connect(url)`` followed by ``client.close()``. Raise
+    :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached (without
+    ``reconnect``), and ``ValueError`` or ``TypeError`` for a bad option.
+    """
+    return Client(aio.connect(*args, **kwargs))
+
+
+class Client:
+    """A blocking connection to one srvwire server, usable from several threads at once.
+
+    Made by :func:`connect`. Its methods are the async :class:`srvwire.Client`'s, blocking:
+    :meth:`call`, :meth:`proxy`, :meth:`wait_for_service`, :meth:`list_services`,
+    :meth:`close`; they take the same arguments and raise the same errors.
+    """
+
+    def __init__(self, options: aio.connect, *, loop: LoopThread | None = None) -> None:
+        """Open a client with ``options`` on its own loop thread, or on ``loop``, shared.
+
+        A client made on a shared ``loop`` leaves it running when it closes.
+        """
+        self.options = options
+        self._loop = LoopThread(f"srvwire client of {options.url}") if loop is None else loop
+        self._owns_loop = loop is None
+        self._client = aio.Client(options)
+        self._closing = threading.Lock()
+        self._closed = False
+        try:
+            self._run(self._client.open(), options.open_timeout)
+        except BaseException:
+            if self._owns_loop:
+                self._loop.stop()
+            raise
+        # Collected or left open at exit: stopping the loop closes the connection (1001).
+        self._finalizer = weakref.finalize(self, self._loop.stop) if self._owns_loop else None
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "connected" if self.connected else "not connected"
+        return f"<srvwire.sync.Client {state} to {self.url}>"
+
+    @property
+    def url(self) -> str:
+        """Where the client connects."""
+        return self.options.url
+
+    @property
+    def timeout(self) -> float:
+        """The deadline, in seconds, of a call that does not give its own."""
+        return self.options.timeout
+
+    @property
+    def connected(self) -> bool:
+        """Whether a connection is open right now (and its services are known)."""
+        return self._client.connected
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+    @property
+    def in_flight(self) -> int:
+        """How many calls are waiting for a reply."""
+        return self._client.in_flight
+
+    @property
+    def services(self) -> Mapping[str, str]:
+        """The services the server advertised: canonical name -> type; a read-only snapshot."""
+        return self._client.services
+
+    def _run(self, coro: Coroutine[Any, Any, T], budget: float, service: str | None = None) -> T:
+        """Run ``coro`` on the client's loop; ``budget`` is its own deadline, in seconds."""
+        try:
+            return self._loop.run(coro, budget + BACKSTOP)
+        except LoopTimeout as exc:
+            raise DeadlineExceeded(
+                f"no answer within {budget:g} s: the client's event loop did not finish the call",
+                {"timeout": budget},
+                service=service,
+            ) from exc
+        except LoopEnded as exc:
+            why = "the client is closed" if self._closed else "the client's event loop ended"
+            raise ConnectionLost(why, {"url": self.url}, service=service) from exc
+
+    def _budget(self, timeout: float | None) -> float:
+        return self.options.timeout if timeout is None else check_timeout(timeout)
+
+    # --- calls ------------------------------------------------------------------------------
+
+    def call(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> Any:
+        """Call the service ``name`` with ``request`` and return its response.
+
+        As :meth:`srvwire.Client.call`: the typed ``Response`` when the type is known, else a
+        dict; ``timeout`` is the call's deadline (default: the client's); the
+        :class:`~srvwire.errors.RPCError` subclass of the failure is raised.
+        """
+        budget = self._budget(timeout)  # a bad timeout is refused before any coroutine exists
+        return self._run(
+            self._client.call(
+                name, request, timeout=timeout, srv_type=srv_type, wait_for_ready=wait_for_ready
+            ),
+            budget,
+            name,
+        )
+
+    def proxy(
+        self,
+        name: str,
+        srv_type: SrvType | None = None,
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy:
+        """Return a callable for the service ``name`` that takes fields as keywords.
+
+        ``client.proxy("/add_two_ints")(a=1, b=2)``; the options given here apply to every
+        call made through it.
+        """
+        proxy = self._client.proxy(name, srv_type, timeout=timeout, wait_for_ready=wait_for_ready)
+        return ServiceProxy(self, proxy)
+
+    def wait_for_service(self, name: str, *, timeout: float | None = None) -> ServiceInfo:
+        """Wait until the server advertises ``name``; return its name and type.
+
+        As :meth:`srvwire.Client.wait_for_service`: woken by the server's announcement, and
+        :class:`~srvwire.errors.ServiceUnavailable` when ``timeout`` passes first.
+        """
+        budget = self._budget(timeout)
+        return self._run(self._client.wait_for_service(name, timeout=timeout), budget, name)
+
+    def list_services(self, *, timeout: float | None = None) -> list[ServiceInfo]:
+        """Ask the server for every service it offers, sorted by name."""
+        budget = self._budget(timeout)
+        return self._run(self._client.list_services(timeout=timeout), budget)
+
+    # --- topics and goals: their blocking forms come here once the async client has them ----
+
+    # --- closing ----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Close the connection and end the client's loop thread; idempotent.
+
+        Calls still pending, in other threads, fail with ``ConnectionLost``. After it, every
+        call fails with ``ConnectionLost``.
+        """
+        with self._closing:
+            if self._closed:
+                return
+            self._closed = True
+        try:
+            self._run(self._client.close(), CLOSE_WITHIN)
+        except ConnectionLost:
+            pass  # the loop had ended: the connection ended with it
+        finally:
+            if self._finalizer is not None:
+                self._finalizer.detach()
+                self._loop.stop()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class ServiceProxy:
+    """A blocking callable bound to one service: ``proxy(request)`` or ``proxy(a=1, b=2)``.
+
+    Made by :meth:`Client.proxy`; as :class:`srvwire.ServiceProxy`, the call options are the
+    proxy's, so every field name, ``timeout`` included, is free for the request.
+    """
+
+    def __init__(self, client: Client, proxy: aio.ServiceProxy[Any]) -> None:
+        self.client = client
+        self.name = proxy.name
+        self._proxy = proxy
+
+    def __call__(
+        self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
+    ) -> Any:
+        """Call the service; see :meth:`Client.call`."""
+        budget = self.client._budget(self._proxy.timeout)
+        return self.client._run(self._proxy(request, **fields), budget, self.name)
+
+    def wait_for_service(self, *, timeout: float | None = None) -> ServiceInfo:
+        """Wait until the server advertises this service; see :meth:`Client.wait_for_service`."""
+        return self.client.wait_for_service(self.name, timeout=timeout)
+
+    def __repr__(self) -> str:
+        return f"srvwire.sync.ServiceProxy({self.name!r}, {self._proxy.srv_type!r})"

@@ -1,0 +1,427 @@
+"""The blocking client (``srvwire.sync``), and the async client outside its event loop.
+
+The server runs on an event loop in a thread of its own (a :class:`LoopThread`, the same
+machinery the blocking client stands on), so that the test's thread can block in a call, or
+run ``asyncio.run`` as a script would, while the server answers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import gc
+import inspect
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from websockets.asyncio.server import ServerConnection, serve as ws_serve
+
+import srvwire
+import srvwire.sync
+from srvwire.dispatch import Context
+from srvwire.errors import (
+    ConnectionLost,
+    DeadlineExceeded,
+    InvalidParams,
+    ServiceNotFound,
+    ServiceUnavailable,
+)
+from srvwire.loader import load_service
+from srvwire.server import RunningServer, Server, serve
+from srvwire.sync import LoopThread
+from support import scaled
+
+AddTwoInts = load_service("example_interfaces/srv/AddTwoInts")
+Trigger = load_service("std_srvs/srv/Trigger")
+
+ADD = "/add_two_ints"
+THREADS = 4
+
+
+class Handlers:
+    """The test server's handlers, and what they saw."""
+
+    def __init__(self) -> None:
+        self.peers: set[Any] = set()
+        self.barrier: asyncio.Barrier | None = None  # made on the server's loop
+        self.hanging = threading.Event()  # set once a call to /hang has started
+        self.hung_up = threading.Event()  # set once that call has ended
+
+    async def add(self, request: Any, context: Context) -> Any:
+        self.peers.add(context.peer)
+        return AddTwoInts.Response(sum=request.a + request.b)
+
+    async def together(self, request: Any) -> Any:
+        """Answer only once THREADS calls are in it at the same time."""
+        if self.barrier is None:
+            self.barrier = asyncio.Barrier(THREADS)
+        await self.barrier.wait()
+        return {"sum": request.a + request.b}
+
+    async def hang(self, request: Any) -> Any:
+        self.hanging.set()
+        try:
+            await asyncio.Event().wait()  # never set: only a deadline or a cancel ends it
+        finally:
+            self.hung_up.set()
+
+
+def build_server(handlers: Handlers) -> Server:
+    server = Server(grace_period=0)
+    server.add_service(ADD, AddTwoInts, handlers.add)
+    server.add_service("/together", AddTwoInts, handlers.together)
+    server.add_service("/hang", Trigger, handlers.hang)
+    return server
+
+
+@contextlib.contextmanager
+def served_in_a_thread(server: Server, port: int = 0) -> Iterator[RunningServer]:
+    """Serve ``server`` on 127.0.0.1 from an event loop in a thread of its own."""
+    thread = LoopThread("test server")
+    serving = serve(server, "127.0.0.1", port)
+    try:
+        running = thread.run(serving.__aenter__(), scaled(10))
+        try:
+            yield running
+        finally:
+            thread.run(serving.__aexit__(None, None, None), scaled(10))
+    finally:
+        thread.stop()
+
+
+@pytest.fixture
+def handlers() -> Handlers:
+    return Handlers()
+
+
+@pytest.fixture
+def running(handlers: Handlers) -> Iterator[RunningServer]:
+    with served_in_a_thread(build_server(handlers)) as value:
+        yield value
+
+
+@pytest.fixture
+def client(running: RunningServer) -> Iterator[srvwire.sync.Client]:
+    with srvwire.sync.connect(running.url, timeout=scaled(5)) as value:
+        yield value
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+    return port
+
+
+def client_threads() -> set[str]:
+    return {t.name for t in threading.enumerate() if t.name.startswith("srvwire client of")}
+
+
+# --- the blocking client ----------------------------------------------------------------------
+
+
+def test_a_typed_call(client: srvwire.sync.Client) -> None:
+    response = client.call(ADD, {"a": 2, "b": 3})
+    assert type(response) is AddTwoInts.Response
+    assert response.sum == 5
+    assert client.call(ADD, AddTwoInts.Request(a=1, b=1)).sum == 2
+
+
+def test_fields_as_keywords_through_a_proxy(client: srvwire.sync.Client) -> None:
+    add = client.proxy(ADD, timeout=scaled(5))
+    assert add(a=40, b=2).sum == 42
+    assert add({"a": 1, "b": 2}).sum == 3
+    with pytest.raises(TypeError, match="pass the request object or keyword fields, not both"):
+        add({"a": 1}, b=2)
+    assert add.wait_for_service() == srvwire.ServiceInfo(ADD, "example_interfaces/srv/AddTwoInts")
+    assert repr(add) == "srvwire.sync.ServiceProxy('/add_two_ints', None)"
+
+
+def test_the_services_the_server_offers(client: srvwire.sync.Client) -> None:
+    assert client.connected
+    assert dict(client.services) == {
+        ADD: "example_interfaces/srv/AddTwoInts",
+        "/together": "example_interfaces/srv/AddTwoInts",
+        "/hang": "std_srvs/srv/Trigger",
+    }
+    assert [info.name for info in client.list_services()] == [ADD, "/hang", "/together"]
+    assert client.wait_for_service("hang").type == "std_srvs/srv/Trigger"
+    with pytest.raises(ServiceUnavailable, match=r"was not advertised within 0\.1 s"):
+        client.wait_for_service("/not_there", timeout=0.1)
+
+
+def test_errors_are_the_async_clients_classes(client: srvwire.sync.Client) -> None:
+    with pytest.raises(ServiceNotFound) as not_found:
+        client.call("/add_two_int", {"a": 1, "b": 2})
+    assert not_found.value.service == "/add_two_int"
+    assert not_found.value.data == {"candidates": [ADD]}
+    with pytest.raises(InvalidParams, match="checked by the client; nothing was sent"):
+        client.call(ADD, {"a": "one", "b": 2})
+    with pytest.raises(TypeError, match="timeout must be a number of seconds, not str"):
+        client.call(ADD, {"a": 1, "b": 2}, timeout="soon")
+
+
+def test_a_deadline_against_a_handler_that_never_answers(
+    client: srvwire.sync.Client, handlers: Handlers
+) -> None:
+    with pytest.raises(DeadlineExceeded) as exceeded:
+        client.call("/hang", timeout=0.2)
+    # The async client's deadline (or the server's, which got the time left with the call),
+    # not the blocking wait's backstop.
+    assert exceeded.value.message in {
+        "no response within 0.2 s",
+        "the deadline for /hang passed before the handler finished",
+    }
+    assert exceeded.value.service == "/hang"
+    assert client.in_flight == 0
+    assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
+
+
+def test_calls_from_several_threads_share_one_connection(
+    client: srvwire.sync.Client, handlers: Handlers
+) -> None:
+    # /together answers only when THREADS calls wait in it at once: each thread's call is in
+    # flight at the same time as the others', on the client's one connection.
+    with concurrent.futures.ThreadPoolExecutor(THREADS) as pool:
+        together = list(
+            pool.map(lambda i: client.call("/together", {"a": i, "b": 1}).sum, range(THREADS))
+        )
+        sums = list(pool.map(lambda i: client.call(ADD, {"a": i, "b": i}).sum, range(200)))
+    assert together == [1, 2, 3, 4]
+    assert sums == [2 * i for i in range(200)]
+    assert len(handlers.peers) == 1
+
+
+def test_closing_fails_the_calls_other_threads_wait_on(
+    client: srvwire.sync.Client, handlers: Handlers
+) -> None:
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        pending = pool.submit(client.call, "/hang", timeout=scaled(30))
+        assert handlers.hanging.wait(scaled(5))
+        client.close()
+        with pytest.raises(ConnectionLost, match=r"the client (was|is) closed"):
+            pending.result(scaled(5))  # at once, not after the call's 30 s deadline
+    assert client.closed
+    with pytest.raises(ConnectionLost, match="the client is closed"):
+        client.call(ADD, {"a": 1, "b": 2})
+    client.close()  # idempotent
+    assert repr(client).startswith("<srvwire.sync.Client closed to ws://127.0.0.1:")
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_call_fails_at_once_when_the_loop_thread_dies(
+    client: srvwire.sync.Client, handlers: Handlers
+) -> None:
+    def die() -> None:
+        raise SystemExit  # ends run_forever, and the thread, quietly
+
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        pending = pool.submit(client.call, "/hang", timeout=scaled(30))
+        assert handlers.hanging.wait(scaled(5))
+        client._loop.loop.call_soon_threadsafe(die)
+        with pytest.raises(ConnectionLost, match="the client's event loop ended"):
+            pending.result(scaled(5))
+    client._loop.thread.join(scaled(5))
+    with pytest.raises(ConnectionLost, match="the client's event loop ended"):
+        client.call(ADD, {"a": 1, "b": 2})
+
+
+def test_a_stuck_loop_cannot_make_a_call_wait_forever(client: srvwire.sync.Client) -> None:
+    release = threading.Event()
+    client._loop.loop.call_soon_threadsafe(release.wait)  # blocks the client's loop
+    try:
+        with pytest.raises(DeadlineExceeded) as exceeded:
+            client.call(ADD, {"a": 1, "b": 2}, timeout=0.1)
+        assert exceeded.value.message == (
+            "no answer within 0.1 s: the client's event loop did not finish the call"
+        )
+    finally:
+        release.set()
+    assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
+
+
+def test_ctrl_c_in_a_blocking_call_cancels_it_on_the_server(
+    client: srvwire.sync.Client, handlers: Handlers
+) -> None:
+    def press_ctrl_c() -> None:
+        if handlers.hanging.wait(scaled(5)):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    presser = threading.Thread(target=press_ctrl_c)
+    presser.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            client.call("/hang", timeout=scaled(30))
+    finally:
+        presser.join()
+    assert handlers.hung_up.wait(scaled(5))  # the server was told: its handler was cancelled
+    assert client.in_flight == 0
+    assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
+
+
+def test_a_call_from_the_clients_own_loop_thread_is_refused(client: srvwire.sync.Client) -> None:
+    outcome: concurrent.futures.Future[Any] = concurrent.futures.Future()
+
+    def call_from_the_loop() -> None:
+        try:
+            outcome.set_result(client.call(ADD, {"a": 1, "b": 2}))
+        except BaseException as exc:
+            outcome.set_exception(exc)
+
+    client._loop.loop.call_soon_threadsafe(call_from_the_loop)
+    with pytest.raises(RuntimeError, match="would wait for itself; await the async client there"):
+        outcome.result(scaled(5))
+
+
+def test_a_blocking_call_from_a_thread_that_runs_an_event_loop(
+    client: srvwire.sync.Client,
+) -> None:
+    # Jupyter's case: the caller's thread runs a loop, which the client's own does not need.
+    async def main() -> int:
+        response = client.call(ADD, {"a": 20, "b": 22})
+        return int(response.sum)
+
+    assert asyncio.run(main()) == 42
+
+
+def test_the_reconnect_option(handlers: Handlers) -> None:
+    port = free_port()
+    with srvwire.sync.connect(
+        f"ws://127.0.0.1:{port}", reconnect=True, timeout=scaled(10)
+    ) as client:
+        assert not client.connected  # nothing listens yet, and opening did not raise
+        with served_in_a_thread(build_server(handlers), port):
+            response = client.call(ADD, {"a": 1, "b": 2}, wait_for_ready=True)
+            assert response.sum == 3
+
+
+def test_a_server_that_is_not_there_leaves_no_thread_behind() -> None:
+    before = client_threads()
+    with pytest.raises(ServiceUnavailable, match=r"cannot connect to ws://127\.0\.0\.1:"):
+        srvwire.sync.connect(f"ws://127.0.0.1:{free_port()}")
+    assert client_threads() == before
+
+
+def test_closing_ends_the_loop_thread(running: RunningServer) -> None:
+    before = client_threads()
+    with srvwire.sync.connect(running.url):
+        assert client_threads() - before == {f"srvwire client of {running.url}"}
+    assert client_threads() == before
+
+
+def test_a_client_collected_unclosed_ends_its_loop_thread(running: RunningServer) -> None:
+    before = client_threads()
+    client = srvwire.sync.connect(running.url)
+    assert client_threads() - before == {f"srvwire client of {running.url}"}
+    del client  # no cycle holds it: collected here, which stops its loop and joins the thread
+    assert client_threads() == before
+
+
+def test_the_options_are_srvwire_connects() -> None:
+    assert inspect.signature(srvwire.sync.connect) == inspect.signature(srvwire.connect)
+    with pytest.raises(ValueError, match="http://localhost"):
+        srvwire.sync.connect("http://localhost")
+    with pytest.raises(TypeError, match="unexpected keyword argument 'retries'"):
+        srvwire.sync.connect("ws://localhost:1", retries=3)
+
+
+UNCLOSED = """
+import sys
+import srvwire.sync
+
+client = srvwire.sync.connect(sys.argv[1])
+print(client.call("/add_two_ints", {"a": 1, "b": 2}).sum)
+"""
+
+
+async def test_a_client_left_open_does_not_keep_the_process_alive() -> None:
+    # A bare WebSocket peer that answers one call, to see how the connection ends.
+    ended: asyncio.Future[tuple[int | None, str]] = asyncio.get_running_loop().create_future()
+
+    async def handle(ws: ServerConnection) -> None:
+        services = [{"name": ADD, "type": "example_interfaces/srv/AddTwoInts"}]
+        await ws.send(
+            json.dumps({"jsonrpc": "2.0", "method": "$/services", "params": {"services": services}})
+        )
+        async for text in ws:
+            call = json.loads(text)
+            await ws.send(json.dumps({"jsonrpc": "2.0", "id": call["id"], "result": {"sum": 3}}))
+        ended.set_result((ws.close_code, ws.close_reason))
+
+    async with ws_serve(handle, "127.0.0.1", 0) as peer:
+        port = peer.sockets[0].getsockname()[1]
+        process = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-c",
+            UNCLOSED,
+            f"ws://127.0.0.1:{port}",
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+        stdout, stderr = await asyncio.wait_for(process.communicate(), scaled(30))
+        assert (process.returncode, stdout) == (0, b"3\n"), stderr
+        # At exit the client's loop was stopped, which closed its connection properly.
+        code = await asyncio.wait_for(ended, scaled(5))
+    assert code == (1001, "the client's event loop ended")
+
+
+# --- the async client and event loops -------------------------------------------------------
+
+
+def test_asyncio_run_of_connect_opens_a_client_that_ends_with_its_loop(
+    running: RunningServer,
+) -> None:
+    client = asyncio.run(srvwire.connect(running.url))
+    assert isinstance(client, srvwire.Client)
+    assert not client.connected  # asyncio.run ended the loop, and the connection with it
+    with pytest.raises(RuntimeError) as used_again:
+        asyncio.run(client.call(ADD, {"a": 1, "b": 2}))
+    assert str(used_again.value) == (
+        "this client was opened in an event loop that has ended (asyncio.run() ends its loop "
+        "when it returns): open the client in the coroutine that uses it, with "
+        "'async with srvwire.connect(url) as client', or use srvwire.sync.connect(url) from "
+        "blocking code"
+    )
+    del client
+    gc.collect()  # a socket left open would warn here, and filterwarnings makes that an error
+
+
+def test_a_runner_keeps_the_client_between_its_runs(running: RunningServer) -> None:
+    with asyncio.Runner() as runner:
+        client = runner.run(srvwire.connect(running.url))
+        assert runner.run(client.call(ADD, {"a": 1, "b": 2})).sum == 3
+        runner.run(client.close())
+
+
+def test_a_client_used_from_another_event_loop_says_so(running: RunningServer) -> None:
+    with asyncio.Runner() as runner:
+        client = runner.run(srvwire.connect(running.url))
+        try:
+            with pytest.raises(RuntimeError) as elsewhere:
+                asyncio.run(client.call(ADD, {"a": 1, "b": 2}))
+            assert str(elsewhere.value) == (
+                "this client belongs to another event loop: call it from the loop it was "
+                "opened in, or use srvwire.sync.connect(url), which any thread can call"
+            )
+            assert runner.run(client.call(ADD, {"a": 1, "b": 2})).sum == 3  # nothing was sent
+        finally:
+            runner.run(client.close())
+
+
+async def test_connect_is_still_awaited_as_before(running: RunningServer) -> None:
+    one, two = await asyncio.gather(srvwire.connect(running.url), srvwire.connect(running.url))
+    opened = await asyncio.wait_for(srvwire.connect(running.url), scaled(5))
+    task = asyncio.create_task(srvwire.connect(running.url))
+    for client in (one, two, opened, await task):
+        async with client:
+            assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
+    assert asyncio.iscoroutine(srvwire.connect(running.url))
