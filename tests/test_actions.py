@@ -115,6 +115,17 @@ def server(gate: Gate) -> Server:
             handle.publish_feedback({"sequence": fibonacci(n)})
         return {"sequence": fibonacci(goal.order)}
 
+    @server.action("/steps", Fibonacci)
+    def steps(goal: Any, handle: GoalHandle) -> Any:
+        """A plain def handler: a step at a time until cancelled, feedback after each."""
+        done: list[int] = []
+        for n in range(10_000):
+            handle.publish_feedback({"sequence": [n]})
+            if handle.wait_for_cancel(0 if n else None):  # the first step waits for it
+                break
+            done.append(n)
+        return {"sequence": done}
+
     return server
 
 
@@ -163,6 +174,17 @@ async def test_a_plain_def_handler_runs_on_a_thread_and_publishes_feedback(
         outcome = await handle.result()
         assert outcome.status == "succeeded"
         assert outcome.result.sequence == fibonacci(5)  # type: ignore[union-attr]
+
+
+async def test_a_plain_def_handler_stops_when_cancelled(running: RunningServer) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/steps", {"order": 1})
+        first = await anext(handle.feedback())  # the handler is in its first step
+        assert first.sequence == [0]
+        assert await handle.cancel() is True
+        outcome = await handle.result()
+        assert outcome == GoalResult("canceled", Fibonacci.Result(sequence=[]))
+        assert_nothing_left(connection(running))
 
 
 async def test_an_aborted_goal_says_so_with_its_result(running: RunningServer) -> None:

@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import inspect
+import threading
 import types
 import uuid
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -152,10 +153,12 @@ class GoalHandle:
 
     ``handler(goal, handle)``: send progress with ``await handle.feedback(...)`` (or
     :meth:`publish_feedback` from a plain ``def`` handler's thread), watch
-    :attr:`cancel_requested` (or ``await handle.cancelled()``), and return the result.
+    :attr:`cancel_requested` (or ``await handle.cancelled()``, or
+    :meth:`wait_for_cancel` on a thread), and return the result.
     """
 
     __slots__ = (
+        "_cancel_event",
         "_cancel_waiters",
         "_closed",
         "_final",
@@ -198,6 +201,7 @@ class GoalHandle:
         self.cancel_requested = False
         """Whether the client asked to cancel the goal: stop, and return what there is."""
         self._cancel_waiters: list[asyncio.Future[None]] = []
+        self._cancel_event = threading.Event()  # for a plain def handler's thread
         self._closed = False
         self._final: str | None = None
         self._grace: asyncio.TimerHandle | None = None
@@ -249,6 +253,14 @@ class GoalHandle:
             if waiter in self._cancel_waiters:
                 self._cancel_waiters.remove(waiter)
 
+    def wait_for_cancel(self, timeout: float | None = None) -> bool:
+        """Block a plain ``def`` handler's thread until the client asks to cancel, or
+        ``timeout`` seconds pass; return whether it asked. Never call it on the event loop.
+
+        ``if handle.wait_for_cancel(0.2): break`` is a step of work that stops at once when
+        cancelled."""
+        return self._cancel_event.wait(timeout)
+
     def succeed(self) -> None:
         """End the goal ``succeeded`` when the handler returns, even if cancelling."""
         self._final = "succeeded"
@@ -269,6 +281,7 @@ class GoalHandle:
             return None
         self.cancel_requested = True
         self.status = "canceling"
+        self._cancel_event.set()
         for waiter in self._cancel_waiters:
             if not waiter.done():
                 waiter.set_result(None)
