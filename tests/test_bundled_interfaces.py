@@ -203,7 +203,7 @@ def test_each_package_holds_exactly_its_ros_types(package: str) -> None:
 
 def test_the_files_on_disk_are_the_expected_ones() -> None:
     assert ON_DISK == EXPECTED_NAMES
-    assert len(ON_DISK) == 153  # 151 from ROS 2, and the two services of the tutorial
+    assert len(ON_DISK) == 154  # 151 from ROS 2, and the two services and action of the tutorial
 
 
 # --- every file loads and round-trips --------------------------------------------------------
