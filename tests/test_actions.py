@@ -15,7 +15,7 @@ from srvwire.actions import ClientGoal, GoalResult, goal_service
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import connect
 from srvwire.errors import ConnectionLost, DeadlineExceeded, PermissionDenied, RegistrationError
-from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notification
+from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notification, goal_news
 from srvwire.models import ModelDecoder, build_action
 from srvwire.parser import parse_action
 from srvwire.server import RunningServer, Server, serve
@@ -479,6 +479,38 @@ async def test_a_slow_reader_of_feedback_sees_the_latest_never_a_queue() -> None
     goal.reply.set_result(None)  # ended: the iteration stops
     with pytest.raises(StopAsyncIteration):
         await anext(reader)
+
+
+def test_goal_news_is_read_or_refused() -> None:
+    assert goal_news("$/goal", {"call": 4, "goal_id": "g", "status": "executing"}) == GoalNews(
+        4, status="executing", goal_id="g"
+    )
+    assert goal_news("$/feedback", {"call": 4, "seq": 2, "feedback": {"a": 1}}) == GoalNews(
+        4, seq=2, feedback={"a": 1}
+    )
+    for method, params in [
+        ("$/goal", {"call": "4", "goal_id": "g", "status": "executing"}),  # not our id
+        ("$/goal", {"call": 4, "status": "executing"}),
+        ("$/feedback", {"call": 4, "seq": True, "feedback": {}}),
+        ("$/feedback", {"call": 4, "seq": 1}),
+        ("$/feedback", [4, 1, {}]),
+    ]:
+        assert goal_news(method, params) is None, params
+
+
+async def test_a_goal_sent_as_a_notification_is_refused_and_logged(
+    running: RunningServer, gate: Gate, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("INFO", logger="srvwire.server")
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "method": "/waits", "params": {"order": 2}})
+    await wire.send({"jsonrpc": "2.0", "id": 2, "method": "/aborts", "params": {"order": 1}})
+    assert (await wire.recv())["params"]["status"] == "accepted"  # the request's, id 2
+    assert not gate.handles  # the notification's handler never ran
+    assert any(
+        "a goal for the action /waits must be a request with an id" in m for m in caplog.messages
+    )
+    await wire.ws.close()
 
 
 def test_feedback_is_written_around_the_message_bytes() -> None:
