@@ -145,6 +145,11 @@ EXPLAINED: dict[tuple[str, str], str] = {
         "what examples/sync_client.py prints: tests/test_examples.py's "
         "test_the_blocking_client_script compares it"
     ),
+    (
+        "types.md",
+        'reveal_type(await client.call("/scan", Scan.Request(fill=1.0)))      '
+        "# wire_types.Scan_Response",
+    ): "what mypy reveals: tests/test_typed_calls.py runs mypy on these calls and checks it",
     ("tutorial.md", "make demo: robot_state_server.py is serving on ws://127.0.0.1:41111"): (
         "make demo's output: tests/test_examples.py's test_make_demo_runs_the_whole_tutorial"
     ),

@@ -1865,8 +1865,9 @@ async def test_a_deadline_that_passes_while_the_reply_is_being_sent_lets_it_go_o
         return {"text": "x" * 10_000}
 
     monkeypatch.setattr(CallRunner, "expire", recording_expire)
+    server.max_queued_bytes = 1_000
     server.add_service("/big", Echo, big)
-    transport = MemoryTransport(high_water=1_000)
+    transport = MemoryTransport()
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         await w.send(request("/big", deadline(0.05), id=1))
@@ -1880,13 +1881,13 @@ async def test_replies_a_client_does_not_read_count_against_its_limit() -> None:
     # A client that writes calls and never reads: each reply waits in its send, and counts in
     # flight until it goes out; past the limit the reader answers the next call itself, its
     # own send waits too, and the client's writes are pushed back instead of piling up tasks.
-    server = Server(max_in_flight=4, grace_period=0)
+    server = Server(max_in_flight=4, max_queued_bytes=10_000, grace_period=0)
 
     async def big(request: Any) -> Any:
         return {"text": "x" * 5_000}
 
     server.add_service("/big", Echo, big)
-    transport = MemoryTransport(high_water=10_000)
+    transport = MemoryTransport(high_water=10_000)  # what the client sends, unread, holds it
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         client = await transport.connect(running.url, Options(max_message_size=None))
 
@@ -1903,6 +1904,71 @@ async def test_replies_a_client_does_not_read_count_against_its_limit() -> None:
         assert len(conn.counted) <= server.max_in_flight
         writing.cancel()
         await client.close()
+
+
+class Logged(logging.Handler):
+    """Sets ``seen`` once a record whose message contains ``text`` is logged."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__()
+        self.text = text
+        self.seen = asyncio.Event()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.text in record.getMessage():
+            self.records.append(record)
+            self.seen.set()
+
+
+@pytest.mark.parametrize("batches", [False, True], ids=["calls", "one-call batches"])
+async def test_a_client_that_does_not_read_is_read_no_further_and_closed_after_the_write_timeout(
+    transport: Transport, batches: bool
+) -> None:
+    # 300 calls of 100 KB replies is 30 MB, more than any buffer between the two ends holds:
+    # past the budget the server stops reading (and answering) that client's calls, so only
+    # some of them ever run; after the write timeout it closes the connection, says so, and
+    # another client's calls are answered all along.
+    timeout = scaled(0.5)
+    server = Server(max_queued_bytes=2**16, write_timeout=timeout)
+    ran = 0
+
+    async def big(request: Any) -> Any:
+        nonlocal ran
+        ran += 1
+        return {"text": "x" * 100_000}
+
+    server.add_service("/big", Echo, big)
+    server.add_service("/subtract", Subtract, subtract)
+    logged = Logged("closed the connection from")
+    server.logger.addHandler(logged)
+    calls = 300
+    try:
+        async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+            stuck = await open_wire(running)  # it reads the $/services, then nothing
+            for id in range(calls):
+                call = request("/big", id=id)
+                await stuck.send([call] if batches else call)
+            async with srvwire.connect(running.url, transport=transport) as other:
+                subtract_one = other.proxy("/subtract", Subtract)
+                for n in range(20):
+                    assert (await subtract_one(minuend=n, subtrahend=1)).difference == n - 1
+            async with asyncio.timeout(scaled(20)):
+                await logged.seen.wait()
+            assert ran < calls
+            (record,) = logged.records
+            assert record.levelno == logging.WARNING
+            assert record.getMessage().endswith(
+                f"with code 1008: write timeout: the peer did not read what was sent for "
+                f"{timeout:g} s"
+            )
+            assert not running._connections
+            assert await closed_code(stuck) is None  # it sees the connection drop
+            async with srvwire.connect(running.url, transport=transport) as other:
+                answer = await other.proxy("/subtract", Subtract)(minuend=3, subtrahend=1)
+                assert answer.difference == 2
+    finally:
+        server.logger.removeHandler(logged)
 
 
 async def test_a_reply_is_not_much_larger_than_the_request_that_caused_it(
@@ -2007,6 +2073,8 @@ async def test_sigterm_ends_the_process_even_with_a_blocking_handler_stuck(
         ({"max_batch": 0}, "max_batch must be at least 1, not 0"),
         ({"notification_timeout": -1}, "notification_timeout must be a number of seconds > 0"),
         ({"grace_period": -1}, "grace_period must not be negative, not -1"),
+        ({"max_queued_bytes": -1}, "max_queued_bytes must not be negative, not -1"),
+        ({"write_timeout": 0}, "write_timeout must be a number of seconds > 0 or None, not 0"),
     ],
 )
 def test_bad_server_options_are_refused_at_once(option: dict[str, Any], message: str) -> None:

@@ -227,6 +227,21 @@ def test_a_batch_is_answered_once_in_order(server: ServerSession[ServiceEntry]) 
     assert answer[3]["result"] == {"text": "3"}
 
 
+def test_one_call_batches_count_in_flight_like_single_calls(
+    server: ServerSession[ServiceEntry],
+) -> None:
+    # The limit is 3: three one-call batches fill it, whatever comes next is refused.
+    started = [only(send(server, [call(i)])) for i in range(3)]
+    assert all(type(c) is Call for c in started) and server.in_flight == 3
+    (refused,) = json.loads(only(send(server, [call(3)])))
+    assert (refused["id"], refused["error"]["code"]) == (3, ErrorCode.RESOURCE_EXHAUSTED)
+    assert reply_of(only(send(server, call(4))))["error"]["code"] == ErrorCode.RESOURCE_EXHAUSTED
+    assert json.loads(server.reply(started[0], b"{}"))[0]["id"] == 0  # type: ignore[arg-type]
+    assert server.in_flight == 3  # until its reply has been sent
+    server.sent(started[0])
+    assert server.in_flight == 2
+
+
 def test_a_batch_without_calls_to_run(server: ServerSession[ServiceEntry]) -> None:
     answered = json.loads(only(send(server, [call(1, "nope"), 5])))
     assert [item["id"] for item in answered] == [1, None]

@@ -10,6 +10,7 @@ import ast
 import asyncio
 import contextlib
 import errno
+import itertools
 import logging
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -28,6 +29,8 @@ from srvwire.transports.base import (
     Transport,
     TransportClosed,
     TransportError,
+    WriteTimedOut,
+    write_timeout_reason,
 )
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
 from srvwire.transports.websockets import WebSocketsTransport, _url
@@ -325,6 +328,83 @@ async def test_send_waits_while_the_peer_does_not_read(transport: Transport) -> 
             sender.cancel()
 
 
+async def press(connection: Connection, size: int = 2**16) -> None:
+    """Send from ``connection`` forever, numbered, as a server whose client keeps calling does:
+    each send waits while the connection is congested. A peer that reads only what its
+    transport buffers on its own then keeps it congested for good."""
+    filler = "x" * size
+    for i in itertools.count():
+        await connection.send(f"{i:06}" + filler[6:])
+
+
+async def congested(connection: Connection) -> None:
+    """Return once ``connection`` is congested: a state the sends reach turn by turn, as the
+    peer's transport fills up, with no event to await; each turn lets both ends run."""
+    async with asyncio.timeout(scaled(10)):
+        while not connection.congested:  # noqa: ASYNC110
+            await asyncio.sleep(0)
+
+
+async def test_past_its_budget_a_connection_is_congested_until_the_peer_reads(
+    transport: Transport,
+) -> None:
+    budget = Options(max_queued_bytes=2**16)
+    received: list[str] = []
+    reader: asyncio.Task[None] | None = None
+    try:
+        async with connected(transport, server_options=budget) as pair:
+            assert not pair.server.congested
+            pressing = asyncio.create_task(press(pair.server))
+            try:
+                await congested(pair.server)
+            finally:
+                pressing.cancel()
+            writable = asyncio.create_task(pair.server.writable())
+            await turns()
+            assert pair.server.congested == (not writable.done())
+
+            async def read() -> None:  # until the end: the closing handshake comes after it all
+                with contextlib.suppress(TransportClosed):
+                    while True:
+                        received.append(str(await pair.client.recv())[:6])
+
+            reader = asyncio.create_task(read())
+            async with asyncio.timeout(scaled(10)):
+                await writable
+            assert not pair.server.congested
+    finally:
+        if reader is not None:
+            reader.cancel()
+    assert received == [f"{i:06}" for i in range(len(received))]
+
+
+async def test_a_peer_that_does_not_read_is_closed_after_the_write_timeout(
+    transport: Transport,
+) -> None:
+    # The side that waits closes at once, with 1008; the peer, which did not read, sees the
+    # connection drop after whatever reached it.
+    timeout = scaled(0.2)
+    budget = Options(max_queued_bytes=2**16, write_timeout=timeout)
+    async with connected(transport, server_options=budget) as pair:
+        pressing = asyncio.create_task(press(pair.server))
+        with pytest.raises(WriteTimedOut) as info:
+            async with asyncio.timeout(scaled(20)):
+                await pair.server.recv()
+        reason = write_timeout_reason(timeout)
+        assert (info.value.code, info.value.reason, info.value.timeout) == (1008, reason, timeout)
+        assert (pair.server.close_code, pair.server.close_reason) == (1008, reason)
+        with pytest.raises(WriteTimedOut):
+            await pair.server.send("more")
+        with pytest.raises(TransportClosed):
+            async with asyncio.timeout(scaled(10)):
+                await pressing
+        with pytest.raises(TransportClosed) as peer:
+            async with asyncio.timeout(scaled(10)):
+                while True:
+                    await pair.client.recv()
+        assert peer.value.code is None
+
+
 # Listening and connecting
 
 
@@ -560,6 +640,27 @@ async def test_memory_send_waits_past_the_high_water_mark_until_the_low_one() ->
             sender.cancel()
 
 
+async def test_memory_send_queues_nothing_while_congested() -> None:
+    # What a send waits for: once past the budget, the next message stays with its sender
+    # until the peer has read down to the low mark (a quarter of the budget).
+    budget = Options(max_queued_bytes=1000)
+    async with connected(MemoryTransport(), server_options=budget) as pair:
+        first = asyncio.create_task(pair.server.send("x" * 1500))
+        late = asyncio.create_task(pair.server.send("late"))
+        try:
+            await turns()
+            assert pair.server.congested and not first.done() and not late.done()
+            assert isinstance(pair.client, MemoryConnection)
+            assert pair.client._unread == 1500  # "late" is not queued
+            assert await pair.client.recv() == "x" * 1500
+            async with asyncio.timeout(scaled(5)):
+                await asyncio.gather(first, late)
+            assert await pair.client.recv() == "late"
+        finally:
+            first.cancel()
+            late.cancel()
+
+
 async def test_memory_send_waiting_for_the_peer_raises_when_the_connection_ends() -> None:
     transport = MemoryTransport(high_water=10)
     async with connected(transport) as pair:
@@ -644,6 +745,26 @@ async def test_memory_listener_waits_for_its_handlers(memory: MemoryTransport) -
 
 
 # The WebSocket transport only
+
+
+async def test_with_keepalive_a_peer_that_does_not_read_is_closed_after_a_ping_period() -> None:
+    # No write timeout, but keepalive: websockets' own ping deadline cannot start while the
+    # buffer does not drain, so the interval plus the timeout bounds the congestion instead.
+    interval, timeout = scaled(0.1), scaled(0.1)
+    options = Options(max_queued_bytes=2**16, ping_interval=interval, ping_timeout=timeout)
+    async with connected(WebSocketsTransport(), server_options=options) as pair:
+        pressing = asyncio.create_task(press(pair.server))
+        with pytest.raises(WriteTimedOut) as info:
+            async with asyncio.timeout(scaled(20)):
+                await pair.server.recv()
+        assert info.value.timeout == interval + timeout
+        with pytest.raises(TransportClosed):
+            async with asyncio.timeout(scaled(10)):
+                await pressing
+        with pytest.raises(TransportClosed):
+            async with asyncio.timeout(scaled(10)):
+                while True:
+                    await pair.client.recv()
 
 
 async def test_a_binary_frame_is_received_as_bytes() -> None:

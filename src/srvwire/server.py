@@ -55,6 +55,7 @@ from srvwire.transports.base import (
     Options,
     Transport,
     TransportClosed,
+    WriteTimedOut,
 )
 
 __all__ = ["RunningServer", "Server", "serve"]
@@ -85,6 +86,11 @@ class Server:
     it is sent); ``max_batch`` the messages of one batch; ``notification_timeout`` how long a
     notification's handler may run when the notification gives no deadline (None: forever);
     ``max_message_size`` the size of one incoming message in bytes (None: no limit);
+    ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent: past it the
+    connection reads no more calls until its client has read them down to a quarter of it;
+    ``write_timeout`` how long a connection may stay past its budget before it is closed with
+    code 1008 (None: forever; with keepalive on, at most ``ping_interval + ping_timeout``);
+    see ``docs/limits.md`` for what they bound;
     ``grace_period`` how long shutdown waits for calls in flight;
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
@@ -109,6 +115,8 @@ class Server:
         max_batch: int = 100,
         notification_timeout: float | None = 30.0,
         max_message_size: int | None = 2**20,
+        max_queued_bytes: int = 4 * 2**20,
+        write_timeout: float | None = 30.0,
         grace_period: float = 5.0,
         ping_interval: float | None = 20.0,
         ping_timeout: float | None = 20.0,
@@ -139,6 +147,12 @@ class Server:
             raise ValueError(
                 f"notification_timeout must be a number of seconds > 0, not {notification_timeout}"
             )
+        if max_queued_bytes < 0:
+            raise ValueError(f"max_queued_bytes must not be negative, not {max_queued_bytes}")
+        if write_timeout is not None and not write_timeout > 0:
+            raise ValueError(
+                f"write_timeout must be a number of seconds > 0 or None, not {write_timeout}"
+            )
         if grace_period < 0:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
         self.registry = ServiceRegistry(inf_nan=inf_nan)
@@ -146,6 +160,8 @@ class Server:
         self.max_batch = max_batch
         self.notification_timeout = notification_timeout
         self.max_message_size = max_message_size
+        self.max_queued_bytes = max_queued_bytes
+        self.write_timeout = write_timeout
         self.grace_period = grace_period
         self.ping_interval = ping_interval
         self.ping_timeout = ping_timeout
@@ -165,6 +181,8 @@ class Server:
             ping_interval=self.ping_interval,
             ping_timeout=self.ping_timeout,
             compression=self.compression,
+            max_queued_bytes=self.max_queued_bytes,
+            write_timeout=self.write_timeout,
         )
 
     # --- services ---------------------------------------------------------------------------
@@ -652,6 +670,10 @@ class RunningServer:
         try:
             await transport_connection.send(conn.session.announcement())
             await conn.serve()
+        except WriteTimedOut as exc:
+            log.warning(
+                "closed the connection from %s with code %d: %s", conn.peer, exc.code, exc.reason
+            )
         except TransportClosed as exc:
             if log.isEnabledFor(logging.DEBUG):
                 log.debug("connection from %s closed: %s", conn.peer, exc)

@@ -14,9 +14,12 @@ Invariants:
   to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
   reader task takes over. A batch's calls run in tasks of their own, started once the whole
   batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
-* **The reader waits only to send**, which is what pushes back on a client that writes
-  faster than it reads: a reply held by such a client counts in flight until it is sent, so
-  past ``max_in_flight`` the reader answers the next call itself, and waits.
+* **The reader waits only to send, and while the connection is congested**, which is what
+  pushes back on a client that writes faster than it reads: a reply held by such a client
+  counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
+  itself, and waits; and while the bytes waiting to be sent are past the connection's budget
+  (:attr:`~srvwire.transports.base.Connection.congested`), it reads nothing, and a batch's call
+  waits before its handler runs: no reply is built that could not be queued.
 * **A deadline is a cancellation with a reason.** A call's ``_meta.timeout`` is armed as one
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
@@ -72,6 +75,7 @@ class CallRunner:
 
     __slots__ = (
         "channel",
+        "conn",
         "counted",
         "executor",
         "identity",
@@ -88,6 +92,7 @@ class CallRunner:
         session: ServerSession[ServiceEntry],
         send: Callable[[bytes], Awaitable[None]],
         *,
+        conn: Connection,
         peer: Any,
         executor: Executor | None,
         logger: logging.Logger,
@@ -98,6 +103,7 @@ class CallRunner:
         self.session = session
         self.send = send
         self.channel = channel  # what an action's goal sends its states and feedback through
+        self.conn = conn
         self.peer = peer
         self.identity = identity
         self.executor = executor
@@ -241,6 +247,12 @@ class CallRunner:
             if context._cancel_error is not None:  # cancelled before it started
                 reply = session.fail(call, context._cancel_error)
             else:
+                if call.batch is not None and self.conn.congested:  # see the invariants
+                    try:
+                        await self.conn.writable()
+                    except TransportClosed:  # nobody to answer: do not run it
+                        session.forget(call)
+                        return
                 result = await dispatch(
                     entry, call.params, context, executor=self.executor, logger=log
                 )
@@ -352,6 +364,7 @@ class ServedConnection:
         self.runner = CallRunner(
             self.session,
             self.send,
+            conn=conn,
             peer=conn.remote_address,
             executor=executor,
             logger=logger,
@@ -446,11 +459,20 @@ class ServedConnection:
         self.release(call)
 
     async def flush_feedback(self) -> None:
-        """Send the goals' feedback, round-robin, whenever no control message is being sent."""
+        """Send the goals' feedback, round-robin, whenever no control message is being sent
+        and the connection is within its budget: while it is not, feedback waits here, where
+        a newer one replaces it."""
         outbox = self.outbox
+        conn = self.conn
         while True:
             await self.has_feedback.wait()
             await self.quiet.wait()  # replies first: data never delays control
+            if conn.congested:  # past the budget: keep the latest here, not in the buffer
+                try:
+                    await conn.writable()
+                except TransportClosed:
+                    return
+                continue
             taken = outbox.take()
             if taken is None:
                 self.has_feedback.clear()
@@ -561,6 +583,8 @@ class ServedConnection:
         assert reader is not None
         while True:
             try:
+                if conn.congested:  # read nothing while what waits to be sent is past the budget
+                    await conn.writable()
                 data = await conn.recv()
             except TransportClosed as exc:
                 if exc.clean:

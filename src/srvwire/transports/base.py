@@ -14,6 +14,17 @@ Rules every transport keeps:
   peer does not read and that buffer is past its high-water mark, ``send`` waits: that is the
   backpressure a client that writes faster than it reads feels. ``recv`` waits for the next
   message; a connection that is not read holds at most what the transport buffers.
+* **A budget for what waits to be sent.** The high-water mark is ``Options.max_queued_bytes``
+  (the transport's own default when None). Past it the connection is :attr:`~Connection.congested`
+  until the peer has read it down to a quarter of it: a ``send`` that starts then waits before it
+  queues anything, so at most the budget plus one message waits in the buffer, and
+  :meth:`~Connection.writable` waits for the end of it (a server stops reading calls there).
+* **A peer that does not read is closed.** Congested for ``Options.write_timeout`` seconds in a
+  row (or, where the transport has keepalive, ``ping_interval + ping_timeout`` when that is
+  sooner: a ping cannot be answered through a buffer that does not drain), the connection is
+  closed at once, without a closing handshake (the peer would not read
+  it), dropping what was queued: this side's ``recv`` and ``send`` raise :class:`WriteTimedOut`,
+  code :data:`WRITE_TIMEOUT_CODE` (1008, policy violation); the peer sees the connection drop.
 * **Limits end the connection, not the process.** A message larger than the receiver's
   ``max_message_size`` closes the connection with code 1009; a text message that is not UTF-8
   closes it with 1007. Messages received before it are still delivered.
@@ -39,6 +50,7 @@ from typing import Any
 
 __all__ = [
     "CREDENTIAL_HEADERS",
+    "WRITE_TIMEOUT_CODE",
     "Admitted",
     "Answered",
     "Connection",
@@ -51,10 +63,16 @@ __all__ = [
     "Transport",
     "TransportClosed",
     "TransportError",
+    "WriteTimedOut",
+    "write_timeout_reason",
 ]
 
 CREDENTIAL_HEADERS = frozenset({"authorization", "cookie", "proxy-authorization"})
 """Headers whose values are credentials: no ``repr`` or log line shows them."""
+
+WRITE_TIMEOUT_CODE = 1008
+"""The close code of a connection closed because its peer did not read for ``write_timeout``:
+1008, policy violation, since reading what one asked for is the peer's part of the protocol."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,13 +82,17 @@ class Options:
     ``max_message_size`` bounds one incoming message in bytes (None: no limit);
     ``ping_interval``/``ping_timeout`` the keepalive, where the transport has one (None turns
     it off); ``compression="deflate"`` asks for per-message compression, where the transport
-    has it.
+    has it. ``max_queued_bytes`` is the budget of bytes waiting to be sent, past which the
+    connection is congested (None: the transport's default); ``write_timeout`` how long it may
+    stay congested before it is closed with :data:`WRITE_TIMEOUT_CODE` (None: forever).
     """
 
     max_message_size: int | None = 2**20
     ping_interval: float | None = 20.0
     ping_timeout: float | None = 20.0
     compression: str | None = None
+    max_queued_bytes: int | None = None
+    write_timeout: float | None = None
 
 
 class Headers(tuple[tuple[str, str], ...]):
@@ -174,6 +196,20 @@ class TransportClosed(Exception):
         )
 
 
+class WriteTimedOut(TransportClosed):
+    """Raised by :meth:`Connection.recv` and :meth:`Connection.send` once this side closed the
+    connection because its peer did not read for ``write_timeout`` seconds."""
+
+    def __init__(self, timeout: float) -> None:
+        super().__init__(WRITE_TIMEOUT_CODE, write_timeout_reason(timeout))
+        self.timeout = timeout
+
+
+def write_timeout_reason(timeout: float) -> str:
+    """The close reason of a connection whose peer did not read for ``timeout`` seconds."""
+    return f"write timeout: the peer did not read what was sent for {timeout:g} s"
+
+
 class Connection(abc.ABC):
     """One open connection: receive and send whole messages, then close it."""
 
@@ -199,6 +235,16 @@ class Connection(abc.ABC):
 
         Raise :class:`TransportClosed` once the connection ended.
         """
+
+    @property
+    @abc.abstractmethod
+    def congested(self) -> bool:
+        """Whether the bytes waiting to be sent are past the budget: a ``send`` would wait."""
+
+    @abc.abstractmethod
+    async def writable(self) -> None:
+        """Wait until the connection is not :attr:`congested`; raise :class:`TransportClosed`
+        when it ended while this waited."""
 
     @abc.abstractmethod
     async def close(self, code: int = 1000, reason: str = "") -> None:

@@ -16,8 +16,12 @@ It keeps the rules of :mod:`srvwire.transports.base` as the WebSocket transport 
   what is left in the inbox before it raises :class:`TransportClosed`, as a close frame
   arrives after the data sent before it.
 * ``send`` puts the message in the peer's inbox, then waits while that inbox holds more than
-  the high-water mark, until the peer reads it down to the low-water mark (a quarter of it)
-  or the connection ends.
+  the high-water mark (the sender's ``max_queued_bytes``, else the transport's ``high_water``),
+  until the peer reads it down to the low-water mark (a quarter of it) or the connection ends.
+  In between the sender is congested: a ``send`` that starts then waits before it puts
+  anything in the inbox. Congested for the sender's ``write_timeout``, the connection ends
+  as a socket the sender aborts: both inboxes are emptied and the peer sees it drop
+  (code None), while the sender's ``recv`` and ``send`` raise :class:`WriteTimedOut` (1008).
 * A message larger than the receiver's ``max_message_size`` is not delivered: the connection
   ends with 1009. Bytes are delivered as text; when they are not UTF-8, the receiver ends the
   connection with 1007 on reading them, and drops what it had not read.
@@ -46,6 +50,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from srvwire.transports.base import (
+    WRITE_TIMEOUT_CODE,
     Admitted,
     Connection,
     ConnectionHandler,
@@ -56,6 +61,8 @@ from srvwire.transports.base import (
     Transport,
     TransportClosed,
     TransportError,
+    WriteTimedOut,
+    write_timeout_reason,
 )
 
 __all__ = ["MemoryConnection", "MemoryListener", "MemoryTransport"]
@@ -100,27 +107,32 @@ class MemoryConnection(Connection):
         "_reason",
         "_receiver",
         "_side",
+        "_stall",
+        "_timed_out",
         "_unread",
         "_writable",
+        "_write_timeout",
         "identity",
         "remote_address",
     )
 
-    def __init__(
-        self, remote_address: Any, max_message_size: int | None, high_water: int, side: str
-    ) -> None:
+    def __init__(self, remote_address: Any, options: Options, high_water: int, side: str) -> None:
         self.remote_address = remote_address
         self.identity: Any = None
         self._side = side  # "client" or "server", for the close reason
         self._peer = self
-        self._limit = max_message_size
-        self._high = high_water
-        self._low = high_water // 4
+        self._limit = options.max_message_size
+        # The marks of what this end sends, in its peer's inbox.
+        self._high = high_water if options.max_queued_bytes is None else options.max_queued_bytes
+        self._low = self._high // 4
+        self._write_timeout = options.write_timeout
         self._inbox: deque[tuple[str | bytes, int]] = deque()
         self._unread = 0  # bytes in the inbox
         self._receiver: asyncio.Future[None] | None = None  # the recv waiting for a message
-        self._writable = asyncio.Event()  # the inbox is not above the high-water mark
-        self._writable.set()
+        self._writable = asyncio.Event()  # the inbox went no higher than the peer's high mark
+        self._writable.set()  # since it was last down to the low mark
+        self._stall: asyncio.TimerHandle | None = None  # the peer's write timeout, on the inbox
+        self._timed_out = False  # this end closed the connection for its write timeout
         self._ended = False
         self._code: int | None = None
         self._reason = ""
@@ -129,7 +141,7 @@ class MemoryConnection(Connection):
         inbox = self._inbox
         while not inbox:
             if self._ended:
-                raise TransportClosed(self._code, self._reason)
+                raise self.closed()
             if self._receiver is not None:
                 raise RuntimeError("another coroutine is already waiting for the next message")
             self._receiver = asyncio.get_running_loop().create_future()
@@ -139,8 +151,11 @@ class MemoryConnection(Connection):
                 self._receiver = None
         message, size = inbox.popleft()
         self._unread -= size
-        if self._unread <= self._low:
+        if self._unread <= self._peer._low and not self._writable.is_set():
             self._writable.set()
+            if self._stall is not None:
+                self._stall.cancel()
+                self._stall = None
         if isinstance(message, str):
             return message
         try:
@@ -149,12 +164,14 @@ class MemoryConnection(Connection):
             inbox.clear()
             self._unread = 0
             self._end(1007, f"{exc.reason} at position {exc.start}")
-            raise TransportClosed(self._code, self._reason) from exc
+            raise self.closed() from exc
 
     async def send(self, message: str | bytes) -> None:
         if self._ended:
-            raise TransportClosed(self._code, self._reason)
+            raise self.closed()
         peer = self._peer
+        if not peer._writable.is_set():  # congested: queue nothing more until it drains
+            await self.writable()
         if isinstance(message, str):
             size = len(message) if message.isascii() else len(message.encode())
         else:
@@ -174,10 +191,46 @@ class MemoryConnection(Connection):
         if receiver is not None and not receiver.done():
             receiver.set_result(None)
         if peer._unread > self._high:
-            peer._writable.clear()
+            if peer._writable.is_set():
+                peer._writable.clear()
+                if self._write_timeout is not None:
+                    loop = asyncio.get_running_loop()
+                    peer._stall = loop.call_later(self._write_timeout, self._stalled)
             await peer._writable.wait()
             if self._ended:
-                raise TransportClosed(self._code, self._reason)
+                raise self.closed()
+
+    @property
+    def congested(self) -> bool:
+        return not self._peer._writable.is_set()
+
+    async def writable(self) -> None:
+        writable = self._peer._writable
+        if writable.is_set():
+            return
+        while not writable.is_set():  # woken together, the first to send may congest it again
+            await writable.wait()
+        if self._ended:
+            raise self.closed()
+
+    def closed(self) -> TransportClosed:
+        if self._timed_out:
+            assert self._write_timeout is not None
+            return WriteTimedOut(self._write_timeout)
+        return TransportClosed(self._code, self._reason)
+
+    def _stalled(self) -> None:
+        """The peer did not read down to the low mark within the write timeout: end it."""
+        assert self._write_timeout is not None
+        peer = self._peer
+        peer._stall = None
+        for end in (self, peer):  # as an aborted socket drops what was not read, both ways
+            end._inbox.clear()
+            end._unread = 0
+        self._end(None, "")  # the peer sees the connection drop ...
+        self._timed_out = True  # ... this end knows why
+        self._code = WRITE_TIMEOUT_CODE
+        self._reason = write_timeout_reason(self._write_timeout)
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         if not self._ended:
@@ -206,6 +259,9 @@ class MemoryConnection(Connection):
             if receiver is not None and not receiver.done():
                 receiver.set_result(None)
             end._writable.set()
+            if end._stall is not None:
+                end._stall.cancel()
+                end._stall = None
 
 
 class MemoryListener(Listener):
@@ -262,7 +318,8 @@ class MemoryListener(Listener):
 class MemoryTransport(Transport):
     """An in-process world of listeners and connections; share one instance between both ends.
 
-    ``high_water`` is the most bytes one direction buffers before ``send`` waits.
+    ``high_water`` is the most bytes one direction buffers before ``send`` waits, where the
+    sender's options give no ``max_queued_bytes``.
     """
 
     name = "memory"
@@ -331,11 +388,9 @@ class MemoryTransport(Transport):
                 )
             identity = answer.identity
         client = MemoryConnection(
-            (listener.host, listener.port), options.max_message_size, self.high_water, "client"
+            (listener.host, listener.port), options, self.high_water, "client"
         )
-        server = MemoryConnection(
-            peer, listener._options.max_message_size, self.high_water, "server"
-        )
+        server = MemoryConnection(peer, listener._options, self.high_water, "server")
         server.identity = identity
         client._peer = server
         server._peer = client

@@ -9,6 +9,17 @@ is prefixed with the side and the setting that refused the message (``over the s
 max_message_size (frame with 2097170 bytes exceeds limit of 1048576 bytes)``), so that the
 peer's error says what to raise.
 
+The budget is websockets' ``write_limit``: the asyncio transport's high-water mark, its low one
+a quarter of it. websockets writes a message into the buffer first and waits for it to drain
+after, so a ``send`` that finds the connection congested waits before it calls websockets.
+websockets' connection classes are subclassed (its ``create_connection``) only to hear the
+transport's ``pause_writing``/``resume_writing``: the write timeout is one timer, armed when
+writing pauses and cancelled when it resumes. This is also what ends a peer that does not read
+when keepalive cannot: websockets writes its ping and then waits for the buffer to drain before
+it starts the pong deadline, so past the high-water mark the ping deadline never starts. With
+keepalive on, a connection congested for a ping interval plus a ping timeout is closed as one
+whose ping went unanswered, when that is sooner than ``write_timeout``.
+
 Exceptions are mapped here and nowhere else:
 
 * ``ConnectionClosed`` (any subclass) -> :class:`TransportClosed`, with the code and reason of
@@ -26,6 +37,7 @@ TLS.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import ssl as _ssl
 import weakref
@@ -33,6 +45,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.asyncio.connection import Connection as WebSocket
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import (
     ConnectionClosed,
@@ -43,12 +56,13 @@ from websockets.exceptions import (
 )
 from websockets.frames import Close, CloseCode
 from websockets.http11 import Request, Response
-from websockets.protocol import Protocol, Side, State
+from websockets.protocol import OPEN, Protocol, Side, State
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
 from srvwire.transports.base import (
     CREDENTIAL_HEADERS,
+    WRITE_TIMEOUT_CODE,
     Admitted,
     Answered,
     Connection,
@@ -60,13 +74,73 @@ from srvwire.transports.base import (
     Transport,
     TransportClosed,
     TransportError,
+    WriteTimedOut,
+    write_timeout_reason,
 )
 
 __all__ = ["WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
 
 
-def _closed(exc: ConnectionClosed) -> TransportClosed:
+DEFAULT_WRITE_LIMIT = 2**15
+"""websockets' own high-water mark, for ``max_queued_bytes=None``."""
+
+
+class _Watched(WebSocket):
+    """What srvwire adds to a websockets connection: it knows when writing is paused, and
+    closes the connection when it stays paused for ``write_timeout`` (None: never)."""
+
+    write_timeout: float | None = None
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.drained = asyncio.Event()  # set while writing is not paused, and once closed
+        self.drained.set()
+        self.stall: asyncio.TimerHandle | None = None
+        self.timed_out = False
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        self.drained.clear()
+        if self.write_timeout is not None:
+            self.stall = self.loop.call_later(self.write_timeout, self.stalled)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        self.drained.set()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        super().connection_lost(exc)
+        self.drained.set()
+        if self.stall is not None:
+            self.stall.cancel()
+            self.stall = None
+
+    def stalled(self) -> None:
+        """Close now: the peer does not read, so a closing handshake would wait for nothing."""
+        self.stall = None
+        assert self.write_timeout is not None
+        self.timed_out = True
+        if self.protocol.state is OPEN:  # record the close frame that recv will report
+            self.protocol.fail(WRITE_TIMEOUT_CODE, write_timeout_reason(self.write_timeout))
+        self.transport.abort()
+
+
+class _ServerConnection(_Watched, ServerConnection):
+    pass
+
+
+class _ClientConnection(_Watched, ClientConnection):
+    pass
+
+
+def _closed(exc: ConnectionClosed, ws: _Watched) -> TransportClosed:
     """Translate how ``websockets`` says a connection ended into :class:`TransportClosed`."""
+    if ws.timed_out:
+        assert ws.write_timeout is not None
+        return WriteTimedOut(ws.write_timeout)
     frame = exc.rcvd if exc.rcvd is not None else exc.sent
     if frame is None:
         return TransportClosed(None)
@@ -159,24 +233,52 @@ class WebSocketsConnection(Connection):
 
     __slots__ = ("_ws", "identity", "remote_address")
 
-    def __init__(self, ws: ServerConnection | ClientConnection, identity: object = None) -> None:
+    def __init__(
+        self,
+        ws: _ServerConnection | _ClientConnection,
+        options: Options,
+        identity: object = None,
+    ) -> None:
         self._ws = ws
         self.remote_address = ws.remote_address
         self.identity = identity
+        ws.write_timeout = _write_timeout(options)
         _name_the_limit(ws.protocol)
 
     async def recv(self) -> str | bytes:
         try:
             return await self._ws.recv()
         except ConnectionClosed as exc:
-            raise _closed(exc) from exc
+            raise _closed(exc, self._ws) from exc
 
     async def send(self, message: str | bytes) -> None:
         # text=True sends bytes as a text frame as they are, and a str as usual.
+        ws = self._ws
         try:
-            await self._ws.send(message, text=True)
+            if ws.paused:  # congested: queue nothing more until it drains
+                await self.writable()
+            await ws.send(message, text=True)
         except ConnectionClosed as exc:
-            raise _closed(exc) from exc
+            raise _closed(exc, ws) from exc
+
+    @property
+    def congested(self) -> bool:
+        return self._ws.paused
+
+    async def writable(self) -> None:
+        ws = self._ws
+        if not ws.paused:
+            return
+        while ws.paused:  # woken together, the first to write may pause it again
+            await ws.drained.wait()
+        if ws.protocol.state is State.CLOSED:
+            raise self.closed()
+
+    def closed(self) -> TransportClosed:
+        if self._ws.timed_out:
+            assert self._ws.write_timeout is not None
+            return WriteTimedOut(self._ws.write_timeout)
+        return super().closed()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         await self._ws.close(code, reason)
@@ -199,6 +301,21 @@ class WebSocketsConnection(Connection):
         if protocol.state is not State.CLOSED:
             return None
         return protocol.close_rcvd if protocol.close_rcvd is not None else protocol.close_sent
+
+
+def _write_timeout(options: Options) -> float | None:
+    """How long a connection may stay congested: ``write_timeout``, and with keepalive on, no
+    longer than a ping interval and a ping timeout, in which a ping sent while it is congested
+    would have gone unanswered (websockets starts the pong deadline only once it drained)."""
+    timeouts = [options.write_timeout]
+    if options.ping_interval is not None and options.ping_timeout is not None:
+        timeouts.append(options.ping_interval + options.ping_timeout)
+    return min((t for t in timeouts if t is not None), default=None)
+
+
+def _write_limit(options: Options) -> int:
+    budget = options.max_queued_bytes
+    return DEFAULT_WRITE_LIMIT if budget is None else budget
 
 
 class WebSocketsListener(Listener):
@@ -264,9 +381,10 @@ class WebSocketsTransport(Transport):
 
         async def handle(ws: ServerConnection) -> None:
             # When this returns, websockets closes with 1000; when it raises, with 1011.
+            assert isinstance(ws, _ServerConnection)
             answer = admitted.pop(ws, None)
             identity = None if answer is None else answer.identity
-            await handler(WebSocketsConnection(ws, identity))
+            await handler(WebSocketsConnection(ws, options, identity))
 
         server = await serve(
             handle,
@@ -280,6 +398,8 @@ class WebSocketsTransport(Transport):
             select_subprotocol=select_subprotocol,
             ssl=ssl,
             logger=_Redacting(logging.getLogger("websockets.server")),
+            write_limit=_write_limit(options),
+            create_connection=_ServerConnection,
         )
         return WebSocketsListener(server, host, tls=ssl is not None)
 
@@ -300,14 +420,17 @@ class WebSocketsTransport(Transport):
                 ping_interval=options.ping_interval,
                 ping_timeout=options.ping_timeout,
                 compression=options.compression,
+                write_limit=_write_limit(options),
                 open_timeout=None,
                 additional_headers=list(headers) or None,
                 **tls,
+                create_connection=_ClientConnection,
                 logger=_Redacting(logging.getLogger("websockets.client")),
             )
         except (OSError, EOFError, WebSocketException) as exc:
             raise _refusal(exc, url) from exc
-        return WebSocketsConnection(ws)
+        assert isinstance(ws, _ClientConnection)
+        return WebSocketsConnection(ws, options)
 
     def check_url(self, url: str) -> None:
         try:

@@ -1,0 +1,157 @@
+"""The memory a client that never reads can take, measured against the bound docs/limits.md states.
+
+A server runs in a subprocess (``servers/large_reply_server.py``, whose ``/large`` answers
+500 KB), so its RSS is its own. A raw client with a small receive buffer opens a WebSocket,
+pipelines 300 calls of ``/large`` (alone, then as one-call batches) and never reads a byte.
+The server's peak RSS (``VmHWM``) less its RSS before must stay under the bound, the
+connection must be closed after the write timeout, with its log line, and another client's
+calls must be answered meanwhile.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import os
+import socket
+import struct
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+import srvwire
+from support import ROOT, scaled
+
+SERVER = ROOT / "tests" / "servers" / "large_reply_server.py"
+MIB = 2**20
+KIB = 2**10
+
+# The terms of docs/limits.md's bound, as this test sets them.
+BUDGET = 1 * MIB  # max_queued_bytes
+REPLY = 500_000 + 64  # the largest reply: its message, and the JSON-RPC envelope around it
+MAX_IN_FLIGHT = 256
+PER_CALL = 4 * KIB  # what a call in flight holds before its handler runs (measured)
+SLACK = 2 * MIB  # the allocator's own slack, which RSS counts (measured)
+WRITE_TIMEOUT = 2.0
+CALLS = 300
+
+
+def bound() -> int:
+    """docs/limits.md's bound, for handlers that answer without waiting and small requests:
+    the budget, the reply that crosses it three times over, the calls in flight, the slack."""
+    return BUDGET + 3 * REPLY + MAX_IN_FLIGHT * PER_CALL + SLACK
+
+
+def status_kib(pid: int, field: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise LookupError(field)
+
+
+def masked_text_frame(payload: bytes) -> bytes:
+    """One client-to-server text frame, masked as RFC 6455 requires of a client."""
+    mask = os.urandom(4)
+    size = len(payload)
+    if size < 126:
+        header = struct.pack("!BB", 0x81, 0x80 | size)
+    else:
+        header = struct.pack("!BBH", 0x81, 0x80 | 126, size)
+    return header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+class ServerProcess:
+    def __init__(self, process: asyncio.subprocess.Process, port: int) -> None:
+        self.process = process
+        self.port = port
+        self.url = f"ws://127.0.0.1:{port}"
+
+    async def logged(self, text: str) -> str:
+        """Return the first line of the server's log that contains ``text``."""
+        assert self.process.stderr is not None
+        while line := (await self.process.stderr.readline()).decode():
+            if text in line:
+                return line
+        raise AssertionError(f"the server ended without logging {text!r}")
+
+    @property
+    def rss(self) -> int:
+        return status_kib(self.process.pid, "VmRSS") * KIB
+
+    @property
+    def peak_rss(self) -> int:
+        return status_kib(self.process.pid, "VmHWM") * KIB
+
+
+@pytest.fixture
+async def large_reply_server() -> AsyncIterator[ServerProcess]:
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        str(SERVER),
+        "--max-queued-bytes",
+        str(BUDGET),
+        "--write-timeout",
+        str(WRITE_TIMEOUT),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    try:
+        assert process.stdout is not None
+        async with asyncio.timeout(scaled(30)):
+            port = int(await process.stdout.readline())
+        yield ServerProcess(process, port)
+    finally:
+        process.terminate()
+        await process.wait()
+
+
+async def open_stuck_connection(port: int, messages: list[bytes]) -> socket.socket:
+    """Open a WebSocket with a 4 KiB receive buffer, send ``messages``, and never read."""
+    loop = asyncio.get_running_loop()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    await loop.sock_connect(sock, ("127.0.0.1", port))
+    key = base64.b64encode(os.urandom(16)).decode()
+    handshake = (
+        f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    frames = b"".join(masked_text_frame(message) for message in messages)
+    await loop.sock_sendall(sock, handshake.encode() + frames)
+    return sock
+
+
+@pytest.mark.parametrize("batches", [False, True], ids=["calls", "one-call batches"])
+async def test_a_client_that_never_reads_holds_no_more_than_the_bound(
+    large_reply_server: ServerProcess, batches: bool
+) -> None:
+    server = large_reply_server
+    trigger = "std_srvs/srv/Trigger"
+    async with srvwire.connect(server.url) as warm:  # warm up: the first of everything
+        await warm.call("/large", {}, srv_type=trigger)
+        for _ in range(100):
+            await warm.call("/small", {}, srv_type=trigger)
+    before = server.rss
+    calls = [{"jsonrpc": "2.0", "id": i, "method": "/large", "params": {}} for i in range(CALLS)]
+    stuck = await open_stuck_connection(
+        server.port, [json.dumps([call] if batches else call).encode() for call in calls]
+    )
+    try:
+        async with srvwire.connect(server.url) as other:  # served while the first is stuck
+            for _ in range(20):
+                assert (await other.call("/small", {}, srv_type=trigger)).success
+        async with asyncio.timeout(scaled(WRITE_TIMEOUT + 30)):
+            line = await server.logged("closed the connection from")
+        assert line.startswith("WARNING ")
+        assert line.rstrip().endswith(
+            "with code 1008: write timeout: the peer did not read what was sent for 2 s"
+        )
+        growth = server.peak_rss - before
+        assert growth < bound(), f"grew {growth / MIB:.1f} MiB, over {bound() / MIB:.1f} MiB"
+    finally:
+        stuck.close()
