@@ -388,6 +388,43 @@ async def test_feedback_faster_than_the_connection_is_kept_latest(
     await wire.ws.close()
 
 
+@pytest.mark.parametrize("transport", ["memory"], indirect=True)
+async def test_a_client_that_does_not_read_costs_one_feedback_message(
+    transport: Transport,
+) -> None:
+    # On the memory transport the budget is all the buffer there is (a real socket adds the
+    # kernel's, which srvwire does not count): what reaches the client is what fit in it.
+    server = Server(max_queued_bytes=4_000, grace_period=0)
+    published = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    count, size = 2_000, 200
+
+    @server.action("/flood", Fibonacci)
+    def flood(goal: Any, handle: GoalHandle) -> Any:
+        for n in range(count):
+            handle.publish_feedback({"sequence": [n] * size})
+        loop.call_soon_threadsafe(published.set)
+        assert handle.wait_for_cancel()  # until the client has seen the flood
+        return {"sequence": [count]}
+
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
+        await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/flood", "params": {}})
+        await published.wait()  # every feedback was given, and the client read none
+        served = connection(running)
+        assert len(served.outbox) <= 1  # at most the latest waits, whatever was given
+        await wire.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}})
+        messages = []
+        while not messages or messages[-1].get("id") != 1:
+            messages.append(await wire.recv())
+        seqs = [m["params"]["seq"] for m in messages if m.get("method") == "$/feedback"]
+        assert seqs == sorted(seqs) and len(seqs) < 4_000 / size + 3  # what fit, and no more
+        assert served.outbox.replaced >= count - len(seqs) - 1
+        assert messages[-1]["result"]["status"] == "canceled"
+        assert_nothing_left(served)
+        await wire.ws.close()
+
+
 async def test_feedback_waits_while_a_reply_is_being_sent(running: RunningServer) -> None:
     wire = await open_wire(running)
     served = connection(running)
