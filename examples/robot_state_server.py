@@ -225,7 +225,6 @@ def main(argv: list[str] | None = None) -> int:
     """Serve the robot until Ctrl-C or SIGTERM."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    logging.getLogger("websockets").setLevel(logging.WARNING)  # srvwire already says it all
     server = build_server()
     # run() logs "serving 3 services on ws://HOST:PORT" once it listens, then blocks until
     # Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.

@@ -1464,6 +1464,44 @@ def test_serve_a_file_until_ctrl_c(capsys: pytest.CaptureFixture[str], tmp_path:
     assert "serving" not in err and "shutting down" not in err  # said once, on stdout
 
 
+def test_serve_on_two_hosts_with_an_access_log(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    app = tmp_path / "cli_app.py"
+    app.write_text(APP, encoding="utf-8")
+    hosts = ["--host", "127.0.0.1", "--host", "localhost"]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", str(app), "--port", "0", *hosts, "--access-log"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout is not None and process.stderr is not None
+        first = process.stdout.readline()
+        match = re.fullmatch(r"serving 1 service on (ws://127\.0\.0\.1:\d+)(, .+)?\n", first)
+        assert match, first
+        url = match.group(1)
+        code, out, _ = run(capsys, "call", "/add_two_ints", "{a: 2, b: 3}", "--json", "--url", url)
+        assert (code, out) == (ExitCode.OK, '{"sum": 5}\n')
+        code, _, _ = run(capsys, "call", "/add_two", "{a: 2, b: 3}", "--url", url)
+        assert code == ExitCode.SERVICE_NOT_FOUND
+        lines = [process.stderr.readline() for _ in range(2)]
+        process.send_signal(signal.SIGINT)
+        process.communicate(timeout=scaled(10))
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 0
+    assert re.fullmatch(
+        r"\S+ \S+ INFO srvwire.access: 127\.0\.0\.1:\d+ /add_two_ints OK \d+\.\d\d ms\n",
+        lines[0],
+    ), lines
+    assert re.fullmatch(
+        r"\S+ \S+ INFO srvwire.access: 127\.0\.0\.1:\d+ /add_two SERVICE_NOT_FOUND -\n", lines[1]
+    ), lines
+
+
 @pytest.mark.parametrize(
     ("source", "target", "message"),
     [

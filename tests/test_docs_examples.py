@@ -44,6 +44,12 @@ RUN_ELSEWHERE = {
 # any URL written as PORT, since each run listens on a port of its own.
 SCRIPTS = {
     "quickstart.py": "2 + 3 = 5\n",
+    "logging_setup.py": (
+        "2 + 3 = 5\nnot found: no service named /add_to_ints; did you mean /add_two_ints?\n"
+    ),
+    "blocking_handlers.py": (
+        "calibrate: the deadline passed\nthe handler stopped early, at step 0\n2 + 3 = 5\n"
+    ),
     "field_names.py": '{"from":3,"to":0}\n',
     "one_class_per_type.py": (
         "GetStatus_Response: ok=True frame=base\n"

@@ -60,6 +60,14 @@ COMMANDS: dict[str, str] = {
     r"MALLOC_TOP_PAD_=\d+ \.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness with the heap kept: minutes long; tests/test_benchmarks.py runs it"
     ),
+    r"python benchmarks/slow_reader\.py .*": (
+        "a benchmark of a client that never reads, tens of seconds long: tests/test_limits.py "
+        "checks the same bound and the write timeout"
+    ),
+    r"python benchmarks/worst_message\.py .*": (
+        "a benchmark of the worst 1 MiB messages, a minute long: tests/test_server.py checks "
+        "that their replies stay small"
+    ),
     r"(\.venv/bin/)?python examples/robot_state_server\.py( &)?": (
         "serves until stopped: tests/test_examples.py runs it in a child process"
     ),
@@ -150,6 +158,9 @@ EXPLAINED: dict[tuple[str, str], str] = {
         'reveal_type(await client.call("/scan", Scan.Request(fill=1.0)))      '
         "# wire_types.Scan_Response",
     ): "what mypy reveals: tests/test_typed_calls.py runs mypy on these calls and checks it",
+    ("limits.md", "M  ≤  C + B + (3 + W)·R + F·(c + q) + (Q + 2)·m"): (
+        "the memory formula: tests/test_limits.py measures a server against it"
+    ),
     ("tutorial.md", "make demo: robot_state_server.py is serving on ws://127.0.0.1:41111"): (
         "make demo's output: tests/test_examples.py's test_make_demo_runs_the_whole_tutorial"
     ),

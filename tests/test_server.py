@@ -941,9 +941,9 @@ async def test_services_change_on_the_loop_thread_whatever_thread_asks(
     changed_on: list[int] = []
     add, remove = registry.add, registry.remove
 
-    def recording_add(*args: Any) -> Any:
+    def recording_add(*args: Any, **options: Any) -> Any:
         changed_on.append(threading.get_ident())
-        return add(*args)
+        return add(*args, **options)
 
     def recording_remove(*args: Any) -> Any:
         changed_on.append(threading.get_ident())

@@ -38,6 +38,7 @@ from srvwire.loader import (
 )
 from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
 from srvwire.server import RunningServer, Server, serve
+from srvwire.threads import HandlerThreads
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
 from srvwire.typeregistry import TypeRegistry
@@ -55,6 +56,7 @@ __all__ = [
     "GoalHandle",
     "GoalRejected",
     "GoalResult",
+    "HandlerThreads",
     "Handshake",
     "Identity",
     "InfNan",

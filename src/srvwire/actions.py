@@ -254,8 +254,9 @@ class GoalHandle:
                 self._cancel_waiters.remove(waiter)
 
     def wait_for_cancel(self, timeout: float | None = None) -> bool:
-        """Block a plain ``def`` handler's thread until the client asks to cancel, or
-        ``timeout`` seconds pass; return whether it asked. Never call it on the event loop.
+        """Block a plain ``def`` handler's thread until the client asks to cancel (or the goal
+        ended without it: its deadline passed, its connection closed), or ``timeout`` seconds
+        pass; return whether it should stop. Never call it on the event loop.
 
         ``if handle.wait_for_cancel(0.2): break`` is a step of work that stops at once when
         cancelled."""
@@ -294,8 +295,11 @@ class GoalHandle:
         return "canceled" if self.cancel_requested else "succeeded"
 
     def close(self) -> None:
-        """The handler ended: no more feedback, no grace timer, pending feedback dropped."""
+        """The goal ended (its handler returned, or was cut off by a deadline, a lost
+        connection or the grace period): no more feedback, no grace timer, pending feedback
+        dropped, and a handler still running on a thread told to stop."""
         self._closed = True
+        self._cancel_event.set()
         if self._grace is not None:
             self._grace.cancel()
             self._grace = None

@@ -33,7 +33,12 @@ Invariants:
 * **Sync handlers never run on the event loop.** A plain ``def`` handler runs in the server's
   executor (by default its :class:`~srvwire.threads.HandlerThreads`). It cannot be
   interrupted: when its call is cancelled or its deadline passes, the caller is answered at
-  once and :attr:`Context.cancelled` turns true so the handler can stop early.
+  once and :attr:`Context.cancelled` turns true (and :meth:`Context.wait` returns) so the
+  handler can stop early. A call whose caller left before a thread took it never runs.
+* **A service's ``max_concurrency`` counts handlers, not calls.** A call waits for a slot of
+  its service (:class:`~srvwire.threads.ConcurrencyLimit`) before its handler starts; the slot
+  is given back when the handler returns, which for a blocking handler may be long after its
+  call was answered.
 * **A deadline is the caller's, enforced by whoever runs the call.** ``_meta.timeout`` is
   measured from the moment the request was read; an already-expired deadline answers
   ``DEADLINE_EXCEEDED`` without running the handler. Past that, :func:`dispatch` is a plain
@@ -50,6 +55,7 @@ import functools
 import inspect
 import logging
 import re
+import threading
 import time
 import typing
 from collections.abc import Callable, Coroutine, Iterable, Iterator
@@ -83,6 +89,7 @@ from srvwire.models import (
     validation_errors,
 )
 from srvwire.protocol import Id, canonical_name, encode_json
+from srvwire.threads import ConcurrencyLimit
 from srvwire.typeregistry import TypeRegistry, process_types
 from srvwire.version import __version__
 
@@ -96,6 +103,11 @@ __all__ = [
     "normalize_name",
     "service_not_found",
 ]
+
+QUEUE_WARNING_FRACTION = 0.5
+"""A blocking call that waits for a thread longer than this part of its deadline is logged."""
+QUEUE_WARNING_INTERVAL = 10.0
+"""Seconds: at most one such line per service in this time; it counts the calls in between."""
 
 Handler = Callable[..., Any]
 """A service handler: ``(request)``, ``(request, response)``, optionally with a context."""
@@ -138,6 +150,7 @@ class Context:
     __slots__ = (
         "_cancel_error",
         "_cancelled",
+        "_wakeup",
         "channel",
         "deadline",
         "goal",
@@ -174,6 +187,7 @@ class Context:
         """The :class:`~srvwire.actions.GoalHandle` of an action's goal, once accepted."""
         self._cancelled = False
         self._cancel_error: RPCError | None = None
+        self._wakeup: threading.Event | None = None  # made by the first wait()
 
     def time_remaining(self) -> float | None:
         """Seconds until the caller's deadline (0 once passed), or None without a deadline."""
@@ -183,14 +197,35 @@ class Context:
 
     @property
     def cancelled(self) -> bool:
-        """Whether the call was cancelled or its deadline passed; the answer is already sent."""
+        """Whether the call was cancelled or its deadline passed; the answer is already sent.
+
+        Safe to read from any thread: a blocking handler checks it to stop early.
+        """
         return self._cancelled
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block this thread until the call is cancelled or its deadline passes, or for
+        ``timeout`` seconds at most (None: no limit); return whether the call is over.
+
+        A blocking handler's ``time.sleep(t)`` that stops when its caller no longer waits:
+        ``if context.wait(t): return``. Never call it from an ``async`` handler, which would
+        block the event loop; there, ``await asyncio.sleep(t)`` is cancelled with the call.
+        """
+        wakeup = self._wakeup
+        if wakeup is None:
+            wakeup = self._wakeup = threading.Event()
+        if self._cancelled:  # read after _wakeup is set: _mark_cancelled sees one or the other
+            return True
+        return wakeup.wait(timeout)
 
     def _mark_cancelled(self, error: RPCError | None = None) -> None:
         """Record that the call is over, and the error it is to answer (server use only)."""
         self._cancelled = True
         if error is not None and self._cancel_error is None:
             self._cancel_error = error
+        wakeup = self._wakeup
+        if wakeup is not None:
+            wakeup.set()
 
     def __repr__(self) -> str:
         return (
@@ -273,6 +308,11 @@ class ServiceEntry:
     scopes: frozenset[str] = frozenset()
     """What a connection's identity must hold to call it (empty: anyone who may connect)."""
     _description: dict[str, Any] = field(default_factory=dict, repr=False)
+    limit: ConcurrencyLimit | None = None
+    """How many of its handlers may run at once (``max_concurrency``); None for no limit."""
+    _queue_warned: list[float] = field(  # when it was last said, and the calls since
+        default_factory=lambda: [-QUEUE_WARNING_INTERVAL, 0], repr=False
+    )
 
     @property
     def type_name(self) -> str:
@@ -470,14 +510,27 @@ class ServiceRegistry:
         srv_type: type[Service],
         handler: Handler,
         scopes: Iterable[str] = (),
+        *,
+        max_concurrency: int | None = None,
     ) -> ServiceEntry:
         """Register ``handler`` for ``srv_type`` under ``name``, callable by identities that
-        hold every one of ``scopes``; raise RegistrationError."""
+        hold every one of ``scopes``; raise RegistrationError.
+
+        ``max_concurrency`` bounds how many calls of this service run their handler at once
+        (see :func:`dispatch`).
+        """
         canonical = normalize_name(name)
         if isinstance(scopes, str):
             raise RegistrationError(
                 f"the scopes of {canonical} must be a collection of names, such as "
                 f"{{{scopes!r}}}, not the string {scopes!r}"
+            )
+        if max_concurrency is not None and (
+            type(max_concurrency) is not int or max_concurrency < 1
+        ):
+            raise RegistrationError(
+                f"max_concurrency for {canonical} must be a whole number at least 1, "
+                f"not {max_concurrency!r}"
             )
         existing = self._entries.get(canonical)
         if existing is not None:
@@ -520,6 +573,7 @@ class ServiceRegistry:
             scopes=frozenset(scopes),
             write_response=json_writer(response_model, self.inf_nan, strict=True),
             inf_nan=self.inf_nan,
+            limit=None if max_concurrency is None else ConcurrencyLimit(max_concurrency),
         )
         self._entries[canonical] = entry
         self._discovery.clear()
@@ -637,6 +691,7 @@ def _invoke(
     request: BaseModel,
     context: Context,
     executor: Executor | None,
+    logger: logging.Logger | None = None,
 ) -> tuple[Coroutine[Any, Any, Any], BaseModel | None]:
     """Start calling the handler the way it was registered to be called.
 
@@ -656,18 +711,107 @@ def _invoke(
         if type(awaitable) is not CoroutineType:  # a function marked as a coroutine function
             awaitable = _await(awaitable)
         return awaitable, prebuilt
-    return _run_in_executor(functools.partial(entry.handler, *args, **kwargs), executor), prebuilt
+    job = _Blocking(entry, functools.partial(entry.handler, *args, **kwargs), context, logger)
+    return _run_in_executor(job, executor), prebuilt
 
 
 async def _await(awaitable: Any) -> Any:
     return await awaitable
 
 
-async def _run_in_executor(call: Callable[[], Any], executor: Executor | None) -> Any:
-    result = await asyncio.get_running_loop().run_in_executor(executor, call)
+async def _run_in_executor(job: _Blocking, executor: Executor | None) -> Any:
+    try:
+        result = await asyncio.get_running_loop().run_in_executor(executor, job)
+    except BaseException:  # its caller left, or the executor refused it: if it never ran
+        job.leave()
+        raise
     if inspect.isawaitable(result):
         result = await result
     return result
+
+
+class _Blocking:
+    """A blocking handler's call, as its thread runs it.
+
+    It holds its service's slot (:attr:`ServiceEntry.limit`) until the handler returns, or, if
+    its caller leaves before a thread took it, until then: a job whose caller left never runs
+    its handler. A job that waited for its thread past :data:`QUEUE_WARNING_FRACTION` of its
+    deadline says so (see :meth:`check_wait`).
+    """
+
+    __slots__ = ("call", "context", "entry", "lock", "log", "queued", "state")
+
+    def __init__(
+        self,
+        entry: ServiceEntry,
+        call: Callable[[], Any],
+        context: Context,
+        logger: logging.Logger | None,
+    ) -> None:
+        self.entry = entry
+        self.call = call
+        self.context = context
+        self.log = logger
+        self.queued = time.monotonic()
+        self.state = "queued"  # then "running", or "left" (its caller left first)
+        self.lock = threading.Lock()
+
+    @property
+    def func(self) -> Callable[[], Any]:
+        """What it runs, for :class:`~srvwire.threads.HandlerThreads` to name it."""
+        return self.call
+
+    def __call__(self) -> Any:
+        with self.lock:
+            if self.state == "left":
+                return None  # its caller left meanwhile: the slot was given back then
+            self.state = "running"
+        try:
+            if self.context._cancelled:
+                return None  # nobody waits for it any more
+            self.check_wait(time.monotonic())
+            return self.call()
+        finally:
+            limit = self.entry.limit
+            if limit is not None:
+                limit.release()
+
+    def leave(self) -> None:
+        """Its caller left (cancelled, deadline): give the slot back if no thread took it."""
+        with self.lock:
+            if self.state != "queued":
+                return
+            self.state = "left"
+        self.check_wait(time.monotonic())
+        limit = self.entry.limit
+        if limit is not None:
+            limit.release()
+
+    def check_wait(self, now: float) -> None:
+        """Log, at most once per :data:`QUEUE_WARNING_INTERVAL` and service, a job that waited
+        for a thread past :data:`QUEUE_WARNING_FRACTION` of its deadline."""
+        deadline = self.context.deadline
+        if deadline is None:
+            return
+        waited = now - self.queued
+        if waited <= QUEUE_WARNING_FRACTION * (deadline - self.queued):
+            return
+        warned = self.entry._queue_warned
+        warned[1] += 1
+        if now - warned[0] < QUEUE_WARNING_INTERVAL:
+            return
+        count = warned[1]
+        warned[0], warned[1] = now, 0
+        (self.log or logging.getLogger(__name__)).warning(
+            "a call to %s waited %.3g s for a thread to run its blocking handler, %d%% of its "
+            "deadline%s; every thread is busy: give blocking handlers more threads "
+            "(Server(executor=HandlerThreads(max_workers=N))), or bound the slow services "
+            "(max_concurrency=N)",
+            self.entry.name,
+            waited,
+            min(100, round(100 * waited / max(deadline - self.queued, 1e-9))),
+            f" (and {count - 1} more since the last such line)" if count > 1 else "",
+        )
 
 
 async def dispatch(
@@ -695,11 +839,15 @@ async def dispatch(
         # awaits, so not even a CancelledError from it can be this task's own cancellation.
         raise _handler_raised(entry, context, exc, logger, "validating the request") from None
     deadline = context.deadline
+    limit = entry.limit
     try:
         if deadline is not None and deadline <= time.monotonic():
             raise _deadline_exceeded(entry, context)
-        handler, prebuilt = _invoke(entry, request, context, executor)
-        result = await handler
+        if limit is None:
+            handler, prebuilt = _invoke(entry, request, context, executor, logger)
+            result = await handler
+        else:
+            result, prebuilt = await _limited(entry, limit, request, context, executor, logger)
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name
@@ -714,6 +862,30 @@ async def dispatch(
     except Exception as exc:
         raise _handler_raised(entry, context, exc, logger) from None
     return _encode_response(entry, result, prebuilt, logger)
+
+
+async def _limited(
+    entry: ServiceEntry,
+    limit: ConcurrencyLimit,
+    request: BaseModel,
+    context: Context,
+    executor: Executor | None,
+    logger: logging.Logger | None,
+) -> tuple[Any, BaseModel | None]:
+    """Run the handler once a slot of its service is free; hold it until the handler returns
+    (a blocking handler's thread gives it back, since it may run on after its caller left)."""
+    await limit.acquire()
+    try:
+        handler, prebuilt = _invoke(entry, request, context, executor, logger)
+    except BaseException:
+        limit.release()
+        raise
+    if not entry.is_async:
+        return await handler, prebuilt
+    try:
+        return await handler, prebuilt
+    finally:
+        limit.release()
 
 
 def _being_cancelled() -> bool:

@@ -41,7 +41,7 @@ from typing import Any
 
 from srvwire.auth import SUBPROTOCOL, Authenticator, Identity, as_identity, certificate_subject
 from srvwire.errors import Unauthenticated
-from srvwire.transports.base import Admitted, Answered, Handshake
+from srvwire.transports.base import Admitted, Answered, Handshake, Hosts
 
 __all__ = ["HEALTH_PATH", "EdgePolicy", "describe_reach", "is_loopback"]
 
@@ -59,8 +59,13 @@ NOT_WEBSOCKET = (
 )
 
 
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` (a name or an address, IPv6 with or without brackets) is loopback."""
+def is_loopback(host: Hosts) -> bool:
+    """Whether ``host`` (a name or an address, IPv6 with or without brackets) is loopback;
+    for several hosts, whether every one is (None, every interface, is not)."""
+    if host is None:
+        return False
+    if not isinstance(host, str):
+        return bool(host) and all(is_loopback(one) for one in host)
     name = host.strip("[]").lower()
     if name == "localhost" or name.endswith(".localhost"):
         return True
@@ -70,13 +75,15 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def describe_reach(host: str, *, authenticated: bool, tls: bool) -> str:
+def describe_reach(host: Hosts, *, authenticated: bool, tls: bool) -> str:
     """Say who can reach a server listening on ``host``, for its startup line."""
     over = "over TLS" if tls else "unencrypted"
     if is_loopback(host):
         who = "only programs on this machine can connect (loopback)"
     else:
-        who = f"any host that can route to {host or 'this machine'} can connect"
+        hosts = [host] if isinstance(host, str) else list(host or [])
+        where = ", ".join(h for h in hosts if h and not is_loopback(h)) or "this machine"
+        who = f"any host that can route to {where} can connect"
     check = "callers must authenticate" if authenticated else "no authentication"
     return f"{who}; {check}; {over}"
 
@@ -118,7 +125,7 @@ class EdgePolicy:
 
     def __init__(
         self,
-        host: str,
+        host: Hosts,
         *,
         origins: Iterable[str] = (),
         auth: Authenticator | None = None,

@@ -51,6 +51,7 @@ from srvwire.transports.base import (
     Answered,
     Connection,
     Handshake,
+    Hosts,
     Listener,
     Options,
     Transport,
@@ -70,6 +71,27 @@ ACCEPT_FAILURE_LOG_INTERVAL = 10.0
 """Seconds: at most one line in this time about connections that cannot be accepted because
 the process is out of file descriptors (asyncio retries the accept every second)."""
 _ACCEPT_FAILED = "socket.accept() out of system resource"  # asyncio's words for it
+
+
+@contextlib.contextmanager
+def _show_log_unless_configured() -> Generator[None, None, None]:
+    """Show the ``srvwire`` loggers on stderr at INFO while in the block, when nothing else
+    would show them; leave a configured logging alone."""
+    package = logging.getLogger("srvwire")
+    if package.hasHandlers():
+        yield
+        return
+    handler = logging.StreamHandler()  # stderr
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    level = package.level
+    package.addHandler(handler)
+    if package.getEffectiveLevel() > logging.INFO:
+        package.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        package.removeHandler(handler)
+        package.setLevel(level)
 
 
 def _running_loop() -> asyncio.AbstractEventLoop | None:
@@ -106,6 +128,10 @@ class Server:
     for all, which lets any web page call the services); ``auth`` authenticates each
     connection (such as :class:`~srvwire.auth.TokenAuth`; None: no authentication);
     ``max_connections`` bounds the connections open at once (past it: HTTP 503).
+
+    ``access_log=True`` writes a line per call to the ``srvwire.access`` logger (or to the
+    logger given): peer, service, outcome and duration (see
+    :class:`~srvwire.serving.AccessLoggedSession`); off, it costs nothing.
     """
 
     def __init__(
@@ -127,6 +153,7 @@ class Server:
         auth: Authenticator | None = None,
         max_connections: int | None = 512,
         inf_nan: InfNan = INF_NAN_MODES[0],
+        access_log: bool | logging.Logger = False,
     ) -> None:
         if max_connections is not None and max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
@@ -168,6 +195,13 @@ class Server:
         self.compression = compression
         self.executor: Executor = executor if executor is not None else HandlerThreads()
         self.logger = logger if logger is not None else logging.getLogger(__name__)
+        self.access_log: logging.Logger | None = (
+            access_log
+            if isinstance(access_log, logging.Logger)
+            else logging.getLogger("srvwire.access")
+            if access_log
+            else None
+        )
         self._running: set[RunningServer] = set()
 
     def __repr__(self) -> str:
@@ -194,18 +228,24 @@ class Server:
         handler: Handler,
         *,
         scopes: Iterable[str] = (),
+        max_concurrency: int | None = None,
     ) -> None:
         """Serve ``handler`` for ``srv_type`` under ``name``; tell connected clients.
 
         With ``scopes``, only a connection whose identity holds every one of them may call it
-        (or see it); any other is answered ``PERMISSION_DENIED``. Raise
+        (or see it); any other is answered ``PERMISSION_DENIED``. ``max_concurrency`` bounds
+        how many calls of this service run their handler at once, over all connections; the
+        others wait for a slot, in order, within their deadline. A blocking handler holds its
+        slot until it returns, even after its caller left, so a slow service cannot take more
+        threads than that. Raise
         :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
-        a type that is not a service type, or a handler that cannot be called as one. Safe to
+        a type that is not a service type, a handler that cannot be called as one, or a
+        ``max_concurrency`` below 1. Safe to
         call from any thread: while the server listens, the change is made on its event loop.
         """
 
         def add() -> None:
-            self.registry.add(name, srv_type, handler, scopes)
+            self.registry.add(name, srv_type, handler, scopes, max_concurrency=max_concurrency)
             self._services_changed()
 
         self._change_services(add)
@@ -224,13 +264,20 @@ class Server:
         self._change_services(remove)
 
     def service(
-        self, name: str, srv_type: type[Service], *, scopes: Iterable[str] = ()
+        self,
+        name: str,
+        srv_type: type[Service],
+        *,
+        scopes: Iterable[str] = (),
+        max_concurrency: int | None = None,
     ) -> Callable[[H], H]:
         """Decorate a handler to serve it under ``name`` (see :meth:`add_service`); the
         handler is returned unchanged."""
 
         def register(handler: H) -> H:
-            self.add_service(name, srv_type, handler, scopes=scopes)
+            self.add_service(
+                name, srv_type, handler, scopes=scopes, max_concurrency=max_concurrency
+            )
             return handler
 
         return register
@@ -347,7 +394,7 @@ class Server:
 
     def run(
         self,
-        host: str = "127.0.0.1",
+        host: Hosts = "127.0.0.1",
         port: int = 8765,
         *,
         ready: Callable[[RunningServer], object] | None = None,
@@ -358,8 +405,12 @@ class Server:
         """Serve until Ctrl-C or SIGTERM, then shut down gracefully; for scripts.
 
         The blocking form of :meth:`serve_forever`, which describes ``ready`` and ``stopping``.
+        When logging is not configured for srvwire (no handler on the ``srvwire`` logger, its
+        parents or the root), srvwire's log is shown on stderr at INFO while it runs: the
+        ``serving ... on URL, ...`` line, the shutdown, warnings, the access log if on.
+        Configure logging (``logging.basicConfig(...)``) and nothing is added.
         """
-        with contextlib.suppress(KeyboardInterrupt):
+        with contextlib.suppress(KeyboardInterrupt), _show_log_unless_configured():
             asyncio.run(
                 self.serve_forever(
                     host, port, ready=ready, stopping=stopping, transport=transport, ssl=ssl
@@ -368,7 +419,7 @@ class Server:
 
     async def serve_forever(
         self,
-        host: str = "127.0.0.1",
+        host: Hosts = "127.0.0.1",
         port: int = 8765,
         *,
         ready: Callable[[RunningServer], object] | None = None,
@@ -401,7 +452,11 @@ class Server:
                 count = len(self.registry)
                 services = "service" if count == 1 else "services"
                 self.logger.info(
-                    "serving %d %s on %s", count, services, running.url, extra=_LIFECYCLE
+                    "serving %d %s on %s",
+                    count,
+                    services,
+                    ", ".join(running.urls),
+                    extra=_LIFECYCLE,
                 )
                 self.logger.info("%s", running.reach, extra=_LIFECYCLE)
                 if ready is not None:
@@ -420,6 +475,9 @@ class Server:
 class serve:
     """Serve ``server`` on ``host``:``port`` (0 picks a free port) over ``transport``.
 
+    ``host`` may also be a list of hosts, or None for every interface, IPv4 and IPv6 (on the
+    WebSocket transport); :attr:`RunningServer.urls` then names each address.
+
     ``transport`` is ``"websockets"`` (the default) or a :class:`~srvwire.transports.base.Transport`
     such as a :class:`~srvwire.transports.memory.MemoryTransport`; ``ssl`` (an
     :class:`ssl.SSLContext` with the server's certificate) makes it speak TLS, at ``wss://``.
@@ -431,7 +489,7 @@ class serve:
     def __init__(
         self,
         server: Server,
-        host: str = "127.0.0.1",
+        host: Hosts = "127.0.0.1",
         port: int = 8765,
         *,
         transport: str | Transport = "websockets",
@@ -488,7 +546,7 @@ class RunningServer:
         self.authenticated = False
         """Whether every connection authenticates: with ``auth``, or a client certificate."""
 
-    async def _start(self, host: str, port: int, ssl: _ssl.SSLContext | None = None) -> None:
+    async def _start(self, host: Hosts, port: int, ssl: _ssl.SSLContext | None = None) -> None:
         self._loop = asyncio.get_running_loop()
         server = self.server
         self.policy = EdgePolicy(
@@ -559,6 +617,13 @@ class RunningServer:
         """The address clients connect to, such as ``ws://127.0.0.1:8765``."""
         assert self._listener is not None
         return self._listener.url
+
+    @property
+    def urls(self) -> list[str]:
+        """Every address clients can connect to, :attr:`url` first: on a wildcard host
+        (``0.0.0.0``, ``::``, None), each address of the machine's interfaces."""
+        assert self._listener is not None
+        return self._listener.urls
 
     def __repr__(self) -> str:
         state = "closing" if self.closing else "serving"
@@ -660,6 +725,7 @@ class RunningServer:
             notification_timeout=server.notification_timeout,
             executor=server.executor,
             logger=server.logger,
+            access_log=server.access_log,
         )
         if self.closing:
             conn.session.close()

@@ -49,13 +49,14 @@ from contextvars import copy_context
 from typing import Any, TypeAlias
 
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
-from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError
+from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError, ServiceError
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
+from srvwire.protocol import Request
 from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
 from srvwire.transports.base import Connection, TransportClosed
 
-__all__ = ["CallRunner", "ServedConnection"]
+__all__ = ["AccessLoggedSession", "CallRunner", "ServedConnection"]
 
 
 DROP_LOG_INTERVAL = 1.0
@@ -318,6 +319,110 @@ class CallRunner:
             self.session.done(note)
 
 
+def _peer(address: Any) -> str:
+    """``host:port`` (``[v6]:port``) for a TCP peer, else the transport's own name for it."""
+    if isinstance(address, tuple) and len(address) >= 2:
+        host = str(address[0])
+        return f"[{host}]:{address[1]}" if ":" in host else f"{host}:{address[1]}"
+    return str(address)
+
+
+def _method(name: str) -> str:
+    """A method name as the access log writes it: as it is when plain, else quoted, and short."""
+    if len(name) > 100:
+        name = name[:100] + "..."
+    return name if name.isprintable() and " " not in name and name else repr(name)
+
+
+class AccessLoggedSession(ServerSession[ServiceEntry]):
+    """A server session that also writes the access log: one line per call, at INFO.
+
+    A line is ``PEER SERVICE OUTCOME DURATION``, as ``127.0.0.1:50312 /add_two_ints OK
+    0.42 ms``. The outcome is ``OK`` or the status name of the error answered (an application
+    error adds its code); the duration runs from the call's admission until its reply was sent.
+    A call answered at once without running anything (a service that does not exist, too many
+    calls in flight, shutdown, discovery, ``$/cancel``) shows ``-`` for its duration; a call
+    whose connection went away before its reply shows ``CLOSED``. Notifications have no line.
+
+    A connection uses this class only when the access log is on, so a server without it does
+    no work for it on any call.
+    """
+
+    def __init__(
+        self,
+        services: ServiceRegistry,
+        *,
+        max_in_flight: int,
+        max_batch: int,
+        scopes: frozenset[str] = frozenset(),
+        access_log: logging.Logger,
+        peer: Any,
+    ) -> None:
+        super().__init__(services, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes)
+        self.access_log = access_log
+        self.peer = _peer(peer)
+        self.admitted: dict[Call[ServiceEntry], float] = {}  # when, on perf_counter
+        self.outcomes: dict[Call[ServiceEntry], str] = {}
+        self.refused: RPCError | None = None  # how the request being admitted was answered
+
+    def _admit(self, request: Request, batch: Any, events: list[Any]) -> bytes | Call[ServiceEntry]:
+        self.refused = None
+        admitted = super()._admit(request, batch, events)
+        if type(admitted) is bytes:
+            refused = self.refused
+            self.line(_method(request.method), "OK" if refused is None else _outcome(refused))
+        else:
+            assert isinstance(admitted, Call)
+            self.admitted[admitted] = time.perf_counter()
+        return admitted
+
+    def _refuse(self, request: Request, error: RPCError) -> bytes:
+        self.refused = error
+        return super()._refuse(request, error)
+
+    def reply(self, call: Call[ServiceEntry], result: bytes) -> bytes | None:
+        self.outcomes[call] = "OK"
+        return super().reply(call, result)
+
+    def fail(self, call: Call[ServiceEntry], error: RPCError) -> bytes | None:
+        self.outcomes[call] = _outcome(error)
+        return super().fail(call, error)
+
+    def sent(self, call: Call[ServiceEntry]) -> None:
+        super().sent(call)
+        self.ended(call, self.outcomes.pop(call, "INTERNAL"))
+
+    def forget(self, call: Call[ServiceEntry]) -> None:
+        super().forget(call)
+        self.outcomes.pop(call, None)
+        self.ended(call, "CLOSED")
+
+    def ended(self, call: Call[ServiceEntry], outcome: str) -> None:
+        admitted = self.admitted.pop(call, None)
+        if admitted is not None:
+            self.line(call.entry.name, outcome, time.perf_counter() - admitted)
+
+    def line(self, service: str, outcome: str, duration: float | None = None) -> None:
+        log = self.access_log
+        if not log.isEnabledFor(logging.INFO):
+            return
+        ms = None if duration is None else round(duration * 1000, 3)
+        log.info(
+            "%s %s %s %s",
+            self.peer,
+            service,
+            outcome,
+            "-" if ms is None else f"{ms:.2f} ms",
+            extra={"peer": self.peer, "service": service, "outcome": outcome, "duration_ms": ms},
+        )
+
+
+def _outcome(error: RPCError) -> str:
+    if isinstance(error, ServiceError):
+        return f"{error.status} {error.code}"
+    return error.status
+
+
 class ServedConnection:
     """One client connection: its session, its reader, and the runner of its calls."""
 
@@ -353,14 +458,26 @@ class ServedConnection:
         notification_timeout: float | None = None,
         executor: Executor | None,
         logger: logging.Logger,
+        access_log: logging.Logger | None = None,
     ) -> None:
         self.conn = conn
         self.log = logger
         identity = getattr(conn, "identity", None)
         scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
-        self.session: ServerSession[ServiceEntry] = ServerSession(
-            registry, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes
-        )
+        self.session: ServerSession[ServiceEntry]
+        if access_log is None:
+            self.session = ServerSession(
+                registry, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes
+            )
+        else:
+            self.session = AccessLoggedSession(
+                registry,
+                max_in_flight=max_in_flight,
+                max_batch=max_batch,
+                scopes=scopes,
+                access_log=access_log,
+                peer=conn.remote_address,
+            )
         self.runner = CallRunner(
             self.session,
             self.send,

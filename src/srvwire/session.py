@@ -289,9 +289,9 @@ class ServerSession(Generic[E]):
         """Admit a call, or return its reply; a ``$/cancel`` adds its event to ``events``."""
         id = request.id
         if self.closing:
-            return ErrorResponse(id, ServiceUnavailable("the server is shutting down")).serialize()
+            return self._refuse(request, ServiceUnavailable("the server is shutting down"))
         if self.expired:
-            return ErrorResponse(id, _expired()).serialize()
+            return self._refuse(request, _expired())
         entry = self.services.get(request.method)
         if entry is None:
             return self._special(request, batch, events)
@@ -303,14 +303,14 @@ class ServerSession(Generic[E]):
                 {"limit": self.max_in_flight},
                 service=entry.name,
             )
-            return ErrorResponse(id, exhausted).serialize()
+            return self._refuse(request, exhausted)
         if id is not None and id in self.calls:
             duplicate = InvalidRequest(
                 f"Invalid Request: id {id!r} is already used by a call in flight on this "
                 "connection",
                 service=entry.name,
             )
-            return ErrorResponse(id, duplicate).serialize()
+            return self._refuse(request, duplicate)
         call = Call(id, entry, request.params, request.timeout)
         call.batch = batch
         if id is not None:
@@ -328,7 +328,7 @@ class ServerSession(Generic[E]):
                     again = InvalidRequest(
                         "Invalid Request: rpc.discover is answered once per batch"
                     )
-                    return ErrorResponse(request.id, again).serialize()
+                    return self._refuse(request, again)
                 batch.discovered = True
             document = self.services.discover_json(self.scopes)
             return Response(request.id, RawJSON(document)).serialize()
@@ -340,8 +340,12 @@ class ServerSession(Generic[E]):
         try:
             self.services.resolve(request.method)
         except RPCError as exc:
-            return ErrorResponse(request.id, exc).serialize()
+            return self._refuse(request, exc)
         raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
+
+    def _refuse(self, request: Request, error: RPCError) -> bytes:
+        """The error reply to a request answered at once, without running anything."""
+        return ErrorResponse(request.id, error).serialize()
 
     def _notification(self, note: Notification) -> Any:
         method = note.method

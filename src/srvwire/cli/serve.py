@@ -1,10 +1,11 @@
 """``srvwire serve``: run the services of a :class:`~srvwire.server.Server` defined in user code.
 
 TARGET is ``module[:attr]`` or ``file.py[:attr]``; the attribute defaults to ``server``, then
-``app``. The first line printed is always ``serving N services on URL``; the services follow, then
-a line saying who can reach the server. Ctrl-C or SIGTERM stops the server gracefully and exits
-with 0. It refuses to listen on an address other than loopback when nobody has to authenticate
-(no ``auth`` on the Server, no ``--client-ca``), unless ``--allow-unauthenticated``.
+``app``. The first line printed is always ``serving N services on URL[, URL...]``, with every
+address the server can be reached at; the services follow, then a line saying who can reach the
+server. Ctrl-C or SIGTERM stops the server gracefully and exits with 0. It refuses to listen on
+an address other than loopback when nobody has to authenticate (no ``auth`` on the Server, no
+``--client-ca``), unless ``--allow-unauthenticated``.
 """
 
 from __future__ import annotations
@@ -50,7 +51,10 @@ def register(commands: Commands) -> None:
         help="TARGET is a function that takes no arguments and returns the Server",
     )
     serve.add_argument(
-        "--host", default="127.0.0.1", help="interface to listen on (default: 127.0.0.1)"
+        "--host",
+        action="append",
+        help="interface to listen on (default: 127.0.0.1); give it again to listen on several "
+        "(--host 0.0.0.0 --host :: for every IPv4 and IPv6 interface), or '' for every one",
     )
     serve.add_argument(
         "--port",
@@ -92,23 +96,34 @@ def register(commands: Commands) -> None:
         default="info",
         help="how much the server logs to stderr (default: info)",
     )
+    serve.add_argument(
+        "--access-log",
+        action="store_true",
+        help="log a line per call: peer, service, outcome, duration (logger srvwire.access)",
+    )
     serve.set_defaults(command=_cmd_serve)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     server = _load_target(args.target, factory=args.factory)
+    hosts: list[str] = args.host or ["127.0.0.1"]
+    host: str | list[str] = hosts[0] if len(hosts) == 1 else hosts
+    if args.access_log:
+        server.access_log = logging.getLogger("srvwire.access")
     if args.origin:
         try:
-            EdgePolicy(args.host, origins=args.origin)
+            EdgePolicy(host, origins=args.origin)
         except ValueError as exc:
             raise CommandError(f"bad --origin: {exc}", ExitCode.USAGE) from None
         server.origins = (*server.origins, *args.origin)
     context = _tls_context(args)
     mutual = context is not None and context.verify_mode == ssl.CERT_REQUIRED
-    if not is_loopback(args.host) and server.auth is None and not mutual:
+    public = [h for h in hosts if not is_loopback(h)]
+    if public and server.auth is None and not mutual:
         if not args.allow_unauthenticated:
+            where = public[0] or "every interface"
             raise CommandError(
-                f"refusing to listen on {args.host} without authentication: any host that can "
+                f"refusing to listen on {where} without authentication: any host that can "
                 "reach it could call every service. Give the Server an authenticator "
                 "(Server(auth=srvwire.TokenAuth(...))), require client certificates "
                 "(--client-ca), or pass --allow-unauthenticated on a network you trust",
@@ -124,7 +139,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     def ready(running: RunningServer) -> None:
         services = server.registry.services()
-        print(f"serving {plural(len(services), 'service')} on {running.url}", flush=True)
+        urls = ", ".join(running.urls)
+        print(f"serving {plural(len(services), 'service')} on {urls}", flush=True)
         for name, type_name in services:
             print(f"  {name} [{type_name}]", flush=True)
         print(running.reach, flush=True)
@@ -134,11 +150,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         # run() stops on SIGINT or SIGTERM, and takes a KeyboardInterrupt where it cannot.
-        server.run(args.host, args.port, ready=ready, stopping=stopping, ssl=context)
+        server.run(host, args.port, ready=ready, stopping=stopping, ssl=context)
     except BrokenPipeError:
         raise  # stdout was closed, which is not a listening problem
     except OSError as exc:
-        raise CommandError(f"cannot listen on {args.host}:{args.port}: {exc}") from None
+        where = ", ".join(f"{h}:{args.port}" for h in hosts)
+        raise CommandError(f"cannot listen on {where}: {exc}") from None
     finally:
         package_logger.removeHandler(handler)
         package_logger.setLevel(previous_level)

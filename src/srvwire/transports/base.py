@@ -58,6 +58,7 @@ __all__ = [
     "Gate",
     "Handshake",
     "Headers",
+    "Hosts",
     "Listener",
     "Options",
     "Transport",
@@ -269,6 +270,10 @@ ConnectionHandler = Callable[[Connection], Awaitable[None]]
 """What a listener runs for each connection; the connection is closed when it returns."""
 
 
+Hosts = str | Sequence[str] | None
+"""Where to listen: one host, several, or None for every interface (IPv4 and IPv6)."""
+
+
 class Listener(abc.ABC):
     """Where a transport accepts connections, until :meth:`close`."""
 
@@ -276,6 +281,11 @@ class Listener(abc.ABC):
     port: int
     url: str
     """The address clients connect to, with the port really bound (useful with port 0)."""
+
+    @property
+    def urls(self) -> list[str]:
+        """Every address clients can connect to, :attr:`url` first."""
+        return [self.url]
 
     @abc.abstractmethod
     def close(self) -> None:
@@ -296,7 +306,7 @@ class Transport(abc.ABC):
     async def listen(
         self,
         handler: ConnectionHandler,
-        host: str,
+        host: Hosts,
         port: int,
         options: Options,
         *,
@@ -305,9 +315,12 @@ class Transport(abc.ABC):
     ) -> Listener:
         """Accept connections on ``host``:``port`` (0: any free port) and run ``handler``.
 
-        ``gate`` admits or refuses each opening request (None: every one is admitted);
-        ``ssl`` makes the listener speak TLS, where the transport can. Raise
-        :class:`OSError` when the address cannot be used.
+        ``host`` may name several hosts, or be None for every interface, where the transport
+        can listen on more than one. ``gate`` admits or refuses each opening request (None:
+        every one is admitted); ``ssl`` makes the listener speak TLS, where the transport can.
+        Raise
+        :class:`OSError` when the address cannot be used, ``ValueError`` for hosts the
+        transport cannot listen on.
         """
 
     @abc.abstractmethod

@@ -56,6 +56,7 @@ from srvwire.transports.base import (
     ConnectionHandler,
     Gate,
     Handshake,
+    Hosts,
     Listener,
     Options,
     Transport,
@@ -335,7 +336,7 @@ class MemoryTransport(Transport):
     async def listen(
         self,
         handler: ConnectionHandler,
-        host: str,
+        host: Hosts,
         port: int,
         options: Options,
         *,
@@ -344,6 +345,8 @@ class MemoryTransport(Transport):
     ) -> MemoryListener:
         if ssl is not None:
             raise ValueError("the memory transport has no TLS: pass ssl=None")
+        if not isinstance(host, str):
+            raise ValueError(f"the memory transport listens on one host name, not {host!r}")
         if port == 0:
             while (host.lower(), self._next_port) in self._listeners:
                 self._next_port += 1

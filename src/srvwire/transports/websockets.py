@@ -33,13 +33,24 @@ that plain HTTP response (the upgrade never happens), an :class:`Admitted` one i
 and, through ``select_subprotocol``, its subprotocol. A client's refusal says the HTTP status
 and the server's reason, and a TLS handshake that fails says whether the server may not speak
 TLS.
+
+A listener can listen on several hosts (``asyncio``'s ``create_server`` takes a list), or on
+every interface, IPv4 and IPv6, with ``host=None``; its :attr:`~WebSocketsListener.urls` name
+each address clients can use, with the interfaces' own addresses for a wildcard
+(``0.0.0.0``, ``::``). ``websockets``' own INFO lines (a connection opened, closed, the server
+listening) are left out unless its logger's level was set (:class:`_QuietLogger`); its
+warnings and errors always go through.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import logging
+import socket
 import ssl as _ssl
+import struct
+import sys
 import weakref
 from collections.abc import Sequence
 from typing import Any
@@ -69,6 +80,7 @@ from srvwire.transports.base import (
     ConnectionHandler,
     Gate,
     Handshake,
+    Hosts,
     Listener,
     Options,
     Transport,
@@ -228,6 +240,89 @@ def _refusal(exc: Exception, url: str) -> TransportError:
     return TransportError(str(exc) or type(exc).__name__)
 
 
+_WILDCARDS = ("", "0.0.0.0", "::")
+_SIOCGIFADDR = 0x8915  # Linux's ioctl for the IPv4 address of an interface
+_LINK_LOCAL_SCOPE = 0x20  # in /proc/net/if_inet6: needs a zone (%eth0) to be used
+
+
+def interface_addresses(family: socket.AddressFamily) -> list[str]:
+    """This machine's addresses in ``family`` (IPv4 or IPv6), loopback first.
+
+    On Linux, every interface's (IPv6 link-local ones left out: they need a zone); elsewhere,
+    what the host name resolves to. Never raises: at worst, loopback alone.
+    """
+    found: list[str] = []
+    if sys.platform.startswith("linux"):
+        found = _linux_ipv4() if family == socket.AF_INET else _linux_ipv6()
+    if not found:
+        try:
+            infos = socket.getaddrinfo(socket.gethostname(), None, family, socket.SOCK_STREAM)
+        except OSError:
+            infos = []
+        found = [str(info[4][0]) for info in infos]
+    loopback = "127.0.0.1" if family == socket.AF_INET else "::1"
+    ordered = [loopback] + [a for a in found if not ipaddress.ip_address(a).is_loopback]
+    return list(dict.fromkeys(ordered))
+
+
+def _linux_ipv4() -> list[str]:
+    import fcntl
+
+    found = []
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        for _, name in socket.if_nameindex():
+            request = struct.pack("256s", name.encode()[:15])
+            try:
+                answer = fcntl.ioctl(probe.fileno(), _SIOCGIFADDR, request)
+            except OSError:  # the interface has no IPv4 address
+                continue
+            found.append(socket.inet_ntoa(answer[20:24]))
+    return found
+
+
+def _linux_ipv6() -> list[str]:
+    try:
+        with open("/proc/net/if_inet6", encoding="ascii") as lines:
+            rows = [line.split() for line in lines]
+    except OSError:
+        return []
+    return [
+        str(ipaddress.IPv6Address(bytes.fromhex(row[0])))
+        for row in rows
+        if len(row) >= 4 and int(row[3], 16) != _LINK_LOCAL_SCOPE
+    ]
+
+
+def _socket_order(sock: socket.socket) -> tuple[bool, bool, Any]:
+    """IPv4 first, then IPv6; in each, a wildcard or loopback first, then by address."""
+    address = ipaddress.ip_address(sock.getsockname()[0])
+    local = address.is_unspecified or address.is_loopback
+    return sock.family != socket.AF_INET, not local, address
+
+
+class _QuietLogger(_Redacting):
+    """``websockets.server`` without its INFO lines unless asked for; warnings always pass;
+    credentials hidden as :class:`_Redacting` hides them.
+
+    A line at INFO or DEBUG goes through only when the level of ``websockets.server`` (or of
+    ``websockets``) was set, to that level or lower: ``logging.basicConfig(level=INFO)`` alone
+    then does not print a line for every connection.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(logging.getLogger("websockets.server"), None)
+
+    def isEnabledFor(self, level: int) -> bool:
+        if level < logging.WARNING:
+            chosen = self.logger.level or logging.getLogger("websockets").level
+            if not chosen or level < chosen:
+                return False
+        return self.logger.isEnabledFor(level)
+
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        return msg, kwargs  # keep the extra websockets adds for each connection
+
+
 class WebSocketsConnection(Connection):
     """One WebSocket connection, server or client side."""
 
@@ -321,16 +416,37 @@ def _write_limit(options: Options) -> int:
 class WebSocketsListener(Listener):
     """A ``websockets`` server; closing it keeps the connections it accepted.
 
-    ``host`` is the name it was asked to listen on (``localhost`` stays ``localhost``), else
-    the address its first socket bound; ``port`` is the port really bound.
+    ``urls`` are the addresses clients can use: for one host name, that name (``localhost``
+    stays ``localhost``); for a wildcard (``0.0.0.0``, ``::``, None), each address of the
+    interfaces of its family, loopback first; for several hosts, each. IPv4 comes before IPv6.
+    ``url`` is the first, and ``host`` and ``port`` are its. With port 0, each socket has a
+    port of its own.
     """
 
-    def __init__(self, server: Server, host: str | None = None, tls: bool = False) -> None:
+    def __init__(self, server: Server, host: Hosts = None, tls: bool = False) -> None:
         self._server = server
-        address = server.sockets[0].getsockname()
-        self.host = host or address[0]
-        self.port = address[1]
-        self.url = _url(self.host, self.port, tls)
+        sockets = sorted(server.sockets, key=_socket_order)  # asyncio's order is a set's
+        if isinstance(host, str) and host not in _WILDCARDS:
+            address = sockets[0].getsockname()
+            self._urls = [_url(host, address[1], tls)]
+            self.host, self.port = host, address[1]
+        else:
+            urls: list[str] = []
+            for sock in sockets:
+                address = sock.getsockname()
+                bound, port = str(address[0]), int(address[1])
+                if ipaddress.ip_address(bound).is_unspecified:
+                    urls += [_url(a, port, tls) for a in interface_addresses(sock.family)]
+                else:
+                    urls.append(_url(bound, port, tls))
+            self._urls = list(dict.fromkeys(urls))
+            self.host = self._urls[0].split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
+            self.port = int(sockets[0].getsockname()[1])
+        self.url = self._urls[0]
+
+    @property
+    def urls(self) -> list[str]:
+        return list(self._urls)
 
     def close(self) -> None:
         self._server.close(close_connections=False)
@@ -347,7 +463,7 @@ class WebSocketsTransport(Transport):
     async def listen(
         self,
         handler: ConnectionHandler,
-        host: str,
+        host: Hosts,
         port: int,
         options: Options,
         *,
@@ -386,9 +502,14 @@ class WebSocketsTransport(Transport):
             identity = None if answer is None else answer.identity
             await handler(WebSocketsConnection(ws, options, identity))
 
+        if isinstance(host, Sequence) and not isinstance(host, str):
+            host = list(host)  # create_server takes a list of hosts
+            if not host:
+                raise ValueError("no host to listen on: name one, or None for every interface")
+        hosts: Any = host
         server = await serve(
             handle,
-            host,
+            hosts,
             port,
             compression=options.compression,
             max_size=options.max_message_size,
@@ -397,7 +518,7 @@ class WebSocketsTransport(Transport):
             process_request=process_request,
             select_subprotocol=select_subprotocol,
             ssl=ssl,
-            logger=_Redacting(logging.getLogger("websockets.server")),
+            logger=_QuietLogger(),
             write_limit=_write_limit(options),
             create_connection=_ServerConnection,
         )

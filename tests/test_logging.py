@@ -1,0 +1,325 @@
+"""What the server says: its addresses, an access log, and websockets kept quiet.
+
+Log records are awaited as they come (:class:`Records`), never slept for.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import Echo, Hang, Subtract, open_wire, subtract
+from srvwire.errors import ServiceError
+from srvwire.server import Server, serve
+from srvwire.serving import AccessLoggedSession
+from srvwire.session import ServerSession
+from srvwire.transports.base import Transport
+from srvwire.transports.websockets import _QuietLogger, interface_addresses
+from support import ROOT, scaled
+
+DURATION = r"\d+\.\d\d ms"
+
+
+class Records(logging.Handler):
+    """The records of one logger, to await one by one on the loop that logs them."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.queue: asyncio.Queue[logging.LogRecord] = asyncio.Queue()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.queue.put_nowait(record)
+
+    async def next(self) -> logging.LogRecord:
+        async with asyncio.timeout(scaled(5)):
+            return await self.queue.get()
+
+    async def messages(self, count: int) -> list[str]:
+        return [(await self.next()).getMessage() for _ in range(count)]
+
+
+@pytest.fixture
+async def access() -> AsyncIterator[Records]:
+    logger = logging.getLogger("srvwire.access")
+    records = Records()
+    level = logger.level
+    logger.addHandler(records)
+    logger.setLevel(logging.INFO)
+    try:
+        yield records
+    finally:
+        logger.removeHandler(records)
+        logger.setLevel(level)
+
+
+def access_server() -> Server:
+    server = Server(access_log=True, grace_period=scaled(2))
+    server.add_service("/subtract", Subtract, subtract)
+
+    async def refuse(request: Any) -> Any:
+        raise ServiceError(4001, "battery too low")
+
+    server.add_service("/refuse", Echo, refuse)
+    server.add_service("/hang", Echo, Hang())
+    return server
+
+
+def call(method: str, id: int, **params: Any) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "method": method, "id": id, "params": params}
+
+
+async def test_the_access_log_has_a_line_per_call_with_its_outcome_and_duration(
+    access: Records, transport: Transport
+) -> None:
+    async with serve(access_server(), "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.call(call("subtract", 1, minuend=3, subtrahend=1))
+        await w.call(call("subtract", 2, minuend="three"))
+        await w.call(call("refuse", 3, text="x"))
+        await w.call(call("no/such_service", 4))
+        await w.call(call("hang", 5, text="x", _meta={"timeout": scaled(0.05)}))
+        await w.call({"jsonrpc": "2.0", "method": "rpc.discover", "id": 6})
+        lines = await access.messages(6)
+        peer = lines[0].split()[0]
+        if transport.name == "websockets":
+            assert re.fullmatch(r"127\.0\.0\.1:\d+", peer)
+        patterns = [
+            rf"/subtract OK {DURATION}",
+            rf"/subtract INVALID_PARAMS {DURATION}",
+            rf"/refuse APPLICATION_ERROR 4001 {DURATION}",
+            "no/such_service SERVICE_NOT_FOUND -",  # answered at once, as the caller named it
+            rf"/hang DEADLINE_EXCEEDED {DURATION}",
+            "rpc.discover OK -",
+        ]
+        for line, pattern in zip(lines, patterns, strict=True):
+            assert re.fullmatch(rf"{re.escape(peer)} {pattern}", line), line
+        await w.ws.close()
+
+
+async def test_a_call_whose_connection_went_away_is_logged_closed(
+    access: Records, transport: Transport
+) -> None:
+    async with serve(access_server(), "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send(call("hang", 1, text="x"))
+        await w.send(call("weird name\n" + "x" * 200, 2))
+        (refused,) = await access.messages(1)  # read after the first: that one is running
+        assert refused.endswith(" 'weird name\\n" + "x" * 89 + "...' SERVICE_NOT_FOUND -")
+        await w.ws.close()
+        record = await access.next()
+        assert re.fullmatch(rf"\S+ /hang CLOSED {DURATION}", record.getMessage())
+        assert record.outcome == "CLOSED"  # type: ignore[attr-defined]
+        assert record.service == "/hang"  # type: ignore[attr-defined]
+        assert record.duration_ms >= 0  # type: ignore[attr-defined]
+
+
+async def test_without_the_access_log_a_connection_does_no_work_for_it(
+    caplog: pytest.LogCaptureFixture, transport: Transport
+) -> None:
+    server = Server()
+    server.add_service("/subtract", Subtract, subtract)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        with caplog.at_level(logging.DEBUG, "srvwire.access"):
+            await w.call(call("subtract", 1, minuend=3, subtrahend=1))
+        (connection,) = running._connections
+        assert type(connection.session) is ServerSession  # not AccessLoggedSession
+        assert caplog.records == []
+        await w.ws.close()
+
+
+async def test_the_access_log_can_go_to_a_logger_of_ones_own(transport: Transport) -> None:
+    mine = logging.getLogger("test_logging.mine")
+    records = Records()
+    mine.addHandler(records)
+    mine.setLevel(logging.INFO)
+    try:
+        server = Server(access_log=mine)
+        server.add_service("/subtract", Subtract, subtract)
+        async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+            w = await open_wire(running)
+            await w.call(call("subtract", 1, minuend=3, subtrahend=1))
+            (connection,) = running._connections
+            assert type(connection.session) is AccessLoggedSession
+            assert (await records.next()).getMessage().endswith(" ms")
+            await w.ws.close()
+    finally:
+        mine.removeHandler(records)
+
+
+# --- where the server listens ---------------------------------------------------------------
+
+
+def ipv6_loopback() -> bool:
+    """Whether this machine can listen on ::1."""
+    try:
+        with socket.socket(socket.AF_INET6) as sock:
+            sock.bind(("::1", 0))
+    except OSError:
+        return False
+    return True
+
+
+async def reachable(url: str) -> bool:
+    w = await open_wire(url)
+    reply = await w.call(call("subtract", 1, minuend=3, subtrahend=1))
+    await w.ws.close()
+    return bool(reply["result"] == {"difference": 2})
+
+
+@pytest.fixture
+def plain_server() -> Server:
+    server = Server()
+    server.add_service("/subtract", Subtract, subtract)
+    return server
+
+
+async def test_a_wildcard_host_lists_the_address_of_every_interface(
+    plain_server: Server,
+) -> None:
+    async with serve(plain_server, "0.0.0.0", 0) as running:
+        port = running.port
+        addresses = interface_addresses(socket.AF_INET)
+        assert running.urls == [f"ws://{a}:{port}" for a in addresses]
+        assert running.url == f"ws://127.0.0.1:{port}"  # one to paste, not ws://0.0.0.0
+        for url in running.urls:
+            assert await reachable(url), url
+
+
+async def test_listening_on_several_hosts_and_on_every_interface(plain_server: Server) -> None:
+    if not ipv6_loopback():  # then the machine cannot listen on ::1, and says so
+        with pytest.raises(OSError):
+            await serve(plain_server, ["127.0.0.1", "::1"], 0)
+        return
+    async with serve(plain_server, ["127.0.0.1", "::1"], 0) as running:
+        v4, v6 = running.urls
+        assert re.fullmatch(r"ws://127\.0\.0\.1:\d+", v4)
+        assert re.fullmatch(r"ws://\[::1\]:\d+", v6)
+        assert await reachable(v4) and await reachable(v6)
+    async with serve(plain_server, None, 0) as running:
+        urls = running.urls
+        assert urls[0].startswith("ws://127.0.0.1:")
+        assert any(url.startswith("ws://[::1]:") for url in urls)
+        for url in urls:
+            assert await reachable(url), url
+
+
+async def test_the_memory_transport_listens_on_one_host(plain_server: Server) -> None:
+    from srvwire.transports.memory import MemoryTransport
+
+    with pytest.raises(ValueError, match="the memory transport listens on one host name"):
+        await serve(plain_server, ["a", "b"], 0, transport=MemoryTransport())
+
+
+async def test_an_empty_list_of_hosts_is_refused(plain_server: Server) -> None:
+    with pytest.raises(ValueError, match="no host to listen on"):
+        await serve(plain_server, [], 0)
+
+
+# --- websockets' own lines ------------------------------------------------------------------
+
+
+@pytest.fixture
+def websockets_level() -> Iterator[logging.Logger]:
+    logger = logging.getLogger("websockets.server")
+    level = logger.level
+    try:
+        yield logger
+    finally:
+        logger.setLevel(level)
+
+
+async def test_websockets_says_nothing_per_connection_unless_asked(
+    plain_server: Server, caplog: pytest.LogCaptureFixture, websockets_level: logging.Logger
+) -> None:
+    caplog.set_level(logging.INFO)  # as logging.basicConfig(level=logging.INFO) would
+    async with serve(plain_server, "127.0.0.1", 0) as running:
+        assert await reachable(running.url)
+        assert [r for r in caplog.records if r.name.startswith("websockets")] == []
+        websockets_level.setLevel(logging.INFO)  # asked for
+        assert await reachable(running.url)
+    said = [r.getMessage() for r in caplog.records if r.name == "websockets.server"]
+    assert "connection open" in said
+
+
+def test_websockets_warnings_and_errors_always_pass(
+    caplog: pytest.LogCaptureFixture, websockets_level: logging.Logger
+) -> None:
+    quiet = _QuietLogger()
+    with caplog.at_level(logging.DEBUG):
+        quiet.info("connection open")
+        quiet.warning("a warning")
+        quiet.error("handler failed")
+    assert caplog.messages == ["a warning", "handler failed"]
+
+
+# --- Server.run(): the startup line ---------------------------------------------------------
+
+SCRIPT = """\
+import logging, sys
+from srvwire.loader import load_service
+from srvwire.server import Server
+
+{configure}
+AddTwoInts = load_service("example_interfaces/srv/AddTwoInts")
+server = Server(grace_period=0)
+server.add_service("/add_two_ints", AddTwoInts, lambda request: {{"sum": 0}})
+server.run({host}, 0)
+print("returned", logging.getLogger("srvwire").handlers, file=sys.stderr)
+"""
+
+
+def run_script(tmp_path: Path, host: str, configure: str = "") -> tuple[str, str]:
+    """Run a script that calls server.run(); stop it with SIGINT once it has said where it
+    listens; return that first line and the rest of its standard error."""
+    script = tmp_path / "run_app.py"
+    script.write_text(SCRIPT.format(host=host, configure=configure), encoding="utf-8")
+    process = subprocess.Popen(
+        [sys.executable, str(script)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert process.stderr is not None
+        first = process.stderr.readline()
+        process.send_signal(signal.SIGINT)
+        _, rest = process.communicate(timeout=scaled(10))
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 0, rest
+    return first, rest
+
+
+def test_run_says_where_it_listens_when_logging_is_not_configured(tmp_path: Path) -> None:
+    first, rest = run_script(tmp_path, '"0.0.0.0"')
+    match = re.fullmatch(
+        r"\S+ \S+ INFO srvwire.server: serving 1 service on (ws://127\.0\.0\.1:(\d+)(, .*)?)\n",
+        first,
+    )
+    assert match, first
+    port = match.group(2)
+    urls = match.group(1).split(", ")
+    assert urls == [f"ws://{a}:{port}" for a in interface_addresses(socket.AF_INET)]
+    assert textwrap.dedent(rest).splitlines()[0].endswith("INFO srvwire.server: shutting down")
+    assert rest.splitlines()[-1] == "returned []"  # its handler is gone once run() returns
+
+
+def test_run_adds_nothing_to_a_configured_logging(tmp_path: Path) -> None:
+    configure = 'logging.basicConfig(level=logging.INFO, format="mine: %(message)s")'
+    first, rest = run_script(tmp_path, '"127.0.0.1"', configure)
+    assert re.fullmatch(r"mine: serving 1 service on ws://127\.0\.0\.1:\d+\n", first), first
+    assert rest.splitlines() == ["mine: shutting down", "returned []"]
