@@ -49,7 +49,7 @@ def gate() -> Gate:
 
 
 @pytest.fixture
-def server(gate: Gate) -> Server:
+async def server(gate: Gate) -> Server:
     server = Server(grace_period=scaled(2))
 
     @server.action("/fibonacci", Fibonacci)
@@ -115,16 +115,21 @@ def server(gate: Gate) -> Server:
             handle.publish_feedback({"sequence": fibonacci(n)})
         return {"sequence": fibonacci(goal.order)}
 
+    loop = asyncio.get_running_loop()
+
     @server.action("/steps", Fibonacci)
     def steps(goal: Any, handle: GoalHandle) -> Any:
         """A plain def handler: a step at a time until cancelled, feedback after each."""
         done: list[int] = []
-        for n in range(10_000):
-            handle.publish_feedback({"sequence": [n]})
-            if handle.wait_for_cancel(0 if n else None):  # the first step waits for it
-                break
-            done.append(n)
-        return {"sequence": done}
+        try:
+            for n in range(10_000):
+                handle.publish_feedback({"sequence": [n]})
+                if handle.wait_for_cancel(0 if n else None):  # the first step waits for it
+                    break
+                done.append(n)
+            return {"sequence": done}
+        finally:
+            loop.call_soon_threadsafe(gate.ended.set)
 
     return server
 
@@ -184,6 +189,17 @@ async def test_a_plain_def_handler_stops_when_cancelled(running: RunningServer) 
         assert await handle.cancel() is True
         outcome = await handle.result()
         assert outcome == GoalResult("canceled", Fibonacci.Result(sequence=[]))
+        assert_nothing_left(connection(running))
+
+
+async def test_a_plain_def_handler_is_told_to_stop_when_its_deadline_passes(
+    running: RunningServer, gate: Gate
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/steps", {"order": 1}, timeout=scaled(0.3))
+        with pytest.raises(DeadlineExceeded):
+            await handle.result()
+        await gate.ended.wait()  # its thread returned: wait_for_cancel woke when the goal ended
         assert_nothing_left(connection(running))
 
 
