@@ -158,7 +158,7 @@ async def calibrate(
                 "  calibrating %s: %3.0f%% done", feedback.current_joint, 100 * feedback.progress
             )
     outcome = await handle.result()
-    result: Any = outcome.result  # a Calibrate.Result
+    result = outcome.result  # a Calibrate.Result
     logger.info(
         "%-40s -> %s: %s (%d joints done)",
         "action calibrate",

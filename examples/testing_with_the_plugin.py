@@ -44,6 +44,19 @@ async def test_a_misspelt_service_name(srvwire_client: srvwire.Client) -> None:
 # --8<-- [end:client]
 
 
+# --8<-- [start:action]
+async def test_a_short_calibration(srvwire_client: srvwire.Client) -> None:
+    goal = await srvwire_client.send_goal("/calibrate", {"duration": 0.05})
+    progress = [feedback.progress async for feedback in goal.feedback()]
+    outcome = await goal.result()
+
+    assert progress == sorted(progress)  # the latest each time it is read: maybe not all five
+    assert (outcome.status, outcome.result.joints_done) == ("succeeded", 5)
+
+
+# --8<-- [end:action]
+
+
 # --8<-- [start:sync]
 def test_with_the_blocking_client(srvwire_sync_client: srvwire.sync.Client) -> None:
     stop = srvwire_sync_client.proxy("/execute_robot_command")

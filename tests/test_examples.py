@@ -410,8 +410,8 @@ async def test_the_calibrate_action_stops_when_cancelled(node: Any) -> None:
         await handle.cancel()
         outcome = await handle.result()
     assert outcome.status == "canceled"
-    assert outcome.result.joints_done == 0  # type: ignore[union-attr]
-    assert outcome.result.message == "Calibration canceled after 0 of 5 joints"  # type: ignore[union-attr]
+    assert outcome.result.joints_done == 0
+    assert outcome.result.message == "Calibration canceled after 0 of 5 joints"
     assert (node.state.status, node.state.calibrated) == ("STOPPED", False)
 
 

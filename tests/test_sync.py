@@ -462,4 +462,4 @@ def test_a_goal_with_feedback_result_and_cancel() -> None:
         assert first.sequence[:3] == [0, 1, 1]
         assert long.cancel() is True
         outcome = long.result()
-        assert outcome.status == "canceled" and len(outcome.result.sequence) == 12  # type: ignore[union-attr]
+        assert outcome.status == "canceled" and len(outcome.result.sequence) == 12

@@ -382,12 +382,13 @@ class GoalRunner:
 class GoalResult(Generic[R]):
     """How a goal ended: its final ``status`` and its typed ``result``.
 
-    ``result`` is None only for a goal whose handler the server stopped after a cancellation
-    (it answered ``CANCELLED`` instead of a result).
+    For a goal whose handler the server stopped after a cancellation (it answered
+    ``CANCELLED`` instead of a result), ``result`` is the action's ``Result`` with its
+    defaults, as ROS gives a goal that ended without one.
     """
 
     status: str
-    result: R | None
+    result: R
 
 
 class GoalLink(Protocol):
@@ -524,7 +525,7 @@ class ClientGoal(Generic[R]):
 
         Raise what the server answered instead of an outcome (``GoalRejected``,
         ``InternalError``, ``DeadlineExceeded``, ``ConnectionLost``, ...); a goal whose handler
-        the server stopped after a cancellation ends ``canceled`` with no result.
+        the server stopped after a cancellation ends ``canceled`` with the result's defaults.
         """
         if self._outcome is not None:
             return self._outcome
@@ -537,7 +538,7 @@ class ClientGoal(Generic[R]):
             outcome = self.reply.result().decode(self.decoder)
         except RPCError as exc:
             if isinstance(exc, Cancelled) and self.cancel_sent:
-                self._outcome = GoalResult("canceled", None)
+                self._outcome = GoalResult("canceled", cast("R", self.action.Result()))
                 self.status = "canceled"
                 return self._outcome
             error = self.link.failure(self.method, exc)

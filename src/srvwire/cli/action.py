@@ -181,7 +181,6 @@ async def _send_goal(
         except asyncio.CancelledError:  # Ctrl-C: ask the server to stop the goal
             await handle.cancel()
             raise
-        if outcome.result is not None:
-            print(f"\nResult:\n{_yaml(outcome.result)}")
+        print(f"\nResult:\n{_yaml(outcome.result)}")
         print(f"\nGoal finished with status: {outcome.status.upper()}", flush=True)
         return GOAL_EXIT_CODES[outcome.status]
