@@ -74,7 +74,7 @@ class Served:
         )
         assert self.process.stdout is not None
         first = self.process.stdout.readline()
-        match = re.fullmatch(r"serving 1 service on (wss?://[^ ]+)\n", first)
+        match = re.fullmatch(r"serving 1 service on (wss?://[^ ,]+)(?:, wss?://[^ ,]+)*\n", first)
         assert match, first + self.process.stderr.read()  # type: ignore[union-attr]
         self.url = match.group(1)
         self.lines = [self.process.stdout.readline(), self.process.stdout.readline()]

@@ -158,6 +158,19 @@ EXPLAINED: dict[tuple[str, str], str] = {
         'reveal_type(await client.call("/scan", Scan.Request(fill=1.0)))      '
         "# wire_types.Scan_Response",
     ): "what mypy reveals: tests/test_typed_calls.py runs mypy on these calls and checks it",
+    (
+        "blocking.md",
+        "WARNING srvwire.server: a call to /calibrate waited 1.02 s for a thread to run its "
+        "blocking",
+    ): ("the queueing warning: tests/test_blocking.py awaits it and checks its words"),
+    (
+        "logging.md",
+        "INFO srvwire.server: serving 2 services on ws://127.0.0.1:8765, ws://192.168.1.20:8765, "
+        "ws://[::1]:8765",
+    ): "the startup line: tests/test_logging.py checks it for one host, several, and every one",
+    ("logging.md", "INFO srvwire.access: 127.0.0.1:35658 /add_two_ints OK 0.16 ms"): (
+        "the access log: tests/test_logging.py checks its lines on both transports"
+    ),
     ("limits.md", "M  ≤  C + B + (3 + W)·R + F·(c + q) + (Q + 2)·m"): (
         "the memory formula: tests/test_limits.py measures a server against it"
     ),

@@ -12,7 +12,6 @@ import signal
 import socket
 import subprocess
 import sys
-import textwrap
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -280,9 +279,12 @@ print("returned", logging.getLogger("srvwire").handlers, file=sys.stderr)
 """
 
 
-def run_script(tmp_path: Path, host: str, configure: str = "") -> tuple[str, str]:
+def run_script(
+    tmp_path: Path, host: str, configure: str = "", *, before: list[str] | None = None
+) -> tuple[str, str]:
     """Run a script that calls server.run(); stop it with SIGINT once it has said where it
-    listens; return that first line and the rest of its standard error."""
+    listens; return that line and the rest of its standard error. The lines it wrote before
+    that one go into ``before``; there must be none unless ``before`` is given."""
     script = tmp_path / "run_app.py"
     script.write_text(SCRIPT.format(host=host, configure=configure), encoding="utf-8")
     process = subprocess.Popen(
@@ -295,17 +297,32 @@ def run_script(tmp_path: Path, host: str, configure: str = "") -> tuple[str, str
     try:
         assert process.stderr is not None
         first = process.stderr.readline()
+        earlier: list[str] = []
+        while first and " serving " not in first:
+            earlier.append(first)
+            first = process.stderr.readline()
         process.send_signal(signal.SIGINT)
         _, rest = process.communicate(timeout=scaled(10))
     finally:
         process.kill()
         process.wait()
     assert process.returncode == 0, rest
+    if before is None:
+        assert earlier == []
+    else:
+        before.extend(earlier)
     return first, rest
 
 
 def test_run_says_where_it_listens_when_logging_is_not_configured(tmp_path: Path) -> None:
-    first, rest = run_script(tmp_path, '"0.0.0.0"')
+    before: list[str] = []
+    first, rest = run_script(tmp_path, '"0.0.0.0"', before=before)
+    # Listening on every address with no authentication is worth a warning, said first.
+    assert [line.split(" ", 2)[2] for line in before] == [
+        "WARNING srvwire.server: any host that can route to 0.0.0.0 can connect, with no "
+        "authentication: anyone who can reach it can call every service (give the Server an "
+        "auth=, or listen on 127.0.0.1)\n"
+    ]
     match = re.fullmatch(
         r"\S+ \S+ INFO srvwire.server: serving 1 service on (ws://127\.0\.0\.1:(\d+)(, .*)?)\n",
         first,
@@ -314,7 +331,12 @@ def test_run_says_where_it_listens_when_logging_is_not_configured(tmp_path: Path
     port = match.group(2)
     urls = match.group(1).split(", ")
     assert urls == [f"ws://{a}:{port}" for a in interface_addresses(socket.AF_INET)]
-    assert textwrap.dedent(rest).splitlines()[0].endswith("INFO srvwire.server: shutting down")
+    said = [line.split(" ", 2)[2] for line in rest.splitlines()[:2]]
+    assert said == [
+        "INFO srvwire.server: any host that can route to 0.0.0.0 can connect; no "
+        "authentication; unencrypted",
+        "INFO srvwire.server: shutting down",
+    ]
     assert rest.splitlines()[-1] == "returned []"  # its handler is gone once run() returns
 
 
@@ -322,4 +344,9 @@ def test_run_adds_nothing_to_a_configured_logging(tmp_path: Path) -> None:
     configure = 'logging.basicConfig(level=logging.INFO, format="mine: %(message)s")'
     first, rest = run_script(tmp_path, '"127.0.0.1"', configure)
     assert re.fullmatch(r"mine: serving 1 service on ws://127\.0\.0\.1:\d+\n", first), first
-    assert rest.splitlines() == ["mine: shutting down", "returned []"]
+    assert rest.splitlines() == [
+        "mine: only programs on this machine can connect (loopback); no authentication; "
+        "unencrypted",
+        "mine: shutting down",
+        "returned []",
+    ]

@@ -55,8 +55,15 @@ def test_the_notebook_calls_the_robot_with_await_and_with_the_blocking_client() 
         resources={"metadata": {"path": str(EXAMPLES)}},
     ).execute()
     code = [cell for cell in notebook.cells if cell.cell_type == "code"]
-    assert [text_of(cell) for cell in code] == [
-        "",
+    shown = [text_of(cell) for cell in code]
+    # With logging not configured, run() says where it listens and who can reach it, on stderr.
+    assert re.fullmatch(
+        r"\S+ \S+ INFO srvwire\.server: serving 2 services on ws://127\.0\.0\.1:\d+\n"
+        r"\S+ \S+ INFO srvwire\.server: only programs on this machine can connect \(loopback\); "
+        r"no authentication; unencrypted\n",
+        shown[0],
+    ), shown[0]
+    assert shown[1:] == [
         "RobotStateQuery_Response(success=True, message='Current joint positions', "
         "values=[0.0, 0.0, 0.0, 0.0, 0.0], "
         "names=['joint_0', 'joint_1', 'joint_2', 'joint_3', 'joint_4'])\n",

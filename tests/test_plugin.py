@@ -237,7 +237,7 @@ async def test_with_the_async_fixtures(srvwire_sync_client, srvwire_client):
 
 
 def test_the_blocking_client_fixture(pytester: pytest.Pytester) -> None:
-    project(pytester, test_blocking=SYNC_TESTS)
+    project(pytester, test_blocking_client=SYNC_TESTS)
     result = pytester.runpytest("-p", "no:logging")
     result.assert_outcomes(passed=5, failed=1, errors=1)
     result.stdout.fnmatch_lines(

@@ -563,6 +563,7 @@ class RunningServer:
             self._handle, host, port, server.options, gate=self._admit, ssl=ssl
         )
         self.host = self._listener.host
+        self.bound: Hosts = host  # what it was asked to listen on, for reach
         self.port = self._listener.port
         self.server._running.add(self)
         if not self.authenticated and not is_loopback(host) and self.transport.name != "memory":
@@ -610,7 +611,7 @@ class RunningServer:
     @property
     def reach(self) -> str:
         """Who can reach this server, in words (its startup log line says it)."""
-        return describe_reach(self.host, authenticated=self.authenticated, tls=self.tls)
+        return describe_reach(self.bound, authenticated=self.authenticated, tls=self.tls)
 
     @property
     def url(self) -> str:
