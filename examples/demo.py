@@ -23,7 +23,7 @@ import robot_command_client
 
 HERE = Path(__file__).resolve().parent
 SERVER = HERE / "robot_state_server.py"
-URL_LINE = re.compile(r"serving \d+ services? on (ws://\S+)")
+URL_LINE = re.compile(r"serving \d+ services?(?: and \d+ actions?)? on (ws://\S+)")
 STARTUP_TIMEOUT = 20.0  # seconds for the server to import srvwire and start listening
 SHUTDOWN_TIMEOUT = 5.0  # seconds for it to stop after SIGTERM before it is killed
 CALIBRATION_TIME = os.environ.get("DEMO_CALIBRATION_TIME", "1")  # seconds: the action's goal

@@ -18,8 +18,8 @@ Run it, then call it with ``robot_command_client.py`` or by hand with ``wscat``:
     python examples/robot_state_server.py              # ws://127.0.0.1:8765
     python examples/robot_state_server.py --port 0     # any free port; the URL is logged
 
-Once it listens it logs ``serving 3 services on ws://HOST:PORT`` (with the port it got), then
-logs every request and response, and stops cleanly on Ctrl-C or SIGTERM.
+Once it listens it logs ``serving 2 services and 1 action on ws://HOST:PORT`` (with the port it
+got), then logs every request and response, and stops cleanly on Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
@@ -226,8 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     server = build_server()
-    # run() logs "serving 3 services on ws://HOST:PORT" once it listens, then blocks until
-    # Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.
+    # run() logs "serving 2 services and 1 action on ws://HOST:PORT" once it listens, then
+    # blocks until Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.
     server.run(args.host, args.port)
     return 0
 

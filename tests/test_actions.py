@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from conftest import open_wire
-from srvwire import GoalHandle, GoalRejected, load_action
+from srvwire import GoalHandle, GoalRejected, load_action, load_service
 from srvwire.actions import ClientGoal, GoalResult, goal_service
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import connect
@@ -570,6 +570,16 @@ def test_feedback_is_written_around_the_message_bytes() -> None:
     assert feedback_notification(7, 3, b'{"x":1}') == (
         b'{"jsonrpc":"2.0","method":"$/feedback","params":{"call":7,"seq":3,"feedback":{"x":1}}}'
     )
+
+
+def test_the_startup_line_counts_services_and_actions_apart() -> None:
+    server = Server()
+    assert server.summary() == "0 services"
+    server.add_action("/a", Fibonacci, lambda goal, handle: None)
+    assert server.summary() == "0 services and 1 action"
+    server.add_service("/s", load_service("std_srvs/srv/Trigger"), lambda request: None)
+    server.add_action("/b", Fibonacci, lambda goal, handle: None)
+    assert server.summary() == "1 service and 2 actions"
 
 
 def test_an_action_type_is_not_a_service_type() -> None:

@@ -30,7 +30,7 @@ from srvwire.transports.memory import MemoryTransport
 from support import ROOT, scaled
 
 EXAMPLES = ROOT / "examples"
-URL_LINE = re.compile(r"serving \d+ services? on (ws://\S+)")
+URL_LINE = re.compile(r"serving \d+ services?(?: and \d+ actions?)? on (ws://\S+)")
 
 
 def load_example(name: str) -> ModuleType:
@@ -264,6 +264,7 @@ def test_the_url_is_read_from_the_server_log_whatever_the_count(
     for line in (
         "INFO srvwire.server: serving 1 service on ws://127.0.0.1:1234",
         "INFO srvwire.server: serving 2 services on ws://127.0.0.1:1234",
+        "INFO srvwire.server: serving 2 services and 1 action on ws://127.0.0.1:1234",
     ):
         for pattern in (demo.URL_LINE, URL_LINE):
             match = pattern.search(line)

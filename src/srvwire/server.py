@@ -349,6 +349,15 @@ class Server:
 
         return register
 
+    def summary(self) -> str:
+        """What the server offers, for its startup line: ``2 services and 1 action``."""
+        actions = sum(1 for entry in self.registry if isinstance(entry.handler, GoalRunner))
+        services = len(self.registry) - actions
+        said = f"{services} {'service' if services == 1 else 'services'}"
+        if actions:
+            said += f" and {actions} {'action' if actions == 1 else 'actions'}"
+        return said
+
     def _change_services(self, change: Callable[[], None]) -> None:
         """Run ``change`` on the thread of the loop the server listens on; wait, and re-raise.
 
@@ -449,12 +458,9 @@ class Server:
                 replaced.append((signum, previous))
         try:
             async with serve(self, host, port, transport=transport, ssl=ssl) as running:
-                count = len(self.registry)
-                services = "service" if count == 1 else "services"
                 self.logger.info(
-                    "serving %d %s on %s",
-                    count,
-                    services,
+                    "serving %s on %s",
+                    self.summary(),
                     ", ".join(running.urls),
                     extra=_LIFECYCLE,
                 )
