@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import signal
+import subprocess
+import sys
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -11,9 +15,13 @@ import pytest
 from srvwire import GoalHandle, GoalRejected, load_action, load_service
 from srvwire.cli import ExitCode, main
 from srvwire.server import Server
+from support import scaled
 from test_cli import start_in_thread
 
 Fibonacci = load_action("example_interfaces/action/Fibonacci")
+
+
+CANCELLED = threading.Event()  # set by /forever's handler when its client asks to cancel
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +42,10 @@ def url() -> Iterator[str]:
 
     @server.action("/forever", Fibonacci, cancel_grace=0)
     async def forever(goal: Any, handle: GoalHandle) -> Any:
-        await asyncio.Event().wait()
+        await handle.feedback({"sequence": [0]})
+        await handle.cancelled()
+        CANCELLED.set()
+        await asyncio.Event().wait()  # only the grace period's end stops it
 
     server.add_service("/trigger", load_service("std_srvs/srv/Trigger"), lambda request: None)
     address, stop = start_in_thread(server)
@@ -131,3 +142,26 @@ def test_send_goal_to_a_service_is_a_usage_error(
     code, _, err = run(capsys, url, "send_goal", "/trigger", "{}")
     assert code == ExitCode.USAGE
     assert "/trigger is the service std_srvs/srv/Trigger, not an action: use srvwire call" in err
+
+
+def test_ctrl_c_cancels_the_goal_on_the_server(url: str) -> None:
+    command = [sys.executable, "-m", "srvwire", "action", "send_goal", "/forever", "{}"]
+    process = subprocess.Popen(
+        [*command, "--feedback", "--url", url, "--timeout", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout is not None
+        line = process.stdout.readline()
+        while line and line != "Feedback:\n":  # the goal is running
+            line = process.stdout.readline()
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=scaled(10))
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == ExitCode.INTERRUPTED, err
+    assert err == "srvwire: error: interrupted\n"
+    assert CANCELLED.wait(scaled(5))  # the server's handler saw the cancellation

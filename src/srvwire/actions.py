@@ -405,6 +405,8 @@ class GoalLink(Protocol):
 
     def cancel_goal(self, id: int) -> bytes | None: ...
 
+    def forget_goal(self, id: int) -> None: ...
+
 
 class ClientGoal(Generic[R]):
     """A goal the client sent: its state, its latest feedback, its outcome.
@@ -495,6 +497,12 @@ class ClientGoal(Generic[R]):
                 )
             )
             raise self._error from None  # type: ignore[misc]
+
+    def forget(self) -> None:
+        """Stop waiting for the outcome, and tell the server nothing (after :meth:`cancel`,
+        a program that leaves). :meth:`result` raises ``asyncio.CancelledError`` then."""
+        self.link.forget_goal(self.id)
+        self.reply.cancel()
 
     def give_up(self) -> None:
         """Stop waiting for the outcome: ``$/cancel`` it on the server, forget it here."""

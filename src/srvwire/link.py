@@ -246,6 +246,11 @@ class Link:
             return None
         return cancel_notification(id).serialize()
 
+    def forget_goal(self, id: int) -> None:
+        """Wait no more for the goal ``id``'s outcome or news; the server is not told."""
+        self.session.pending.pop(id, None)
+        self.goals.pop(id, None)
+
     def stray(self, reply: Response | ErrorResponse) -> None:
         if reply.id is None and isinstance(reply, ErrorResponse):
             # The server could not read one of our messages; it cannot say which.

@@ -178,8 +178,9 @@ async def _send_goal(
                 async for feedback in handle.feedback():
                     print(f"\nFeedback:\n{_yaml(feedback)}", flush=True)
             outcome = await handle.result()
-        except asyncio.CancelledError:  # Ctrl-C: ask the server to stop the goal
+        except asyncio.CancelledError:  # Ctrl-C: ask the server to stop it, and wait no more
             await handle.cancel()
+            handle.forget()
             raise
         print(f"\nResult:\n{_yaml(outcome.result)}")
         print(f"\nGoal finished with status: {outcome.status.upper()}", flush=True)
