@@ -3,8 +3,9 @@
 It starts ``robot_state_server.py`` on a free port in a child process, reads the port from the
 line the server logs once it listens, runs ``robot_command_client.py``'s sequence against it in
 this process (the services, then the ``/calibrate`` action with its progress; the calibration
-asks for 1 s, or ``$DEMO_CALIBRATION_TIME``), and stops the server whatever happened. The
-server's own log is shown only when something went wrong.
+asks for 1 s, or ``$DEMO_CALIBRATION_TIME``), then publishes a few joint states with
+``joint_state_publisher.py`` (a topic the server subscribes to), and stops the server whatever
+happened. The server's own log is shown only when something went wrong.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import threading
 from pathlib import Path
 from typing import IO
 
+import joint_state_publisher
 import robot_command_client
 
 HERE = Path(__file__).resolve().parent
@@ -87,6 +89,13 @@ def main() -> int:
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
         # A short calibration, so that the demo stays quick; the robot's own takes 5 s.
         status = robot_command_client.main(["--url", url, "--calibration-time", CALIBRATION_TIME])
+        if status == 0:
+            print(
+                "make demo: joint_state_publisher.py publishes on /joint_states, "
+                "which the server subscribes to:",
+                flush=True,
+            )
+            status = joint_state_publisher.main(["--url", url, "--count", "3", "--rate", "100"])
     except RuntimeError as exc:
         print(f"make demo: {exc}", file=sys.stderr)
     finally:

@@ -13,6 +13,10 @@ and one action, for the task that takes a while:
   one by one (5 s in all unless the goal asks otherwise), sends its progress as feedback, and
   stops early when the client cancels it.
 
+Like the ROS original, it also subscribes to ``/joint_states`` (``sensor_msgs/msg/JointState``):
+whatever a client publishes there (``joint_state_publisher.py``) becomes the joint positions it
+reports.
+
 Run it, then call it with ``robot_command_client.py`` or by hand with ``wscat``::
 
     python examples/robot_state_server.py              # ws://127.0.0.1:8765
@@ -32,7 +36,7 @@ from typing import Any
 
 # --8<-- [start:load]
 from srvwire.actions import GoalHandle
-from srvwire.loader import load_action, load_service
+from srvwire.loader import load_action, load_message, load_service
 from srvwire.server import Server
 
 # Service types come from .srv files, exactly as in ROS 2: the name is package/srv/Type.
@@ -40,6 +44,8 @@ RobotStateQuery = load_service("advanced_communication_tutorials/srv/RobotStateQ
 RobotCommand = load_service("advanced_communication_tutorials/srv/RobotCommand")
 # An action type comes from an .action file: package/action/Type.
 Calibrate = load_action("advanced_communication_tutorials/action/Calibrate")
+# Topics carry messages (.msg files): the joint states clients publish.
+JointState = load_message("sensor_msgs/msg/JointState")
 # --8<-- [end:load]
 
 logger = logging.getLogger("robot_state_server")
@@ -188,6 +194,23 @@ class RobotStateNode:
 
     # --8<-- [end:calibrate]
 
+    # --8<-- [start:joint_states]
+    def on_joint_states(self, msg: Any) -> None:
+        """Keep the joint positions a publisher reports on ``/joint_states``, as the ROS
+        original's subscription does. A plain ``def`` runs on the event loop as each message
+        arrives, in order: keep it quick."""
+        if len(msg.position) != JOINT_COUNT:
+            logger.warning(
+                "ignoring a joint state with %d positions; the robot has %d joints",
+                len(msg.position),
+                JOINT_COUNT,
+            )
+            return
+        self.state.joint_positions = list(msg.position)
+        logger.debug("joint states %s", msg.position)
+
+    # --8<-- [end:joint_states]
+
 
 # --8<-- [start:server]
 def build_server(node: RobotStateNode | None = None) -> Server:
@@ -197,6 +220,9 @@ def build_server(node: RobotStateNode | None = None) -> Server:
     server.add_service("/get_robot_state", RobotStateQuery, node.get_robot_state)
     server.add_service("/execute_robot_command", RobotCommand, node.execute_robot_command)
     server.add_action("/calibrate", Calibrate, node.calibrate)
+    # Clients publish joint states; a late subscriber (srvwire topic echo) gets the latest one.
+    joint_states_qos = {"depth": 1, "durability": "transient_local"}
+    server.subscription("/joint_states", JointState, qos=joint_states_qos)(node.on_joint_states)
     return server
 
 

@@ -19,7 +19,8 @@ from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notificati
 from srvwire.models import ModelDecoder, build_action
 from srvwire.parser import parse_action
 from srvwire.server import RunningServer, Server, serve
-from srvwire.serving import ServedConnection
+from srvwire.serving import ServedConnection, Writer
+from srvwire.topics import Outbox, QoS, Topic
 from srvwire.transports.base import Transport
 from support import scaled
 
@@ -149,7 +150,7 @@ def assert_nothing_left(served: ServedConnection) -> None:
     assert served.session.in_flight == 0
     assert not served.session.calls
     assert not served.counted
-    assert len(served.outbox) == 0
+    assert len(served.writer.feedback) == 0
 
 
 # --- the client's view ------------------------------------------------------------------------
@@ -195,12 +196,16 @@ async def test_a_plain_def_handler_stops_when_cancelled(running: RunningServer) 
 async def test_a_plain_def_handler_is_told_to_stop_when_its_deadline_passes(
     running: RunningServer, gate: Gate
 ) -> None:
-    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
-        handle = await client.send_goal("/steps", {"order": 1}, timeout=scaled(0.3))
-        with pytest.raises(DeadlineExceeded):
-            await handle.result()
-        await gate.ended.wait()  # its thread returned: wait_for_cancel woke when the goal ended
-        assert_nothing_left(connection(running))
+    wire = await open_wire(running)  # no client of ours to cancel it first: the deadline does
+    params = {"order": 1, "_meta": {"timeout": scaled(0.3)}}
+    await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/steps", "params": params})
+    reply = await wire.recv()
+    while "id" not in reply:  # $/goal and $/feedback
+        reply = await wire.recv()
+    assert reply["error"]["data"]["status"] == "DEADLINE_EXCEEDED"
+    await gate.ended.wait()  # its thread returned: wait_for_cancel woke when the goal ended
+    assert_nothing_left(connection(running))
+    await wire.ws.close()
 
 
 async def test_an_aborted_goal_says_so_with_its_result(running: RunningServer) -> None:
@@ -397,7 +402,7 @@ async def test_feedback_faster_than_the_connection_is_kept_latest(
     feedback = await wire.recv()
     assert feedback["params"] == {"call": 1, "seq": 30, "feedback": {"sequence": [30]}}
     served = connection(running)
-    assert served.outbox.replaced == 29 and len(served.outbox) == 0
+    assert served.writer.feedback.replaced == 29 and len(served.writer.feedback) == 0
     gate.release.set()
     assert (await wire.recv())["result"] == {"status": "succeeded", "result": {"sequence": [30]}}
     assert_nothing_left(served)
@@ -428,32 +433,41 @@ async def test_a_client_that_does_not_read_costs_one_feedback_message(
         await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/flood", "params": {}})
         await published.wait()  # every feedback was given, and the client read none
         served = connection(running)
-        assert len(served.outbox) <= 1  # at most the latest waits, whatever was given
+        assert len(served.writer.feedback) <= 1  # at most the latest waits, whatever was given
         await wire.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}})
         messages = []
         while not messages or messages[-1].get("id") != 1:
             messages.append(await wire.recv())
         seqs = [m["params"]["seq"] for m in messages if m.get("method") == "$/feedback"]
         assert seqs == sorted(seqs) and len(seqs) < 4_000 / size + 3  # what fit, and no more
-        assert served.outbox.replaced >= count - len(seqs) - 1
+        assert served.writer.feedback.replaced >= count - len(seqs) - 1
         assert messages[-1]["result"]["status"] == "canceled"
         assert_nothing_left(served)
         await wire.ws.close()
 
 
-async def test_feedback_waits_while_a_reply_is_being_sent(running: RunningServer) -> None:
-    wire = await open_wire(running)
-    served = connection(running)
-    served.quiet.clear()  # as while a reply is being sent
-    served.feedback(99, b'{"jsonrpc":"2.0","method":"$/feedback","params":{"call":99}}')
-    flusher = served.flusher
-    assert flusher is not None
-    await asyncio.wait({flusher}, timeout=0)  # one turn: it runs up to its wait, and waits
-    assert len(served.outbox) == 1
-    served.quiet.set()  # the reply is out: the feedback follows
-    assert await wire.recv() == {"jsonrpc": "2.0", "method": "$/feedback", "params": {"call": 99}}
-    assert len(served.outbox) == 0
-    await wire.ws.close()
+def test_the_writer_sends_control_first_then_topic_data_and_feedback_in_turn() -> None:
+    loop = asyncio.new_event_loop()
+    try:
+        writer = Writer(None, loop)  # type: ignore[arg-type]  # nothing is sent here
+        writer.outbox = Outbox()  # no wake: the writer's task is not started
+        topic: Topic[None] = Topic("/t", None, QoS(depth=5))
+        writer.outbox.subscribe(7, topic, QoS(depth=5))
+        control = writer.outbox.next()  # $/subscribed
+        assert control is not None and b"$/subscribed" in control
+        writer.feedback.put(1, b"f1")
+        writer.feedback.put(2, b"f2")
+        topic.publish(b"{}")
+        topic.publish(b"{}")
+        writer.outbox.push(b"reply")
+        order = []
+        while (taken := writer.next()) is not None:
+            data, goal = taken
+            order.append(goal if goal is not None else data[:12])
+        message = b'{"jsonrpc":"'  # a topic's $/message
+        assert order == [b"reply", 1, message, 2, message]  # data in turn, behind control
+    finally:
+        loop.close()
 
 
 async def test_a_cancel_on_the_wire_asks_the_goal_to_stop(

@@ -115,6 +115,26 @@ def test_a_bad_choice_is_refused_before_anything_runs() -> None:
     assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
 
 
+def test_the_topic_benchmark_runs_both_sides() -> None:
+    # A smoke run: both sides deliver every message to 1 and to 10 subscribers (srvwire's
+    # side asserts that none was dropped); the figures themselves are not judged here.
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "topics.py"), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = [line.split() for line in result.stdout.splitlines()[2:4]]
+    assert [row[0] for row in rows] == ["1", "10"], result.stdout
+    for row in rows:
+        raw, ours, ratio = (float(cell.replace(",", "")) for cell in row[1:])
+        assert raw > 0 and ours > 0
+        assert ratio == pytest.approx(ours / raw, abs=0.01)
+
+
 def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Path) -> None:
     out = tmp_path / "sync.json"
     result = subprocess.run(

@@ -161,7 +161,7 @@ def test_every_command_has_help_with_an_example(
 def test_call_help_documents_the_exit_codes(capsys: pytest.CaptureFixture[str]) -> None:
     _, out, _ = run(capsys, "call", "--help")
     assert "  4    deadline exceeded (DEADLINE_EXCEEDED)\n" in out
-    assert "  5    no such service (SERVICE_NOT_FOUND)\n" in out
+    assert "  5    no such service or topic (SERVICE_NOT_FOUND)\n" in out
 
 
 @pytest.mark.parametrize(

@@ -6,8 +6,9 @@ lines after one, up to the next ``$ ``, are its output; a following ``$ echo $?`
 code) and the lines of its ``sh`` blocks that start with ``srvwire ``. Each runs through
 ``main(argv)`` in a folder holding the files the page assumes. Samples that talk to a server
 get ``$SRVWIRE_URL``: the robot example's ``build_server()`` for the robot's services and for
-``srvwire service``, and a small server of the page's other services (``/add_two_ints``,
-``/trigger``, ...) for the rest. What cannot run here is listed in ``NOT_RUN``, with the reason.
+``srvwire service`` and ``srvwire topic``, and a small server of the page's other services
+(``/add_two_ints``, ``/trigger``, ...) for the rest. What cannot run here is listed in
+``NOT_RUN``, with the reason.
 """
 
 from __future__ import annotations
@@ -42,6 +43,10 @@ NOT_RUN = {
     ),
     "srvwire serve examples/robot_state_server.py:build_server --factory": (
         "serves until Ctrl-C; test_cli.py's serve tests cover --factory"
+    ),
+    "srvwire topic hz /joint_states": (
+        "prints the rate until Ctrl-C; test_cli_topics.py's test_hz_measures_the_rate runs it "
+        "with --count"
     ),
     "srvwire serve app.py --host 0.0.0.0 --certfile cert.pem --keyfile key.pem "
     "--client-ca clients.pem": (
@@ -237,7 +242,9 @@ def test_sample(
     sample: Sample,
 ) -> None:
     words = sample.command.split()
-    robot = words[1] in ("service", "action") or (words[1] == "call" and words[2] in ROBOT_SERVICES)
+    robot = words[1] in ("service", "topic", "action") or (
+        words[1] == "call" and words[2] in ROBOT_SERVICES
+    )
     monkeypatch.setenv("SRVWIRE_URL", servers.robot if robot else servers.other)
     command, output = sample.command, sample.output
     if "ws://localhost:9999" in command:  # a server that is not there: a port nobody uses

@@ -32,6 +32,7 @@ PAGES = sorted(DOCS.rglob("*.md"))
 RUN_ELSEWHERE = {
     "robot_state_server.py": "a server that runs until stopped: tests/test_examples.py",
     "robot_command_client.py": "needs the robot server: tests/test_examples.py",
+    "joint_state_publisher.py": "needs the robot server: tests/test_examples.py",
     "demo.py": "make demo; starts the robot server itself: tests/test_examples.py",
     "testing_services.py": "a pytest file: test_the_testing_page_passes_under_pytest",
     "testing_with_the_plugin.py": "a pytest file: test_the_testing_page_passes_under_pytest",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import logging
 import re
 import signal
 import socket
@@ -23,7 +24,7 @@ from typing import IO, Any
 
 import pytest
 
-from srvwire.client import connect
+from srvwire import connect
 from srvwire.errors import ServiceUnavailable
 from srvwire.server import serve
 from srvwire.transports.memory import MemoryTransport
@@ -45,6 +46,7 @@ def load_example(name: str) -> ModuleType:
 
 server_example = load_example("robot_state_server")
 client_example = load_example("robot_command_client")
+publisher_example = load_example("joint_state_publisher")
 
 
 class ServerProcess:
@@ -201,6 +203,36 @@ async def test_the_demo_sequence(robot_server: RunningServer) -> None:
     log = robot_server.log()
     assert "query 'position'" in log
     assert "command 'move'" in log
+
+
+async def test_the_joint_state_publisher_moves_the_robot(
+    robot_server: RunningServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="joint_state_publisher")
+    await publisher_example.publish(robot_server.url, rate=100.0, count=3)
+    last = publisher_example.joint_state(2).position
+    assert caplog.messages[-1] == f"the robot now reports {last}"
+    assert [m for m in caplog.messages if m.startswith("published")] == [
+        f"published joint states {publisher_example.joint_state(n).position}" for n in range(3)
+    ]
+    async with connect(robot_server.url, timeout=scaled(5)) as client:
+        response = await client.call("/get_robot_state", {"query_type": "position"})
+        assert response.values == last  # the state lives in the server, not the connection
+        echo = client.subscribe("/joint_states")  # transient_local: the latest, at once
+        async for message in echo:
+            assert message.position == last
+            break
+
+
+async def test_the_server_ignores_joint_states_of_another_robot(
+    node: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    JointState = server_example.JointState
+    node.on_joint_states(JointState(name=["a", "b"], position=[1.0, 2.0]))
+    assert node.state.joint_positions == [0.0] * 5
+    assert caplog.messages == ["ignoring a joint state with 2 positions; the robot has 5 joints"]
+    node.on_joint_states(JointState(position=[1.0, 2.0, 3.0, 4.0, 5.0]))
+    assert (await query(node, "position")).values == [1.0, 2.0, 3.0, 4.0, 5.0]
 
 
 def test_the_client_logs_each_answer(

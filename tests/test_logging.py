@@ -301,8 +301,10 @@ def run_script(
         while first and " serving " not in first:
             earlier.append(first)
             first = process.stderr.readline()
+        reach = process.stderr.readline()  # who can reach it, said right after
         process.send_signal(signal.SIGINT)
         _, rest = process.communicate(timeout=scaled(10))
+        rest = reach + rest
     finally:
         process.kill()
         process.wait()

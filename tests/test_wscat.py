@@ -190,6 +190,7 @@ def test_the_guide_is_what_wscat_shows(wscat: Terminal) -> None:
 
 def test_a_half_typed_line_gets_a_parse_error(wscat: Terminal) -> None:
     wscat.expect_reply(scaled(5))  # $/services
+    wscat.expect_reply(scaled(5))  # $/topics
     wscat.type_line('{"jsonrpc": "2.0", "id": 1, "method": "/get_robot_state", "par')
     reply = wscat.expect_reply(scaled(5))
     assert reply["id"] is None

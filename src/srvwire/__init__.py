@@ -3,7 +3,7 @@
 from srvwire import sync  # the blocking client: srvwire.sync.connect(url)
 from srvwire.actions import ClientGoal, GoalHandle, GoalResult
 from srvwire.auth import Identity, TokenAuth
-from srvwire.client import Client, ServiceInfo, ServiceProxy, connect
+from srvwire.client import Client, ServiceInfo, ServiceProxy, Subscription, TopicInfo, connect
 from srvwire.dispatch import Context
 from srvwire.errors import (
     Cancelled,
@@ -37,8 +37,10 @@ from srvwire.loader import (
     load_service,
 )
 from srvwire.models import Action, InfNan, Message, Service, ServiceRequest, TypedService
+from srvwire.pubsub import Publisher
 from srvwire.server import RunningServer, Server, serve
 from srvwire.threads import HandlerThreads
+from srvwire.topics import QoS
 from srvwire.transports.base import Handshake, Transport
 from srvwire.transports.memory import MemoryTransport
 from srvwire.typeregistry import TypeRegistry
@@ -72,6 +74,8 @@ __all__ = [
     "Message",
     "ParseError",
     "PermissionDenied",
+    "Publisher",
+    "QoS",
     "RPCError",
     "RegistrationError",
     "ResourceExhausted",
@@ -85,7 +89,9 @@ __all__ = [
     "ServiceRequest",
     "ServiceUnavailable",
     "SrvwireError",
+    "Subscription",
     "TokenAuth",
+    "TopicInfo",
     "Transport",
     "TypeRegistry",
     "TypedService",

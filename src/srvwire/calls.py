@@ -49,7 +49,9 @@ __all__ = [
     "SrvType",
     "TypeResolver",
     "check_timeout",
+    "encode_message",
     "encode_request",
+    "remote_message",
     "validate_request",
 ]
 
@@ -284,6 +286,59 @@ class ServiceTypes:
         if codec is None:
             codec = self._by_class[service] = ServiceCodec(service, self._inf_nan)
         return codec
+
+
+def encode_message(topic: str, msg_type: type[BaseModel], message: Any) -> str:
+    """Validate a message for ``topic`` and return its JSON text; raise
+    :class:`~srvwire.errors.InvalidParams` with the fields' paths (``message.position[0]``)."""
+    if type(message) is not msg_type:
+        if isinstance(message, BaseModel):
+            raise TypeError(
+                f"{topic} takes {getattr(msg_type, 'type_name', msg_type.__name__)} messages, "
+                f"not {type(message).__qualname__}"
+            )
+        try:
+            message = validate_python(msg_type, message)
+        except ValidationError as exc:
+            data = error_data(exc)
+            for error in data["errors"]:
+                path = error["path"]
+                error["path"] = "message" + ("" if path[:1] in ("", "[") else ".") + path
+            raise InvalidParams(
+                f"invalid message for {topic}: "
+                f"{summarize_errors(data['errors'], exc.error_count())}",
+                data,
+                service=topic,
+            ) from None
+    try:
+        return dump_json(message).decode()
+    except PydanticSerializationError:
+        errors = unencodable_strings(message) or [
+            {"path": "", "message": "cannot be written as JSON", "type": "serialization_error"}
+        ]
+        raise InvalidParams(
+            f"invalid message for {topic}: {summarize_errors(errors)}",
+            listed_errors(errors),
+            service=topic,
+        ) from None
+
+
+def remote_message(
+    name: str,
+    definitions: Mapping[str, str],
+    source: str,
+    resolve_message: MessageResolver,
+    types: TypeRegistry | None = None,
+) -> type[Message]:
+    """The message type ``name`` (a topic's), local first, else built from ``definitions``
+    (the server's, from ``source``), checked as a service's types are."""
+    nested = _RemoteMessages(
+        definitions, source, resolve_message, process_types() if types is None else types
+    )
+    for other in definitions:
+        if _is_message_name(other):
+            nested.check(other)
+    return nested.load(name)
 
 
 def _is_message_name(name: str) -> bool:

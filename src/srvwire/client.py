@@ -52,7 +52,9 @@ import os
 import random
 import ssl as _ssl
 import urllib.parse
+from collections import deque
 from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType, TracebackType
 from typing import Any, Generic, TypeVar, overload
 
@@ -67,7 +69,9 @@ from srvwire.calls import (
     SrvType,
     TypeResolver,
     check_timeout,
+    encode_message,
     encode_request,
+    remote_message,
 )
 from srvwire.dispatch import service_not_found
 from srvwire.errors import (
@@ -75,12 +79,13 @@ from srvwire.errors import (
     DeadlineExceeded,
     InterfaceNotFoundError,
     InternalError,
+    ResourceExhausted,
     RPCError,
     ServiceNotFound,
     ServiceUnavailable,
 )
 from srvwire.inline import Pending, finish_within, first_step
-from srvwire.link import Link, LoggerLike, foreign_loop
+from srvwire.link import Arrived, Link, LoggerLike, foreign_loop
 from srvwire.loader import SearchPath, load_action, load_message, load_service
 from srvwire.models import (
     INF_NAN_MODES,
@@ -94,7 +99,18 @@ from srvwire.models import (
     error_data,
     summarize_errors,
 )
-from srvwire.protocol import DISCOVER_METHOD, ProtocolViolation, canonical_name
+from srvwire.protocol import (
+    DISCOVER_METHOD,
+    PUBLISH_METHOD,
+    SUBSCRIBE_METHOD,
+    Notification,
+    ProtocolViolation,
+    RawJSON,
+    canonical_name,
+    encode_json,
+)
+from srvwire.session import Subscribed, TopicMessage
+from srvwire.topics import Gaps
 from srvwire.transports import get_transport
 from srvwire.transports.base import Headers, Options, Transport, TransportClosed
 
@@ -104,6 +120,8 @@ __all__ = [
     "Client",
     "ServiceInfo",
     "ServiceProxy",
+    "Subscription",
+    "TopicInfo",
     "connect",
 ]
 
@@ -152,6 +170,9 @@ class Client:
         self._link: Link | None = None
         self._supervisor: asyncio.Task[None] | None = None
         self._services: dict[str, str] = {}
+        self._topics: dict[str, dict[str, Any]] = {}
+        self._message_types: dict[str, type[BaseModel]] = {}
+        self._subscriptions: set[Subscription] = set()
         self._changed = asyncio.Event()
         self._background: set[asyncio.Task[None]] = set()
         self._opened = False
@@ -194,6 +215,8 @@ class Client:
         # Take the link before stopping the supervisor: nothing that happens to the
         # supervisor may make this client forget a connection it still has to close.
         link = self._link
+        for subscription in list(self._subscriptions):
+            subscription._detach()  # ends with the connection: nothing to tell the server
         if self._supervisor is not None:
             self._supervisor.cancel()
             await asyncio.gather(self._supervisor, return_exceptions=True)
@@ -256,6 +279,9 @@ class Client:
         link.start()
         self.logger.debug("connected to %s, %d services", self.url, len(services))
         self._pulse()
+        for subscription in list(self._subscriptions):
+            if subscription._resuming:
+                self.spawn(subscription._resume())
 
     async def _supervise(self) -> None:
         """Keep a connection open: re-dial with backoff whenever there is none."""
@@ -292,12 +318,20 @@ class Client:
             self._description = None
             self._pulse()
 
+    def topics_changed(self, link: Link, topics: dict[str, dict[str, Any]]) -> None:
+        """The server sent ``$/topics``: replace the topics, wake the waiters."""
+        if self._link is link:
+            self._topics = topics
+            self._description = None
+            self._pulse()
+
     def forget(self, link: Link) -> bool:
         """``link`` ended: forget it if it is the current one (and say so)."""
         if self._link is not link:
             return False
         self._link = None
         self._services = {}
+        self._topics = {}
         self._pulse()
         return True
 
@@ -572,6 +606,24 @@ class Client:
             if isinstance(entry, dict)
             and isinstance(entry.get("name"), str)
             and isinstance(entry.get("x-srvwire-type"), str)
+            and entry.get("x-srvwire-kind", "service") == "service"
+        ]
+        return sorted(found, key=lambda info: info.name)
+
+    async def list_actions(
+        self,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> list[ServiceInfo]:
+        """Ask the server for every action it offers (``rpc.discover``), sorted by name."""
+        methods = await self._discover(timeout)
+        found = [
+            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
+            for entry in methods
+            if isinstance(entry, dict)
+            and isinstance(entry.get("name"), str)
+            and isinstance(entry.get("x-srvwire-type"), str)
+            and entry.get("x-srvwire-kind") == "action"
         ]
         return sorted(found, key=lambda info: info.name)
 
@@ -674,6 +726,252 @@ class Client:
         finally:
             self._describing.release()
 
+    # --- topics -----------------------------------------------------------------------------
+
+    @property
+    def topics(self) -> Mapping[str, str]:
+        """The topics the server announced (``$/topics``): canonical name -> message type.
+
+        A read-only snapshot; empty while not connected, or for a server without topics.
+        """
+        return MappingProxyType({name: entry["type"] for name, entry in self._topics.items()})
+
+    async def topic_type(
+        self,
+        name: str,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> type[BaseModel]:
+        """Return the message class of the topic ``name``, as :meth:`subscribe` finds it."""
+        topic = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        deadline = asyncio.get_running_loop().time() + budget
+        link = self._link
+        if link is None:
+            raise self._not_connected(topic)
+        return await self._topic_type(link, topic, None, deadline, budget)
+
+    async def list_topics(
+        self,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> list[TopicInfo]:
+        """Ask the server for every topic it offers (``rpc.discover``), sorted by name."""
+        methods = await self._discover(timeout)
+        found = [
+            TopicInfo.of(
+                canonical_name(entry["name"]),
+                {
+                    "type": entry.get("x-srvwire-type"),
+                    "qos": entry.get("x-srvwire-qos"),
+                    "publish": entry.get("x-srvwire-publish"),
+                },
+            )
+            for entry in methods
+            if isinstance(entry, dict)
+            and entry.get("x-srvwire-kind") == "topic"
+            and isinstance(entry.get("name"), str)
+        ]
+        return sorted(found, key=lambda info: info.name)
+
+    def subscribe(
+        self,
+        name: str,
+        msg_type: type[BaseModel] | str | None = None,
+        *,
+        qos: Mapping[str, Any] | None = None,
+        timeout: float | None = None,
+    ) -> Subscription:
+        """Subscribe to the topic ``name``: ``async for msg in client.subscribe(name):``.
+
+        Messages are typed: ``msg_type`` (a class, or a type name), else the type the server
+        announced, found as :func:`connect` says for calls (local first, then the server's
+        description). ``qos`` asks for ``depth``, ``reliability`` and ``durability`` (default:
+        the topic's); ``timeout`` bounds the subscribing (default: the client's timeout).
+
+        Used with ``async for`` alone, leaving the loop ends the subscription; ``async with
+        client.subscribe(name) as sub:`` holds it until the block ends, and ``async for msg in
+        sub`` inside it may be left and taken up again. With ``reconnect=True`` a subscription
+        resumes after the connection comes back, and counts the messages it missed
+        (:attr:`Subscription.dropped`). Iterating raises the error that ended it:
+        ``ServiceNotFound`` (no such topic, or it was removed), ``PermissionDenied``,
+        ``ResourceExhausted`` (a reliable subscriber that did not keep up), ``ConnectionLost``.
+        """
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        return Subscription(self, canonical_name(name), msg_type, qos, budget)
+
+    async def publish(
+        self,
+        name: str,
+        message: BaseModel | Mapping[str, Any],
+        /,
+        *,
+        msg_type: type[BaseModel] | str | None = None,
+        ack: bool = False,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> None:
+        """Publish ``message`` on the topic ``name`` (a model, or a mapping of its fields).
+
+        It is validated here first (:class:`~srvwire.errors.InvalidParams` with the fields'
+        paths, before anything is sent) and sent as a notification, which returns once it is
+        written. With ``ack=True`` it is a request: it returns once the server took the
+        message, and raises what the server refused it with (``InvalidParams``,
+        ``PermissionDenied``, ``ServiceNotFound``).
+        """
+        topic = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        deadline = (self._loop or asyncio.get_running_loop()).time() + budget
+        link = self._link
+        if link is None:
+            raise self._not_connected(topic)
+        cls = await self._topic_type(link, topic, msg_type, deadline, budget)
+        params = (
+            '{"topic":'
+            + encode_json(topic)
+            + ',"message":'
+            + encode_message(topic, cls, message)
+            + "}"
+        )
+        if not ack:
+            await self._send(link, topic, Notification(PUBLISH_METHOD, RawJSON(params)).serialize())
+            return
+        reply = await link.roundtrip(PUBLISH_METHOD, params, deadline, budget)
+        try:
+            reply.decode()
+        except (RPCError, ProtocolViolation) as exc:
+            raise link.failure(topic, exc) from None
+
+    async def notify(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        srv_type: SrvType | None = None,
+    ) -> None:
+        """Call the service ``name`` without waiting for an answer (a JSON-RPC notification).
+
+        The request is typed and validated as :meth:`call` does it; nothing comes back, not
+        even an error: the server logs what fails.
+        """
+        method = canonical_name(name)
+        link = self._link
+        if link is None:
+            raise self._not_connected(method)
+        advertised = self._services.get(method)
+        codec = self._types.known(srv_type, advertised)
+        if codec is None:
+            named = srv_type if isinstance(srv_type, str) else advertised
+            if named is not None:
+                budget = self.timeout
+                deadline = asyncio.get_running_loop().time() + budget
+                codec = await self._type_of(link, method, named, deadline, budget)
+        params = encode_request(method, codec, request)
+        await self._send(link, method, Notification(method, RawJSON(params)).serialize())
+
+    async def wait_for_topic(
+        self,
+        name: str,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - gives up with ServiceUnavailable
+    ) -> TopicInfo:
+        """Wait until the server announces the topic ``name``; return what it says of it.
+
+        Woken by ``$/topics`` (no polling). Raise
+        :class:`~srvwire.errors.ServiceUnavailable` when ``timeout`` (default: the client's)
+        passes first, and ``ConnectionLost`` at once when the connection is down for good.
+        """
+        topic = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        deadline = asyncio.get_running_loop().time() + budget
+        while self._link is None or topic not in self._topics:
+            if self._closed or (self._link is None and not self.options.reconnect):
+                raise self._not_connected(topic)
+            try:
+                async with asyncio.timeout_at(deadline):
+                    await self._changed.wait()
+            except TimeoutError:
+                if self._link is not None and topic in self._topics:
+                    break
+                raise ServiceUnavailable(
+                    f"the topic was not announced within {budget:g} s",
+                    {"url": self.url, "timeout": budget},
+                    service=topic,
+                ) from None
+        return TopicInfo.of(topic, self._topics[topic])
+
+    async def _send(self, link: Link, method: str, data: bytes) -> None:
+        try:
+            await link.conn.send(data)
+        except TransportClosed as exc:
+            closed = {"close_code": exc.code, "close_reason": exc.reason, "url": self.url}
+            raise ConnectionLost(str(exc), closed, service=method) from exc
+
+    async def _topic_type(
+        self,
+        link: Link,
+        topic: str,
+        msg_type: type[BaseModel] | str | None,
+        deadline: float,
+        budget: float,
+    ) -> type[BaseModel]:
+        """The message class of ``topic``: given, else by its name from the local search path,
+        else from the server's description (``rpc.discover``)."""
+        if msg_type is not None and not isinstance(msg_type, str):
+            return msg_type
+        named = msg_type if msg_type is not None else self._topics.get(topic, {}).get("type")
+        if named is not None:
+            known = self._message_types.get(named) or self._local_message(named)
+            if known is not None:
+                return known
+        try:
+            methods = await self._methods(link, deadline, budget)
+        except (ServiceNotFound, InternalError):  # a server that does not describe types
+            methods = []
+        entry = next(
+            (
+                m
+                for m in methods
+                if isinstance(m, dict)
+                and m.get("x-srvwire-kind") == "topic"
+                and isinstance(m.get("name"), str)
+                and canonical_name(m["name"]) == topic
+            ),
+            None,
+        )
+        if named is None:
+            if entry is None or not isinstance(entry.get("x-srvwire-type"), str):
+                topics = ", ".join(sorted(self._topics)) or "none"
+                raise ServiceNotFound(
+                    f"the server has no topic named {topic} (topics: {topics})", service=topic
+                )
+            named = str(entry["x-srvwire-type"])
+            known = self._local_message(named)
+            if known is not None:
+                return known
+        definitions = {} if entry is None else _definitions_of(entry)
+        if named not in definitions:
+            raise InterfaceNotFoundError(
+                named,
+                f"cannot type the messages of {topic}: {named} is not on the local search "
+                f"path, and the server {self.url} does not describe it",
+            )
+        cls = remote_message(
+            named, definitions, f"server {self.url}", self.options.message_resolver
+        )
+        self._message_types[named] = cls
+        return cls
+
+    def _local_message(self, name: str) -> type[BaseModel] | None:
+        if len(name.split("/")) != 3:
+            return None
+        try:
+            cls: type[BaseModel] = self.options.message_resolver(name)
+        except InterfaceNotFoundError:
+            return None
+        self._message_types[name] = cls
+        return cls
+
     def _not_connected(self, method: str) -> ConnectionLost:
         if not self._closed:
             self._check_loop()  # a client whose loop ended has lost its connection with it
@@ -725,7 +1023,333 @@ def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
         if isinstance(entry, dict)
         and isinstance(entry.get("name"), str)
         and "x-srvwire-definitions" in entry
+        and entry.get("x-srvwire-kind", "service") in ("service", "action")
     }
+
+
+@dataclass(frozen=True, slots=True)
+class TopicInfo:
+    """A topic as the server announces it: name, message type, QoS, whether clients may
+    publish on it."""
+
+    name: str
+    type: str
+    qos: Mapping[str, Any]
+    publish: bool
+
+    @classmethod
+    def of(cls, name: str, entry: Mapping[str, Any]) -> TopicInfo:
+        qos = entry.get("qos")
+        return cls(
+            name,
+            str(entry.get("type", "")),
+            MappingProxyType(dict(qos) if isinstance(qos, dict) else {}),
+            entry.get("publish") is True,
+        )
+
+
+class Subscription:
+    """A subscription to a topic: what :meth:`Client.subscribe` returns.
+
+    An async iterator of typed messages, and an async context manager that holds the
+    subscription for the block. Started on entry or on the first message asked for. What it
+    counts: :attr:`seq`, the sequence number of the last message returned; :attr:`missed`,
+    how many the subscriber did not get just before it; :attr:`dropped`, how many it did not
+    get in all (dropped by a best-effort queue, here or on the server, or published while the
+    connection was down); :attr:`granted`, the QoS the server granted.
+
+    Messages arrive in a queue of the granted ``depth``: a best-effort subscriber that does
+    not keep up loses the oldest (counted in :attr:`dropped`), a reliable one is ended with
+    :class:`~srvwire.errors.ResourceExhausted`, as on the server.
+    """
+
+    def __init__(
+        self,
+        client: Client,
+        name: str,
+        msg_type: type[BaseModel] | str | None,
+        qos: Mapping[str, Any] | None,
+        budget: float,
+    ) -> None:
+        self.client = client
+        self.name = name
+        self.msg_type = msg_type
+        self.qos = None if qos is None else dict(qos)
+        self.budget = budget
+        self.granted: dict[str, Any] = {}
+        self.gaps = Gaps()
+        self.seq: int | None = None
+        self.missed = 0
+        self._decoder: ModelDecoder[BaseModel] | None = None
+        self._queue: deque[tuple[int, int, BaseModel]] = deque()
+        self._limit = 1
+        self._best_effort = False
+        self._end: BaseException | None = None
+        self._wakeup: asyncio.Future[None] | None = None
+        self._started: asyncio.Future[None] | None = None
+        self._link: Link | None = None
+        self._id: int | None = None
+        self._future: asyncio.Future[Arrived] | None = None
+        self._opened = False
+        self._managed = False
+        self._closed = False
+        self._resuming = False
+
+    def __repr__(self) -> str:
+        return f"<Subscription to {self.name}, {len(self._queue)} queued>"
+
+    @property
+    def dropped(self) -> int:
+        """How many messages this subscriber did not get, in all."""
+        return self.gaps.missed
+
+    @property
+    def active(self) -> bool:
+        """Whether the subscription runs (or is resuming), and has not ended."""
+        return self._opened and self._end is None
+
+    # --- lifetime ---------------------------------------------------------------------------
+
+    async def start(self) -> Subscription:
+        """Subscribe, and return once the server said ``$/subscribed``; idempotent."""
+        if self._opened:
+            return self
+        self._opened = True
+        self.client._subscriptions.add(self)
+        try:
+            await self._subscribe()
+        except BaseException:
+            self._closed = True
+            self.client._subscriptions.discard(self)
+            raise
+        return self
+
+    async def close(self) -> None:
+        """End the subscription (``$/cancel``); the messages queued here are dropped."""
+        if self._closed:
+            return
+        self._closed = True
+        self._resuming = False
+        self.client._subscriptions.discard(self)
+        link, id, future = self._link, self._id, self._future
+        self._link = self._id = self._future = None
+        if link is not None and id is not None:
+            link.streams.pop(id, None)
+            data = link.session.cancel(id)
+            if future is not None:
+                future.cancel()
+            if data is not None:
+                await link.send_quietly(data)
+        self._queue.clear()
+        self._finish(StopAsyncIteration())
+
+    async def __aenter__(self) -> Subscription:
+        self._managed = True
+        return await self.start()
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    def __aiter__(self) -> AsyncIterator[BaseModel]:
+        return self._messages()
+
+    async def _messages(self) -> AsyncIterator[BaseModel]:
+        try:
+            while True:
+                try:
+                    message = await self.receive()
+                except StopAsyncIteration:
+                    return
+                yield message
+        finally:
+            if not self._managed:
+                await self.close()
+
+    async def receive(self) -> BaseModel:
+        """Return the next message; raise the error that ended the subscription, or
+        ``StopAsyncIteration`` once it was closed."""
+        if not self._opened:
+            await self.start()
+        queue = self._queue
+        while not queue:
+            if self._end is not None:
+                raise self._end
+            self._wakeup = asyncio.get_running_loop().create_future()
+            try:
+                await self._wakeup
+            finally:
+                self._wakeup = None
+        seq, missed, message = queue.popleft()
+        self.seq, self.missed = seq, missed
+        return message
+
+    # --- the wire ---------------------------------------------------------------------------
+
+    async def _subscribe(self) -> None:
+        client = self.client
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.budget
+        link = client._link
+        if link is None:
+            raise client._not_connected(self.name)
+        if self._decoder is None:
+            cls = await client._topic_type(link, self.name, self.msg_type, deadline, self.budget)
+            self._decoder = ModelDecoder(cls)
+        params: dict[str, Any] = {"topic": self.name}
+        if self.qos is not None:
+            params["qos"] = self.qos
+        future: asyncio.Future[Arrived] = loop.create_future()
+        id, data = link.session.request(SUBSCRIBE_METHOD, encode_json(params), None, future)
+        self._link, self._id, self._future = link, id, future
+        started = self._started = loop.create_future()
+        link.streams[id] = self
+        future.add_done_callback(functools.partial(self._ended, id))
+        await client._send(link, self.name, data)
+        try:
+            async with asyncio.timeout_at(deadline):
+                await asyncio.shield(started)
+        except TimeoutError:
+            await self.close()
+            raise DeadlineExceeded(
+                f"the server did not start the subscription within {self.budget:g} s",
+                {"timeout": self.budget},
+                service=self.name,
+            ) from None
+
+    async def _resume(self) -> None:
+        """Subscribe again on the client's new connection."""
+        self._resuming = False
+        if self._closed:
+            return
+        try:
+            await self._subscribe()
+        except RPCError as exc:
+            self._finish(exc)
+
+    def started(self, event: Subscribed) -> None:
+        """The server's ``$/subscribed``."""
+        granted = self.granted = event.granted
+        seq = granted.get("seq")
+        resumed = self.gaps.last is not None
+        self.gaps.subscribed(seq if type(seq) is int else 0)
+        depth = granted.get("depth")
+        self._limit = depth if type(depth) is int and depth > 0 else 10
+        self._best_effort = granted.get("reliability") == "best_effort"
+        if resumed:
+            self.client.logger.warning(
+                "resumed the subscription to %s after reconnecting (last message seen: %s)",
+                self.name,
+                self.gaps.last,
+            )
+        if self._started is not None and not self._started.done():
+            self._started.set_result(None)
+
+    def deliver(self, event: TopicMessage) -> None:
+        """One ``$/message`` for this subscription."""
+        missed = self.gaps.accept(event.seq, event.dropped)
+        if missed is None:
+            return  # replayed after a reconnection, and seen already
+        decoder = self._decoder
+        assert decoder is not None
+        try:
+            message = (
+                decoder.from_json(event.message) if event.raw else decoder.from_data(event.message)
+            )
+        except ValueError as exc:
+            self._abandon(
+                InternalError(
+                    f"a message on {self.name} does not match its type: {exc}", service=self.name
+                )
+            )
+            return
+        queue = self._queue
+        if len(queue) >= self._limit:
+            if not self._best_effort:
+                self._abandon(
+                    ResourceExhausted(
+                        f"this subscriber to {self.name} did not keep up: its queue of "
+                        f"{self._limit} messages was full, and the subscription is reliable",
+                        {"depth": self._limit, "seq": event.seq},
+                        service=self.name,
+                    )
+                )
+                return
+            queue.popleft()
+            self.gaps.missed += 1
+            missed += 1
+        queue.append((event.seq, missed, message))
+        self._wake()
+
+    def _ended(self, id: int, future: asyncio.Future[Arrived]) -> None:
+        """The subscription's request got its reply (or the connection ended)."""
+        link = self._link
+        if self._id != id or link is None:
+            return  # an earlier one, or closed here
+        link.streams.pop(id, None)
+        self._link = self._id = self._future = None
+        if future.cancelled():
+            return
+        error = future.exception()
+        if error is None:
+            try:
+                future.result().decode()
+            except (RPCError, ProtocolViolation) as exc:
+                error = link.failure(self.name, exc)
+            else:
+                error = StopAsyncIteration()
+        client = self.client
+        if isinstance(error, ConnectionLost) and client.options.reconnect and not client.closed:
+            self._resuming = True  # the client resubscribes when it has a connection again
+            return
+        if isinstance(error, RPCError):
+            error.service = self.name
+        self._finish(error)
+
+    def _detach(self) -> None:
+        """The client is closing: end quietly, as the connection's end ends it on the server."""
+        self._closed = True
+        self._resuming = False
+        link, id, future = self._link, self._id, self._future
+        self._link = self._id = self._future = None
+        if link is not None and id is not None:
+            link.streams.pop(id, None)
+            link.session.pending.pop(id, None)
+        if future is not None:
+            future.cancel()
+        self._finish(StopAsyncIteration())
+
+    def _abandon(self, error: RPCError) -> None:
+        """End the subscription from this side with ``error``, telling the server."""
+        link, id = self._link, self._id
+        if link is not None and id is not None:
+            link.streams.pop(id, None)
+            data = link.session.cancel(id)
+            if self._future is not None:
+                self._future.cancel()
+            if data is not None:
+                self.client.spawn(link.send_quietly(data))
+        self._link = self._id = self._future = None
+        self.client._subscriptions.discard(self)
+        self._finish(error)
+
+    def _finish(self, error: BaseException) -> None:
+        self.client._subscriptions.discard(self)
+        if self._end is None:
+            self._end = error
+        if self._started is not None and not self._started.done():
+            self._started.set_exception(error)
+            self._started.exception()  # retrieved: start() raises it, or nobody waits
+        self._wake()
+
+    def _wake(self) -> None:
+        wakeup = self._wakeup
+        if wakeup is not None and not wakeup.done():
+            wakeup.set_result(None)
 
 
 class ServiceProxy(Generic[R]):

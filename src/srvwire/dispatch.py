@@ -90,6 +90,7 @@ from srvwire.models import (
 )
 from srvwire.protocol import Id, canonical_name, encode_json
 from srvwire.threads import ConcurrencyLimit
+from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, process_types
 from srvwire.version import __version__
 
@@ -415,12 +416,18 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
 
 
 def nested_messages(srv_type: type[Service]) -> list[type[Message]]:
-    """Every message class ``srv_type``'s request and response nest, at any depth, by name."""
-    found: dict[str, type[Message]] = {}
-    todo: list[type[BaseModel]] = [srv_type.Request, srv_type.Response]
+    """Every message class ``srv_type``'s request and response nest (and an action's
+    feedback), at any depth, by name."""
     feedback = getattr(srv_type, "Feedback", None)  # an action's
     if feedback is not None:
-        todo.append(feedback)
+        return nested_messages_of(srv_type.Request, srv_type.Response, feedback)
+    return nested_messages_of(srv_type.Request, srv_type.Response)
+
+
+def nested_messages_of(*models: type[BaseModel]) -> list[type[Message]]:
+    """Every message class ``models`` nest, at any depth, by name."""
+    found: dict[str, type[Message]] = {}
+    todo: list[type[BaseModel]] = list(models)
     while todo:
         model = todo.pop()
         for info in model.model_fields.values():
@@ -502,6 +509,8 @@ class ServiceRegistry:
         self.inf_nan: InfNan = inf_nan
         self._entries: dict[str, ServiceEntry] = {}
         self._discovery: dict[frozenset[str] | None, str] = {}  # by the scopes it shows
+        self.topics: TopicBoard[Any] = TopicBoard()
+        """The server's topics (their entries are :class:`srvwire.pubsub.TopicEntry`)."""
         self.types = process_types() if types is None else types
 
     def add(
@@ -626,8 +635,13 @@ class ServiceRegistry:
         return {
             "openrpc": "1.3.2",
             "info": {"title": "srvwire", "version": __version__},
-            "methods": [entry.describe() for entry in self.visible(scopes)],
+            "methods": [entry.describe() for entry in self.visible(scopes)]
+            + [topic.entry.describe(topic) for topic in self.topics.visible(scopes)],
         }
+
+    def topics_changed(self) -> None:
+        """The topics changed: describe them again when asked."""
+        self._discovery.clear()
 
     def discover_json(self, scopes: frozenset[str] | None = None) -> str:
         """Return :meth:`discover` as JSON text, cached until the services change."""

@@ -50,7 +50,15 @@ from srvwire.protocol import (
     Response,
     cancel_notification,
 )
-from srvwire.session import ClientSession, Notice, ServicesChanged, Stray
+from srvwire.session import (
+    ClientSession,
+    Notice,
+    ServicesChanged,
+    Stray,
+    Subscribed,
+    TopicMessage,
+    TopicsChanged,
+)
 from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 
 __all__ = [
@@ -60,6 +68,7 @@ __all__ = [
     "Link",
     "LoggerLike",
     "Owner",
+    "Stream",
     "foreign_loop",
 ]
 
@@ -106,6 +115,10 @@ class Owner(Protocol):
         """``link``'s server sent ``$/services``; news only while it is the current link."""
         ...
 
+    def topics_changed(self, link: Link, topics: dict[str, dict[str, Any]]) -> None:
+        """``link``'s server sent ``$/topics``; news only while it is the current link."""
+        ...
+
     def forget(self, link: Link) -> bool:
         """Drop ``link`` if it is the current one; return whether it was."""
         ...
@@ -119,10 +132,18 @@ class Follower(Protocol):
     def news(self, news: GoalNews) -> None: ...
 
 
+class Stream(Protocol):
+    """What a link needs of a subscription: where its ``$/subscribed`` and messages go."""
+
+    def started(self, event: Subscribed) -> None: ...
+
+    def deliver(self, event: TopicMessage) -> None: ...
+
+
 class Link:
     """One open connection of a client and the calls waiting on it."""
 
-    __slots__ = ("conn", "goals", "limit", "loop", "owner", "reader", "session")
+    __slots__ = ("conn", "goals", "limit", "loop", "owner", "reader", "session", "streams")
 
     def __init__(self, owner: Owner, conn: Connection, limit: int | None = None) -> None:
         self.owner = owner
@@ -132,6 +153,7 @@ class Link:
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
         self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
+        self.streams: dict[int, Stream] = {}  # subscriptions on this connection, by id
 
     @classmethod
     async def open(
@@ -199,13 +221,24 @@ class Link:
                     self.violation(exc)
                     break
                 for event in events:
-                    if type(event) is tuple:
+                    kind = type(event)
+                    if kind is TopicMessage:
+                        stream = self.streams.get(event.id)
+                        if stream is not None:  # else cancelled: its last messages are late
+                            stream.deliver(event)
+                    elif kind is tuple:
                         future = event[0]
                         if not future.done():
                             future.set_result(event[1])
-                    elif type(event) is ServicesChanged:
+                    elif kind is ServicesChanged:
                         owner.services_changed(self, event.services)
-                    elif type(event) is Notice:
+                    elif kind is Subscribed:
+                        stream = self.streams.get(event.id)
+                        if stream is not None:
+                            stream.started(event)
+                    elif kind is TopicsChanged:
+                        owner.topics_changed(self, event.topics)
+                    elif kind is Notice:
                         self.notice(event)
                     else:
                         assert type(event) is Stray

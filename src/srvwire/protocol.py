@@ -99,6 +99,21 @@ SERVICES_METHOD = "$/services"
 DISCOVER_METHOD = "rpc.discover"
 """Method that returns the OpenRPC document describing every service."""
 
+SUBSCRIBE_METHOD = "$/subscribe"
+"""A long-lived request to receive a topic; its reply ends the subscription."""
+
+SUBSCRIBED_METHOD = "$/subscribed"
+"""The server's notification that a subscription started, with the QoS granted."""
+
+MESSAGE_METHOD = "$/message"
+"""One message of a subscription: ``subscription``, ``seq``, ``dropped``, ``message``."""
+
+PUBLISH_METHOD = "$/publish"
+"""A message a client publishes on a topic (a notification, or a request to be answered)."""
+
+TOPICS_METHOD = "$/topics"
+"""The server's announcement of its topics, as ``$/services`` is of its services."""
+
 MAX_DEPTH = 200
 """How many arrays and objects may enclose a value in one message; deeper input is a parse error.
 

@@ -32,10 +32,12 @@ import logging
 import signal
 import ssl as _ssl
 import threading
-from collections.abc import Callable, Generator, Iterable
+from collections.abc import Callable, Generator, Iterable, Mapping
 from concurrent.futures import Executor
 from types import TracebackType
 from typing import Any, TypeVar
+
+from pydantic import BaseModel
 
 from srvwire.actions import DEFAULT_CANCEL_GRACE, Accept, GoalRunner, goal_service
 from srvwire.auth import Authenticator
@@ -43,8 +45,10 @@ from srvwire.dispatch import Handler, ServiceRegistry, normalize_name
 from srvwire.errors import RegistrationError, ServiceUnavailable
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
 from srvwire.models import INF_NAN_MODES, Action, InfNan, Service
+from srvwire.pubsub import Publisher, TopicEntry, check_handler, qos_of
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
+from srvwire.topics import QoS, Topic
 from srvwire.transports import get_transport
 from srvwire.transports.base import (
     Admitted,
@@ -62,6 +66,8 @@ from srvwire.transports.base import (
 __all__ = ["RunningServer", "Server", "serve"]
 
 H = TypeVar("H", bound=Handler)
+T = TypeVar("T", bound=Callable[[Any], Any])
+M = TypeVar("M", bound=BaseModel)
 
 # Marks the log lines that say the server started or is stopping, for a caller that prints
 # them its own way (srvwire serve) to leave out: record.srvwire_lifecycle is True.
@@ -349,6 +355,52 @@ class Server:
 
         return register
 
+    # --- topics -----------------------------------------------------------------------------
+
+    def topic(
+        self,
+        name: str,
+        msg_type: type[M],
+        *,
+        qos: QoS | Mapping[str, Any] | None = None,
+        scopes: Iterable[str] = (),
+    ) -> Publisher[M]:
+        """Declare the topic ``name`` of ``msg_type`` and return its :class:`Publisher`.
+
+        ``qos`` is a :class:`~srvwire.topics.QoS` or a mapping of its settings (default: keep
+        the last 10, reliable, volatile); with ``scopes`` only a connection holding them all
+        may subscribe (or see it). Declaring a topic ``@subscription`` declared already
+        returns its publisher (the type must be the same). Call it on the server's loop (or
+        before serving); connected clients get ``$/topics``.
+        """
+        topic = self._declare_topic(name, msg_type, qos, scopes)
+        return Publisher(topic)
+
+    def subscription(
+        self,
+        name: str,
+        msg_type: type[BaseModel],
+        *,
+        qos: QoS | Mapping[str, Any] | None = None,
+        scopes: Iterable[str] = (),
+    ) -> Callable[[T], T]:
+        """Decorate a handler of the messages clients publish on ``name``; returned unchanged.
+
+        The handler takes the typed message: ``def on_joint_states(msg)`` runs on the event
+        loop as the message arrives (keep it quick), ``async def`` in a task of its own. A
+        message that does not fit the type is answered ``INVALID_PARAMS`` (when the client
+        asked for an answer) and the handler never sees it. What clients publish is also
+        delivered to the topic's subscribers.
+        """
+
+        def register(handler: T) -> T:
+            check_handler(normalize_name(name), handler)
+            topic = self._declare_topic(name, msg_type, qos, scopes, accepts=True)
+            topic.entry.handlers.append(handler)
+            return handler
+
+        return register
+
     def summary(self) -> str:
         """What the server offers, for its startup line: ``2 services and 1 action``."""
         actions = sum(1 for entry in self.registry if isinstance(entry.handler, GoalRunner))
@@ -357,6 +409,61 @@ class Server:
         if actions:
             said += f" and {actions} {'action' if actions == 1 else 'actions'}"
         return said
+
+    def remove_topic(self, name: str) -> None:
+        """Remove the topic ``name``: its subscriptions end with an error that says so, and
+        connected clients get ``$/topics``. Raise RegistrationError when there is none."""
+        canonical = normalize_name(name)
+        try:
+            self.registry.topics.remove(canonical)
+        except KeyError:
+            raise RegistrationError(f"no topic named {canonical} is declared") from None
+        self.registry.topics_changed()
+        self._services_changed()
+
+    def _declare_topic(
+        self,
+        name: str,
+        msg_type: type[BaseModel],
+        qos: QoS | Mapping[str, Any] | None,
+        scopes: Iterable[str],
+        *,
+        accepts: bool = False,
+    ) -> Topic[TopicEntry]:
+        canonical = normalize_name(name)
+        if isinstance(scopes, str):
+            raise RegistrationError(
+                f"the scopes of {canonical} must be a collection of names, not the string "
+                f"{scopes!r}"
+            )
+        board = self.registry.topics
+        topic = board.get(canonical)
+        if topic is not None:
+            if topic.entry.msg_type is not msg_type:
+                raise RegistrationError(
+                    f"the topic {canonical} is declared with {topic.entry.type_name}, not "
+                    f"{getattr(msg_type, 'type_name', msg_type)}"
+                )
+            if accepts and not topic.accepts:
+                topic.accepts = True
+                self.registry.topics_changed()
+                self._services_changed()
+            return topic
+        try:
+            topic = board.add(
+                Topic(
+                    canonical,
+                    TopicEntry.of(canonical, msg_type),
+                    qos_of(qos),
+                    scopes=frozenset(scopes),
+                    accepts=accepts,
+                )
+            )
+        except (TypeError, ValueError) as exc:
+            raise RegistrationError(f"cannot declare the topic {canonical}: {exc}") from None
+        self.registry.topics_changed()
+        self._services_changed()
+        return topic
 
     def _change_services(self, change: Callable[[], None]) -> None:
         """Run ``change`` on the thread of the loop the server listens on; wait, and re-raise.
@@ -721,6 +828,9 @@ class RunningServer:
             return
         for conn in list(self._connections):
             conn.spawn(conn.send(conn.session.announcement()))
+            topics = conn.session.topics_announcement()
+            if topics is not None:
+                conn.writer.outbox.push(topics)
 
     async def _handle(self, transport_connection: Connection) -> None:
         server = self.server
@@ -742,6 +852,9 @@ class RunningServer:
             log.debug("connection from %s opened", conn.peer)
         try:
             await transport_connection.send(conn.session.announcement())
+            topics = conn.session.topics_announcement()
+            if topics is not None:
+                await transport_connection.send(topics)
             await conn.serve()
         except WriteTimedOut as exc:
             log.warning(

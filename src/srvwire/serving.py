@@ -53,10 +53,11 @@ from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError,
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
 from srvwire.protocol import Request
-from srvwire.session import Call, CancelCall, Dropped, NotificationCall, ServerSession
+from srvwire.session import Call, CancelCall, Dropped, NotificationCall, Publish, ServerSession
+from srvwire.topics import Outbox, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
 
-__all__ = ["AccessLoggedSession", "CallRunner", "ServedConnection"]
+__all__ = ["AccessLoggedSession", "CallRunner", "ServedConnection", "Writer"]
 
 
 DROP_LOG_INTERVAL = 1.0
@@ -319,6 +320,98 @@ class CallRunner:
             self.session.done(note)
 
 
+class Writer:
+    """Sends what one connection's :class:`~srvwire.topics.Outbox` holds, one message at a time.
+
+    The outbox decides the order (control messages first, then subscriptions round-robin) and
+    the bounds (``depth`` per subscription, bytes per connection); the writer only takes the
+    next message and sends it, and takes none while the connection is
+    :attr:`~srvwire.transports.base.Connection.congested` (past its budget of bytes waiting to
+    be sent). So what a slow reader costs is what the outbox may hold plus the connection's
+    budget, and while the writer waits, the outbox keeps deciding what to drop (best effort)
+    or end (reliable). Replies to calls do not go through it: they are sent at once, never
+    behind the data the outbox holds, and when a drain wakes a reply and the writer together,
+    the reply goes first.
+
+    It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
+    low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
+
+    Goals' feedback (:attr:`feedback`, keep-latest per goal) is data too: it takes turns with
+    topic data, one message each, behind every control message; :attr:`feedback_sent` is told
+    of each goal whose feedback went out.
+    """
+
+    __slots__ = ("conn", "feedback", "feedback_sent", "loop", "outbox", "task", "turn", "waiter")
+
+    def __init__(self, conn: Connection, loop: asyncio.AbstractEventLoop) -> None:
+        self.conn = conn
+        self.loop = loop
+        self.outbox = Outbox(self.wake)
+        self.feedback = FeedbackOutbox()
+        self.feedback_sent: Callable[[Any], object] = lambda call: None
+        self.turn = False  # whether feedback goes before topic data next time both wait
+        self.task: asyncio.Task[None] | None = None
+        self.waiter: asyncio.Future[None] | None = None
+
+    def next(self) -> tuple[bytes, Any] | None:
+        """The next message and the goal it is feedback of (None for anything else): a
+        control message first, then topic data and feedback in turn; None when nothing waits.
+        """
+        outbox = self.outbox
+        feedback = self.feedback
+        if feedback and not outbox.control and (self.turn or not outbox.ready):
+            self.turn = False
+            call, data = feedback.take()  # type: ignore[misc]  # not empty
+            return data, call
+        self.turn = True
+        data = outbox.next()  # None resets its woken flag: the writer may wait then
+        if data is not None:
+            return data, None
+        taken = feedback.take()
+        return None if taken is None else (taken[1], taken[0])
+
+    def wake(self) -> None:
+        """The outbox has something to send: start the task, or wake it."""
+        if self.task is None:
+            self.task = self.loop.create_task(self.run())
+        elif self.waiter is not None and not self.waiter.done():
+            self.waiter.set_result(None)
+
+    async def run(self) -> None:
+        outbox = self.outbox
+        conn = self.conn
+        send = conn.send
+        try:
+            while True:
+                if conn.congested:
+                    # Past the connection's budget: hold the data here, where the outbox
+                    # drops or ends per QoS, and let replies woken by the same drain go first.
+                    await conn.writable()
+                    await asyncio.sleep(0)
+                    continue
+                taken = self.next()
+                if taken is None:
+                    self.waiter = self.loop.create_future()
+                    await self.waiter
+                    self.waiter = None
+                    continue
+                data, goal = taken
+                sending = first_step(send(data))
+                if isinstance(sending, Pending):  # it waited for a drain: so may replies
+                    await finish(sending)
+                    await asyncio.sleep(0)  # those woken by the same drain go first
+                if goal is not None:
+                    self.feedback_sent(goal)
+        except TransportClosed:
+            outbox.close()
+
+    def stop(self) -> None:
+        """The connection ended: end every subscription and stop the task."""
+        self.outbox.close()
+        if self.task is not None:
+            self.task.cancel()
+
+
 def _peer(address: Any) -> str:
     """``host:port`` (``[v6]:port``) for a TCP peer, else the transport's own name for it."""
     if isinstance(address, tuple) and len(address) >= 2:
@@ -357,21 +450,32 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         scopes: frozenset[str] = frozenset(),
         access_log: logging.Logger,
         peer: Any,
+        topics: Any = None,
+        outbox: Outbox | None = None,
     ) -> None:
-        super().__init__(services, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes)
+        super().__init__(
+            services,
+            max_in_flight=max_in_flight,
+            max_batch=max_batch,
+            scopes=scopes,
+            topics=topics,
+            outbox=outbox,
+        )
         self.access_log = access_log
         self.peer = _peer(peer)
         self.admitted: dict[Call[ServiceEntry], float] = {}  # when, on perf_counter
         self.outcomes: dict[Call[ServiceEntry], str] = {}
         self.refused: RPCError | None = None  # how the request being admitted was answered
 
-    def _admit(self, request: Request, batch: Any, events: list[Any]) -> bytes | Call[ServiceEntry]:
+    def _admit(
+        self, request: Request, batch: Any, events: list[Any]
+    ) -> bytes | Call[ServiceEntry] | None:
         self.refused = None
         admitted = super()._admit(request, batch, events)
         if type(admitted) is bytes:
             refused = self.refused
             self.line(_method(request.method), "OK" if refused is None else _outcome(refused))
-        else:
+        elif admitted is not None:  # None: a subscription started, answered when it ends
             assert isinstance(admitted, Call)
             self.admitted[admitted] = time.perf_counter()
         return admitted
@@ -434,18 +538,14 @@ class ServedConnection:
         "drops_timer",
         "expiry",
         "flushed",
-        "flusher",
-        "has_feedback",
         "log",
         "loop",
-        "outbox",
-        "quiet",
         "reader",
         "reading",
         "runner",
-        "sending",
         "session",
         "tasks",
+        "writer",
     )
 
     def __init__(
@@ -464,10 +564,17 @@ class ServedConnection:
         self.log = logger
         identity = getattr(conn, "identity", None)
         scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
+        self.loop = asyncio.get_running_loop()
+        self.writer = Writer(conn, self.loop)
         self.session: ServerSession[ServiceEntry]
         if access_log is None:
             self.session = ServerSession(
-                registry, max_in_flight=max_in_flight, max_batch=max_batch, scopes=scopes
+                registry,
+                max_in_flight=max_in_flight,
+                max_batch=max_batch,
+                scopes=scopes,
+                topics=registry.topics,
+                outbox=self.writer.outbox,
             )
         else:
             self.session = AccessLoggedSession(
@@ -477,6 +584,8 @@ class ServedConnection:
                 scopes=scopes,
                 access_log=access_log,
                 peer=conn.remote_address,
+                topics=registry.topics,
+                outbox=self.writer.outbox,
             )
         self.runner = CallRunner(
             self.session,
@@ -489,19 +598,13 @@ class ServedConnection:
             identity=identity,
             channel=self,
         )
-        # Goals' feedback: keep-latest per goal, sent when no reply is being sent.
-        self.outbox = FeedbackOutbox()
-        self.sending = 0  # replies and other control messages being sent now
-        self.quiet = asyncio.Event()  # set while nothing is being sent but feedback
-        self.quiet.set()
-        self.has_feedback = asyncio.Event()
-        self.flusher: asyncio.Task[None] | None = None
+        # Goals' feedback: keep-latest per goal, sent by the writer as topic data is.
+        self.writer.feedback_sent = self.release
         self.flushed: dict[Any, list[asyncio.Future[None]]] = {}  # feedback_flushed's waiters
         self.drops = 0  # notifications dropped and not logged yet
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
         self.drops_timer: asyncio.TimerHandle | None = None  # says the count when it fires
-        self.loop = asyncio.get_running_loop()
         # Credentials that expire: past then, the session answers UNAUTHENTICATED.
         expires = getattr(identity, "expires", None)
         self.expiry: asyncio.TimerHandle | None = None
@@ -529,16 +632,10 @@ class ServedConnection:
 
     async def send(self, data: bytes) -> None:
         """Send one message; a connection that is gone is not an error here."""
-        self.sending += 1
-        self.quiet.clear()
         try:
             await self.conn.send(data)
         except TransportClosed:
             pass  # the caller left; its calls are being cancelled
-        finally:
-            self.sending -= 1
-            if not self.sending:
-                self.quiet.set()
 
     # --- goals' feedback (what an action's GoalHandle needs of its connection) ----------------
 
@@ -549,58 +646,31 @@ class ServedConnection:
 
     def feedback(self, call: Any, message: bytes) -> None:
         """Keep ``message`` as the goal ``call``'s latest feedback, and have it sent."""
-        if call in self.outbox:
+        waiting = self.writer.feedback
+        if call in waiting:
             self.release(call)  # its waiting message is superseded
-        self.outbox.put(call, message)
-        self.has_feedback.set()
-        if self.flusher is None:
-            self.flusher = self.spawn(self.flush_feedback())
+        waiting.put(call, message)
+        self.writer.wake()
 
     async def feedback_flushed(self, call: Any) -> None:
         """Wait until the goal ``call`` has no feedback waiting: it went out, was superseded,
         or the goal ended."""
-        if call not in self.outbox:
+        if call not in self.writer.feedback:
             return
         waiter: asyncio.Future[None] = self.loop.create_future()
         self.flushed.setdefault(call, []).append(waiter)
         await waiter
 
     def release(self, call: Any) -> None:
+        """The goal ``call``'s feedback went out, was superseded, or was dropped."""
         for waiter in self.flushed.pop(call, ()):
             if not waiter.done():
                 waiter.set_result(None)
 
     def goal_done(self, call: Any) -> None:
         """The goal ``call`` ended: the feedback it had not sent is dropped."""
-        self.outbox.discard(call)
+        self.writer.feedback.discard(call)
         self.release(call)
-
-    async def flush_feedback(self) -> None:
-        """Send the goals' feedback, round-robin, whenever no control message is being sent
-        and the connection is within its budget: while it is not, feedback waits here, where
-        a newer one replaces it."""
-        outbox = self.outbox
-        conn = self.conn
-        while True:
-            await self.has_feedback.wait()
-            await self.quiet.wait()  # replies first: data never delays control
-            if conn.congested:  # past the budget: keep the latest here, not in the buffer
-                try:
-                    await conn.writable()
-                except TransportClosed:
-                    return
-                continue
-            taken = outbox.take()
-            if taken is None:
-                self.has_feedback.clear()
-                continue
-            call, message = taken
-            try:
-                await self.conn.send(message)
-            except TransportClosed:
-                return
-            finally:
-                self.release(call)
 
     def expire(self) -> None:
         """The connection's credentials expired (see :meth:`ServerSession.expire`)."""
@@ -619,6 +689,7 @@ class ServedConnection:
         for cancel in self.session.cancel_all(error):
             runner.cancel(cancel.call, cancel.error)
         if error is None:
+            self.writer.stop()
             if self.expiry is not None:
                 self.expiry.cancel()
                 self.expiry = None
@@ -738,9 +809,42 @@ class ServedConnection:
                     canceling = runner.request_cancel(event.call, event.error)
                     if canceling is not None:
                         await self.send(canceling)
+                elif kind is Publish:
+                    await self.publish(event)
                 else:
                     assert kind is Dropped
                     self.dropped(event)
+
+    async def publish(self, event: Publish) -> None:
+        """A message a client published: validate it, hand it to the server's handlers (an
+        async one in a task of its own), then to the topic's subscribers; acknowledge it when
+        asked. A message that does not fit is answered INVALID_PARAMS, or logged."""
+        topic = event.topic
+        entry = topic.entry  # a srvwire.pubsub.TopicEntry
+        try:
+            message = entry.validate(event.message)
+        except RPCError as exc:
+            if event.id is not None:
+                await self.send(self.session.refuse(event.id, exc))
+            else:
+                self.log.info("dropped a message on %s from %s: %s", topic.name, self.peer, exc)
+            return
+        for handler in entry.handlers:
+            try:
+                result = handler(message)
+                if asyncio.iscoroutine(result):
+                    self.spawn(self.run_topic_handler(topic.name, result))
+            except Exception:
+                self.log.exception("the handler of %s failed", topic.name)
+        topic.publish(entry.write(message))
+        if event.id is not None:
+            await self.send(publish_ack(event.id))
+
+    async def run_topic_handler(self, name: str, coro: Any) -> None:
+        try:
+            await coro
+        except Exception:
+            self.log.exception("the handler of %s failed", name)
 
     def dropped(self, event: Dropped[ServiceEntry]) -> None:
         """Log a dropped notification, or count it if a line about drops was written less than

@@ -35,17 +35,25 @@ Server invariants:
   only: it is not read. ``rpc.discover`` is answered once per batch, so that no reply is much
   larger than its request.
 * **A notification is never answered.** One that cannot run is reported as :class:`Dropped`.
+* **Topic requests go to the topics** (:mod:`srvwire.topics`), after the same closing and
+  credential checks as calls: ``$/subscribe`` starts a subscription in the connection's outbox,
+  whose reply is written when it ends; ``$/publish`` becomes a :class:`Publish` for the shell to
+  validate. Neither is read in a batch, and a subscription's id is in use, for calls too, until
+  it ends; ``$/cancel`` of it ends it with ``CANCELLED``.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterator
+import re
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any, Generic, Protocol, TypeVar
 
 from srvwire.errors import (
     Cancelled,
+    InvalidParams,
     InvalidRequest,
     ParseError,
     PermissionDenied,
@@ -57,7 +65,12 @@ from srvwire.errors import (
 from srvwire.protocol import (
     CANCEL_METHOD,
     DISCOVER_METHOD,
+    MESSAGE_METHOD,
+    PUBLISH_METHOD,
     SERVICES_METHOD,
+    SUBSCRIBE_METHOD,
+    SUBSCRIBED_METHOD,
+    TOPICS_METHOD,
     ErrorResponse,
     Id,
     Notification,
@@ -76,6 +89,8 @@ from srvwire.protocol import (
     write_call,
 )
 
+_TOPIC_METHODS = frozenset({SUBSCRIBE_METHOD, PUBLISH_METHOD})
+
 __all__ = [
     "Call",
     "CancelCall",
@@ -84,10 +99,16 @@ __all__ = [
     "Entry",
     "Notice",
     "NotificationCall",
+    "Outbox",
+    "Publish",
     "ServerSession",
     "Services",
     "ServicesChanged",
     "Stray",
+    "Subscribed",
+    "TopicMessage",
+    "Topics",
+    "TopicsChanged",
 ]
 
 _PROTOCOL_PREFIX = "$/"
@@ -120,6 +141,40 @@ class Services(Protocol[E_co]):
     def services(self, scopes: frozenset[str] | None = None) -> list[tuple[str, str]]: ...
 
     def discover_json(self, scopes: frozenset[str] | None = None) -> str: ...
+
+
+class Outbox(Protocol):
+    """What the session needs of a connection's outbox (:class:`srvwire.topics.Outbox`)."""
+
+    @property
+    def subscriptions(self) -> Mapping[Id, Any]: ...
+
+    def cancel(self, id: Id) -> bool: ...
+
+
+class Topics(Protocol):
+    """What the session needs of a server's topics (:class:`srvwire.topics.TopicBoard`)."""
+
+    def subscribe(self, outbox: Any, id: Id, params: Any, scopes: frozenset[str]) -> Any:
+        """Start a subscription (its ``$/subscribed`` goes out through ``outbox``), or return
+        the error reply as bytes."""
+        ...
+
+    def find(self, name: Any, scopes: frozenset[str], publish: bool = False) -> Any:
+        """Return the topic, or raise the error to answer."""
+        ...
+
+    def announcement(self, scopes: frozenset[str]) -> bytes | None: ...
+
+
+@dataclass(slots=True)
+class Publish:
+    """A message a client published on ``topic``: to validate, then hand to the server's
+    handlers and the topic's subscribers. ``id`` is the request's when it wants an answer."""
+
+    topic: Any
+    id: Id
+    message: Any
 
 
 class _Batch:
@@ -218,8 +273,13 @@ class ServerSession(Generic[E]):
         max_in_flight: int = 256,
         max_batch: int = 100,
         scopes: frozenset[str] = frozenset(),
+        topics: Topics | None = None,
+        outbox: Outbox | None = None,
     ) -> None:
         self.services = services
+        self.topics = topics
+        self.outbox: Outbox = _NoOutbox() if outbox is None else outbox
+        """What this connection has to write besides replies: subscriptions and their data."""
         self.max_in_flight = max_in_flight
         self.max_batch = max_batch
         self.scopes = scopes
@@ -246,7 +306,9 @@ class ServerSession(Generic[E]):
             item = items[0]
             if type(item) is Request:
                 events: list[Any] = []
-                events.append(self._admit(item, None, events))
+                admitted = self._admit(item, None, events)
+                if admitted is not None:  # None: a subscription, which answers later
+                    events.append(admitted)
                 return events
             if type(item) is Notification:
                 event = self._notification(item)
@@ -266,6 +328,7 @@ class ServerSession(Generic[E]):
                 index = len(batch.replies)
                 batch.replies.append(None)
                 admitted = self._admit(item, batch, events)
+                assert admitted is not None  # a batch's $/subscribe is answered at once
                 if isinstance(admitted, bytes):
                     batch.replies[index] = admitted
                 else:
@@ -285,7 +348,9 @@ class ServerSession(Generic[E]):
             events.append(serialize_batch(r for r in batch.replies if r is not None))
         return events
 
-    def _admit(self, request: Request, batch: _Batch | None, events: list[Any]) -> bytes | Call[E]:
+    def _admit(
+        self, request: Request, batch: _Batch | None, events: list[Any]
+    ) -> bytes | Call[E] | None:
         """Admit a call, or return its reply; a ``$/cancel`` adds its event to ``events``."""
         id = request.id
         if self.closing:
@@ -304,7 +369,7 @@ class ServerSession(Generic[E]):
                 service=entry.name,
             )
             return self._refuse(request, exhausted)
-        if id is not None and id in self.calls:
+        if id is not None and (id in self.calls or id in self.outbox.subscriptions):
             duplicate = InvalidRequest(
                 f"Invalid Request: id {id!r} is already used by a call in flight on this "
                 "connection",
@@ -320,8 +385,9 @@ class ServerSession(Generic[E]):
         self.in_flight += 1
         return call
 
-    def _special(self, request: Request, batch: _Batch | None, events: list[Any]) -> bytes:
-        """Answer a request for a method that is not a service: discovery, protocol, unknown."""
+    def _special(self, request: Request, batch: _Batch | None, events: list[Any]) -> bytes | None:
+        """Answer a request for a method that is not a service: discovery, protocol, topics,
+        unknown; None for a subscription, which answers when it ends."""
         if request.method == DISCOVER_METHOD:
             if batch is not None:
                 if batch.discovered:  # the document once per batch: a reply stays small
@@ -337,11 +403,51 @@ class ServerSession(Generic[E]):
             if cancel is not None:
                 events.append(cancel)
             return Response(request.id, None).serialize()
+        if request.method in _TOPIC_METHODS and self.topics is not None:
+            return self._topic_request(request, batch, events)
         try:
             self.services.resolve(request.method)
         except RPCError as exc:
             return self._refuse(request, exc)
         raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
+
+    def _topic_request(
+        self, request: Request, batch: _Batch | None, events: list[Any]
+    ) -> bytes | None:
+        """``$/subscribe`` or an acknowledged ``$/publish`` (see :mod:`srvwire.topics`)."""
+        id = request.id
+        assert self.topics is not None
+        if batch is not None or id is None:
+            refused = InvalidRequest(
+                f"Invalid Request: {request.method} is read only on its own, with an id"
+            )
+            return self._refuse(request, refused)
+        if id in self.calls or id in self.outbox.subscriptions:
+            duplicate = InvalidRequest(
+                f"Invalid Request: id {id!r} is already used by a call in flight on this connection"
+            )
+            return self._refuse(request, duplicate)
+        if request.method == SUBSCRIBE_METHOD:
+            subscribed = self.topics.subscribe(self.outbox, id, request.params, self.scopes)
+            return subscribed if type(subscribed) is bytes else None
+        publish = self._publish(request.params, id)
+        if type(publish) is bytes:
+            return publish
+        events.append(publish)
+        return None
+
+    def _publish(self, params: Any, id: Id) -> Publish | bytes:
+        """Admit a ``$/publish``: the message to validate and hand on, or the error reply."""
+        assert self.topics is not None
+        try:
+            if type(params) is not dict or "message" not in params:
+                raise InvalidParams(
+                    "invalid params: $/publish needs params {'topic': name, 'message': {...}}"
+                )
+            topic = self.topics.find(params.get("topic"), self.scopes, publish=True)
+        except RPCError as exc:
+            return ErrorResponse(id, exc).serialize()
+        return Publish(topic, id, params["message"])
 
     def _refuse(self, request: Request, error: RPCError) -> bytes:
         """The error reply to a request answered at once, without running anything."""
@@ -350,6 +456,9 @@ class ServerSession(Generic[E]):
     def _notification(self, note: Notification) -> Any:
         method = note.method
         if method.startswith(_PROTOCOL_PREFIX):
+            if method == PUBLISH_METHOD and self.topics is not None and not self.closing:
+                publish = self._publish(note.params, None)
+                return publish if type(publish) is Publish else None
             return self._cancel(note.params) if method == CANCEL_METHOD else None
         entry = self.services.get(method)
         if entry is None or self.closing:
@@ -384,6 +493,7 @@ class ServerSession(Generic[E]):
             return None
         call = self.calls.get(id)
         if call is None:
+            self.outbox.cancel(id)  # a subscription: its writer answers CANCELLED
             return None
         return CancelCall(call, Cancelled("the caller cancelled the call"))
 
@@ -407,6 +517,10 @@ class ServerSession(Generic[E]):
         if batch.waiting:
             return None
         return serialize_batch(r for r in batch.replies if r is not None)
+
+    def refuse(self, id: Id, error: RPCError) -> bytes:
+        """The error reply to a request the session does not track (an acknowledged publish)."""
+        return ErrorResponse(id, error).serialize()
 
     def answering(self, call: Call[E]) -> bool:
         """Whether ``call`` is still in flight: admitted, and its reply not written yet."""
@@ -445,6 +559,11 @@ class ServerSession(Generic[E]):
         """The ``$/services`` notification: the first message, and the one after each change."""
         return services_notification(self.services.services(self.scopes)).serialize()
 
+    def topics_announcement(self) -> bytes | None:
+        """The ``$/topics`` notification, after ``$/services``; None for a server that has no
+        topics (and never said it had any)."""
+        return None if self.topics is None else self.topics.announcement(self.scopes)
+
     def expire(self) -> None:
         """The connection's credentials expired: from now on every call is answered
         ``UNAUTHENTICATED`` (the calls in flight finish)."""
@@ -465,6 +584,15 @@ class ServerSession(Generic[E]):
             self.anonymous.clear()
             self.in_flight -= len(cancels)
         return cancels
+
+
+class _NoOutbox:
+    """The outbox of a session without topics: no subscription, ever."""
+
+    subscriptions: Mapping[Id, Any] = MappingProxyType({})
+
+    def cancel(self, id: Id) -> bool:
+        return False
 
 
 def _expired() -> Unauthenticated:
@@ -488,6 +616,41 @@ class Notice:
 
     method: str
     params: Any
+
+
+@dataclass(slots=True)
+class TopicsChanged:
+    """The server's ``$/topics``: every topic it offers now, canonical name -> its entry
+    (``type``, ``qos``, ``publish``)."""
+
+    topics: dict[str, dict[str, Any]]
+
+
+@dataclass(slots=True)
+class Subscribed:
+    """The server's ``$/subscribed``: the subscription ``id`` started, with what it granted
+    (``seq``: the last sequence number the topic published)."""
+
+    id: int
+    granted: dict[str, Any]
+
+
+@dataclass(slots=True)
+class TopicMessage:
+    """One ``$/message`` of the subscription ``id``; ``message`` is JSON text when ``raw``
+    (read without parsing the rest), else parsed data."""
+
+    id: int
+    seq: int
+    dropped: int
+    message: Any
+    raw: bool
+
+
+_MESSAGE_OPENING = re.compile(
+    r'\{"jsonrpc":"2\.0","method":"\$/message","params":\{"subscription":([0-9]{1,18}),'
+    r'"seq":([0-9]{1,18}),"dropped":([0-9]{1,18}),"message":'
+)
 
 
 @dataclass(slots=True)
@@ -554,6 +717,12 @@ class ClientSession(Generic[W]):
         JSON-RPC: the connection cannot be trusted to route other replies either.
         """
         if type(data) is str:
+            if data.startswith('{"jsonrpc":"2.0","method":"$/message"') and data.endswith("}}"):
+                opening = _MESSAGE_OPENING.match(data)
+                if opening is not None:  # as a srvwire server writes it: the message unparsed
+                    id, seq, dropped = opening.groups()
+                    text = data[opening.end() : -2]
+                    return [TopicMessage(int(id), int(seq), int(dropped), text, True)]
             raw = peek_reply(data)
             if raw is not None:
                 waiter = self.pending.pop(raw.id, None)
@@ -573,15 +742,52 @@ class ClientSession(Generic[W]):
         events: list[Any] = []
         for message in messages:
             if isinstance(message, Notification):
-                if message.method == SERVICES_METHOD:
+                method = message.method
+                if method == SERVICES_METHOD:
                     events.append(services.pop(0))
+                elif method in _TOPIC_NEWS:
+                    events.append(_topic_news(message))
                 else:
-                    events.append(Notice(message.method, message.params))
+                    events.append(Notice(method, message.params))
                 continue
             id = message.id
             waiter = self.pending.pop(id, None) if type(id) is int else None
             events.append(Stray(message) if waiter is None else (waiter, message))
         return events
+
+
+_TOPIC_NEWS = frozenset({MESSAGE_METHOD, SUBSCRIBED_METHOD, TOPICS_METHOD})
+
+
+def _topic_news(message: Notification) -> TopicMessage | Subscribed | TopicsChanged:
+    """Read ``$/message``, ``$/subscribed`` or ``$/topics``; raise ProtocolViolation when it
+    is malformed."""
+    method = message.method
+    params = message.params if isinstance(message.params, dict) else {}
+    if method == TOPICS_METHOD:
+        listed = params.get("topics")
+        if isinstance(listed, list) and all(
+            isinstance(t, dict)
+            and isinstance(t.get("name"), str)
+            and isinstance(t.get("type"), str)
+            for t in listed
+        ):
+            return TopicsChanged({canonical_name(t["name"]): t for t in listed})
+        raise ProtocolViolation(
+            InvalidRequest(f"{TOPICS_METHOD} needs params {{'topics': [{{'name', 'type'}}]}}")
+        )
+    id = params.get("subscription")
+    if type(id) is not int:
+        raise ProtocolViolation(InvalidRequest(f"{method} needs an integer 'subscription'"))
+    if method == SUBSCRIBED_METHOD:
+        return Subscribed(id, params)
+    seq = params.get("seq")
+    dropped = params.get("dropped", 0)
+    if type(seq) is not int or type(dropped) is not int or "message" not in params:
+        raise ProtocolViolation(
+            InvalidRequest(f"{MESSAGE_METHOD} needs integers 'seq' and 'dropped', and 'message'")
+        )
+    return TopicMessage(id, seq, dropped, params["message"], False)
 
 
 def parse_services(message: Notification) -> dict[str, str]:

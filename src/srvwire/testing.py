@@ -478,10 +478,12 @@ class Wire:
         return json.loads(message)
 
     async def recv_reply(self, within: float = TIMEOUT) -> Any:
-        """Receive the next message that is not a ``$/services`` notification."""
+        """Receive the next message that is not an announcement (``$/services``, ``$/topics``)."""
         while True:
             message = await self.recv(within)
-            if not (isinstance(message, dict) and message.get("method") == "$/services"):
+            if not (
+                isinstance(message, dict) and message.get("method") in ("$/services", "$/topics")
+            ):
                 return message
 
     async def call(self, message: Any, within: float = TIMEOUT) -> Any:

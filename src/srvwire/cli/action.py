@@ -101,15 +101,11 @@ def register(commands: Commands) -> None:
     send.set_defaults(command=_cmd_send_goal, late_positionals=("type", "values"))
 
 
-def _is_action(info: ServiceInfo) -> bool:
-    return "/action/" in info.type
-
-
 async def _actions(args: argparse.Namespace) -> tuple[list[ServiceInfo], dict[str, str], str]:
     async with open_client(args) as client:
-        listed = await client.list_services(timeout=args.timeout)
+        listed = await client.list_actions(timeout=args.timeout)
         texts = await client.definitions(timeout=args.timeout)
-        return [info for info in listed if _is_action(info)], texts, client.url
+        return listed, texts, client.url
 
 
 def _cmd_action_list(args: argparse.Namespace) -> int:

@@ -88,8 +88,8 @@ exit codes:
   2    usage error, or VALUES that are not a YAML mapping
   3    server unreachable, connection lost, or server shutting down (UNAVAILABLE)
   4    deadline exceeded (DEADLINE_EXCEEDED)
-  5    no such service (SERVICE_NOT_FOUND)
-  6    request does not fit the service type (INVALID_PARAMS)
+  5    no such service or topic (SERVICE_NOT_FOUND)
+  6    request or message does not fit its type (INVALID_PARAMS)
   7    the handler failed (INTERNAL, or an application error); a goal GOAL_REJECTED or aborted
   8    any other error from the server (CANCELLED, RESOURCE_EXHAUSTED, ...)
   130  interrupted with Ctrl-C"""

@@ -1,0 +1,582 @@
+"""Topics end to end: a server's topics, srvwire's client and a raw wire, on each transport."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import socket
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import Subtract, Wire, open_wire, subtract
+from srvwire import (
+    ConnectionLost,
+    Identity,
+    InvalidParams,
+    PermissionDenied,
+    ResourceExhausted,
+    Server,
+    ServiceNotFound,
+    ServiceUnavailable,
+    TokenAuth,
+    connect,
+    load_message,
+    serve,
+)
+from srvwire.errors import RegistrationError
+from srvwire.server import RunningServer
+from srvwire.transports.base import Transport
+from srvwire.transports.memory import MemoryConnection, MemoryTransport
+from support import scaled
+
+JointState = load_message("sensor_msgs/msg/JointState")
+String = load_message("std_msgs/msg/String")
+
+
+def joints(n: int) -> Any:
+    return JointState(name=["shoulder"], position=[float(n)])
+
+
+async def recv_topic(wire: Wire, within: float = 5.0) -> Any:
+    """The next message that is not an announcement."""
+    while True:
+        message = await wire.recv(within)
+        if message.get("method") not in ("$/services", "$/topics"):
+            return message
+
+
+@pytest.fixture
+def robot() -> Server:
+    server = Server(grace_period=scaled(2))
+    server.add_service("/subtract", Subtract, subtract)
+    return server
+
+
+@pytest.fixture
+async def running(robot: Server, transport: Transport) -> AsyncIterator[RunningServer]:
+    async with serve(robot, "127.0.0.1", 0, transport=transport) as running:
+        yield running
+
+
+def client_of(running: RunningServer, **options: Any) -> connect:
+    return connect(running.url, transport=running.transport, timeout=scaled(5), **options)
+
+
+# --- round trips ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("reliability", ["reliable", "best_effort"])
+@pytest.mark.parametrize("durability", ["volatile", "transient_local"])
+async def test_every_qos_round_trips(
+    robot: Server, running: RunningServer, reliability: str, durability: str
+) -> None:
+    qos = {"depth": 3, "reliability": reliability, "durability": durability}
+    pub = robot.topic("/joint_states", JointState, qos=qos)
+    for n in range(1, 6):  # before anyone subscribes: kept only by transient_local
+        assert pub.publish(joints(n)) == 0
+    async with client_of(running) as client:
+        info = await client.wait_for_topic("/joint_states")
+        assert (info.type, dict(info.qos), info.publish) == (
+            "sensor_msgs/msg/JointState",
+            qos,
+            False,
+        )
+        async with client.subscribe("joint_states") as sub:
+            assert sub.granted["reliability"] == reliability
+            assert sub.granted["durability"] == durability
+            assert sub.granted["seq"] == 5
+            assert pub.subscription_count == 1
+            if durability == "transient_local":
+                replayed = [await sub.receive() for _ in range(3)]
+                assert [m.position for m in replayed] == [[3.0], [4.0], [5.0]]
+                assert sub.seq == 5
+            assert pub.publish(joints(6)) == 1
+            message = await sub.receive()
+            assert type(message) is JointState
+            assert message.position == [6.0] and sub.seq == 6 and sub.missed == 0
+            assert sub.dropped == 0
+
+
+async def test_the_server_receives_what_clients_publish(
+    robot: Server, running: RunningServer
+) -> None:
+    received: asyncio.Queue[Any] = asyncio.Queue()
+
+    @robot.subscription("/joint_states", JointState)
+    def on_joint_states(msg: Any) -> None:
+        received.put_nowait(msg)
+
+    async with client_of(running) as client, client_of(running) as listener:
+        await client.wait_for_topic("/joint_states")
+        async with listener.subscribe("/joint_states") as sub:
+            await client.publish("/joint_states", {"name": ["elbow"], "position": [1.5]})
+            got = await received.get()
+            assert type(got) is JointState and got.name == ["elbow"]
+            relayed = await sub.receive()  # other subscribers get it too, as in ROS
+            assert relayed == got
+            await client.publish("/joint_states", joints(2), ack=True)
+            assert (await received.get()).position == [2.0]
+        with pytest.raises(InvalidParams) as caught:  # refused here, before sending
+            await client.publish("/joint_states", {"position": ["high"]})
+        assert caught.value.data["errors"][0]["path"] == "message.position[0]"
+
+
+async def test_an_acknowledged_publish_with_bad_data_is_answered_with_field_paths(
+    robot: Server, running: RunningServer
+) -> None:
+    seen: list[Any] = []
+    robot.subscription("/joint_states", JointState)(seen.append)
+    wire = await open_wire(running)
+    publish = {
+        "jsonrpc": "2.0",
+        "id": 7,
+        "method": "$/publish",
+        "params": {"topic": "/joint_states", "message": {"name": "elbow", "position": [1, "x"]}},
+    }
+    await wire.send(publish)
+    reply = await recv_topic(wire)
+    assert reply["id"] == 7
+    assert reply["error"]["message"] == (
+        "invalid message for /joint_states: message.name: Input should be a valid list (and 1 more)"
+    )
+    assert reply["error"]["data"]["errors"] == [
+        {"path": "message.name", "message": "Input should be a valid list", "type": "list_type"},
+        {
+            "path": "message.position[1]",
+            "message": "Input should be a valid number",
+            "type": "float_type",
+        },
+    ]
+    publish["params"]["message"] = {"name": ["elbow"]}
+    await wire.send(publish)
+    assert await recv_topic(wire) == {"jsonrpc": "2.0", "id": 7, "result": None}
+    assert [m.name for m in seen] == [["elbow"]]
+    await wire.ws.close()
+
+
+async def test_notify_sends_a_call_nobody_answers(robot: Server, running: RunningServer) -> None:
+    done: asyncio.Queue[int] = asyncio.Queue()
+
+    @robot.service("/remember", Subtract)
+    def remember(request: Any) -> Any:
+        done.put_nowait(request.minuend)
+        return subtract(request)
+
+    async with client_of(running) as client:
+        await client.notify("/remember", {"minuend": 5, "subtrahend": 1})
+        assert await done.get() == 5
+        assert client.in_flight == 0
+        with pytest.raises(InvalidParams):
+            await client.notify("/remember", {"minuend": "five"})
+
+
+async def test_a_topic_typed_only_by_the_servers_description(
+    robot: Server, running: RunningServer, tmp_path: Any
+) -> None:
+    from srvwire.models import build_message
+    from srvwire.parser import parse_message
+
+    Pose = build_message(parse_message("float64 x\nfloat64 y\n", "inproc_topics", "Pose2"))
+    pub = robot.topic("/pose", Pose)
+    async with client_of(running) as client:
+        await client.wait_for_topic("/pose")
+        async with client.subscribe("/pose") as sub:
+            pub.publish(Pose(x=1.0, y=2.0))
+            message = await sub.receive()
+    assert type(message).type_name == "inproc_topics/msg/Pose2"  # type: ignore[attr-defined]
+    assert (message.x, message.y) == (1.0, 2.0)  # type: ignore[attr-defined]
+
+
+# --- discovery and security ----------------------------------------------------------------------
+
+
+async def test_discovery_lists_topics_apart_from_services(
+    robot: Server, running: RunningServer
+) -> None:
+    robot.topic("/joint_states", JointState, qos={"depth": 5})
+    async with client_of(running) as client:
+        assert [s.name for s in await client.list_services()] == ["/subtract"]
+        wire = await open_wire(running)
+        await wire.send({"jsonrpc": "2.0", "id": 1, "method": "rpc.discover"})
+        document = (await recv_topic(wire))["result"]
+        [topic] = [m for m in document["methods"] if m.get("x-srvwire-kind") == "topic"]
+        assert topic["name"] == "/joint_states"
+        assert topic["x-srvwire-type"] == "sensor_msgs/msg/JointState"
+        assert topic["x-srvwire-qos"] == {
+            "depth": 5,
+            "reliability": "reliable",
+            "durability": "volatile",
+        }
+        assert "std_msgs/msg/Header" in topic["x-srvwire-definitions"]
+        await wire.ws.close()
+
+
+async def test_topics_obey_scopes() -> None:
+    auth = TokenAuth({"op": Identity("operator", {"robot:read"}), "guest": "guest"})
+    server = Server(auth=auth)
+    pub = server.topic("/joint_states", JointState, scopes={"robot:read"})
+    server.subscription("/commands", String, scopes={"robot:write"})(lambda msg: None)
+    transport = MemoryTransport()
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, token="guest") as guest:
+            assert dict(guest.topics) == {}
+            with pytest.raises(PermissionDenied) as caught:
+                await guest.subscribe("/joint_states", JointState).start()
+            assert caught.value.message == (
+                "permission denied: /joint_states needs the scope robot:read, which this "
+                "connection's identity does not hold"
+            )
+            with pytest.raises(PermissionDenied):
+                await guest.publish("/commands", {"data": "go"}, msg_type=String, ack=True)
+        async with connect(running.url, transport=transport, token="op") as operator:
+            await operator.wait_for_topic("/joint_states")
+            assert list(operator.topics) == ["/joint_states"]
+            async with operator.subscribe("/joint_states") as sub:
+                pub.publish(joints(1))
+                assert (await sub.receive()).position == [1.0]
+
+
+# --- the end of a subscription -------------------------------------------------------------------
+
+
+async def test_cancel_disconnect_and_removal_end_subscriptions(
+    robot: Server, running: RunningServer
+) -> None:
+    pub = robot.topic("/joint_states", JointState)
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        # $/cancel: the server has read it once a call sent after it is answered.
+        async with client.subscribe("/joint_states"):
+            assert pub.subscription_count == 1
+        await client.call("/subtract", {"minuend": 1, "subtrahend": 1})
+        assert pub.subscription_count == 0
+        (served,) = running._connections
+        assert served.writer.outbox.queued == 0 and not served.writer.outbox.subscriptions
+        # Removing the topic ends the subscription with a reply.
+        sub = client.subscribe("/joint_states")
+        await sub.start()
+        pub.publish(joints(1))  # still queued on the server: dropped with the subscription
+        robot.remove_topic("/joint_states")
+        with pytest.raises(ServiceNotFound) as caught:
+            await sub.receive()
+        assert caught.value.message == "the topic /joint_states was removed"
+        assert not sub.active and not client._subscriptions
+        with pytest.raises(RegistrationError):
+            robot.remove_topic("/joint_states")
+    # The connection closing ends the rest.
+    pub = robot.topic("/joint_states", JointState)
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        await client.subscribe("/joint_states").start()
+        await client.subscribe("/joint_states", qos={"depth": 1}).start()
+        (served,) = running._connections
+        assert pub.subscription_count == 2
+    writer = served.writer.task
+    assert writer is not None
+    await asyncio.wait({writer})
+    assert pub.subscription_count == 0 and not served.writer.outbox.subscriptions
+
+
+async def test_a_reliable_subscriber_that_does_not_keep_up_is_ended(
+    robot: Server, running: RunningServer
+) -> None:
+    pub = robot.topic("/joint_states", JointState, qos={"depth": 2})
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        async with client.subscribe("/joint_states") as sub:
+            for n in range(5):  # at once: the server's queue of 2 overflows
+                pub.publish(joints(n))
+            with pytest.raises(ResourceExhausted) as caught:
+                while True:
+                    await sub.receive()
+            assert "did not keep up" in caught.value.message
+        assert pub.subscription_count == 0
+
+
+async def test_a_best_effort_subscriber_is_told_what_it_missed(
+    robot: Server, running: RunningServer
+) -> None:
+    pub = robot.topic("/joint_states", JointState, qos={"depth": 2, "reliability": "best_effort"})
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        async with client.subscribe("/joint_states") as sub:
+            for n in range(1, 6):
+                pub.publish(joints(n))
+            first = await sub.receive()
+            second = await sub.receive()
+            assert [first.position, second.position] == [[4.0], [5.0]]
+            assert sub.dropped == 3 and sub.seq == 5
+
+
+async def test_reconnecting_resumes_subscriptions_and_reports_the_gap() -> None:
+    server = Server()
+    pub = server.topic(
+        "/joint_states", JointState, qos={"depth": 1, "durability": "transient_local"}
+    )
+    transport = MemoryTransport()
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(
+            running.url, transport=transport, reconnect=True, timeout=scaled(5)
+        ) as client:
+            await client.wait_for_topic("/joint_states")
+            async with client.subscribe("/joint_states") as sub:
+                pub.publish(joints(1))
+                assert (await sub.receive()).position == [1.0]
+                (served,) = running._connections
+                assert isinstance(served.conn, MemoryConnection)
+                served.conn.abort()  # the network drops: these never reach the client
+                for n in (2, 3, 4):
+                    pub.publish(joints(n))
+                resumed = await sub.receive()  # the topic's last message, replayed
+                assert resumed.position == [4.0]
+                assert (sub.seq, sub.missed, sub.dropped) == (4, 2, 2)
+                assert sub.gaps.resumed == 1
+                assert pub.subscription_count == 1
+                pub.publish(joints(5))
+                assert (await sub.receive()).position == [5.0]
+
+
+async def test_without_reconnect_a_lost_connection_ends_the_subscription() -> None:
+    server = Server()
+    server.topic("/joint_states", JointState)
+    transport = MemoryTransport()
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, timeout=scaled(5)) as client:
+            await client.wait_for_topic("/joint_states")
+            sub = await client.subscribe("/joint_states").start()
+            (served,) = running._connections
+            assert isinstance(served.conn, MemoryConnection)
+            served.conn.abort()
+            with pytest.raises(ConnectionLost):
+                await sub.receive()
+
+
+# --- data never delays control -------------------------------------------------------------------
+
+
+async def test_a_flooded_topic_does_not_delay_another_on_the_same_connection(
+    robot: Server, running: RunningServer
+) -> None:
+    flood = robot.topic("/flood", String, qos={"depth": 500})
+    quiet = robot.topic("/quiet", String)
+    wire = await open_wire(running)
+    for id, name in ((1, "/flood"), (2, "/quiet")):
+        await wire.send(
+            {"jsonrpc": "2.0", "id": id, "method": "$/subscribe", "params": {"topic": name}}
+        )
+        assert (await recv_topic(wire))["method"] == "$/subscribed"
+    for n in range(300):
+        flood.publish({"data": f"flood {n}"})
+    quiet.publish({"data": "news"})
+    await wire.send({"jsonrpc": "2.0", "id": 3, "method": "/subtract", "params": {"minuend": 3}})
+    order = []
+    while len(order) < 302:
+        message = await recv_topic(wire)
+        order.append(message["params"]["subscription"] if "method" in message else "reply")
+    # Round-robin: the quiet topic's one message goes out second, not after 300 others.
+    assert order.index(2) == 1
+    assert order.count(1) == 300 and "reply" in order
+    await wire.ws.close()
+
+
+async def test_each_message_is_written_once_for_every_subscriber(
+    robot: Server, running: RunningServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pub = robot.topic("/joint_states", JointState)
+    writes: list[Any] = []
+    entry = pub._topic.entry
+    write = entry.write
+    monkeypatch.setattr(entry, "write", lambda m: writes.append(m) or write(m))
+    wires = [await open_wire(running) for _ in range(3)]
+    for wire in wires:
+        await wire.send(
+            {
+                "jsonrpc": "2.0",
+                "id": 1,
+                "method": "$/subscribe",
+                "params": {"topic": "/joint_states"},
+            }
+        )
+        assert (await recv_topic(wire))["method"] == "$/subscribed"
+    assert pub.publish(joints(1)) == 3
+    assert len(writes) == 1
+    for wire in wires:
+        message = await recv_topic(wire)
+        assert message["params"]["message"]["position"] == [1.0]
+        await wire.ws.close()
+
+
+def test_declaring_topics_checks_names_types_and_handlers() -> None:
+    server = Server()
+    server.topic("/joint_states", JointState)
+    with pytest.raises(RegistrationError, match="declared with sensor_msgs/msg/JointState"):
+        server.topic("/joint_states", String)
+    with pytest.raises(RegistrationError, match="must be a message type"):
+        server.topic("/x", Subtract)  # type: ignore[arg-type]
+    with pytest.raises(RegistrationError, match="must take one argument, the message"):
+        server.subscription("/joint_states", JointState)(lambda: None)
+    with pytest.raises(RegistrationError, match="depth must be an integer"):
+        server.topic("/y", String, qos={"depth": 0})
+    assert json.loads(json.dumps(server.registry.discover()))["methods"][0]["name"] == (
+        "/joint_states"
+    )
+
+
+# --- a subscriber that never reads ---------------------------------------------------------------
+
+SERVERS = Path(__file__).parent / "servers"
+
+
+def rss(pid: int) -> int:
+    """The resident memory of process ``pid``, in bytes."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError("no VmRSS")
+
+
+def masked_text_frame(text: str) -> bytes:
+    """One WebSocket text frame from a client (masked), written by hand."""
+    payload = text.encode()
+    assert len(payload) < 126
+    mask = os.urandom(4)
+    return (
+        bytes([0x81, 0x80 | len(payload)])
+        + mask
+        + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    )
+
+
+async def never_reading_subscriber(port: int, topic: str) -> asyncio.StreamWriter:
+    """Open a WebSocket by hand with a small receive buffer, subscribe to ``topic``, and never
+    read again (asyncio stops reading the socket once its own small buffer is full)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    reader, writer = await asyncio.open_connection(sock=sock, limit=4096)
+    writer.write(
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    assert (await reader.readuntil(b"\r\n\r\n")).startswith(b"HTTP/1.1 101")
+    subscribe = {"jsonrpc": "2.0", "id": 1, "method": "$/subscribe", "params": {"topic": topic}}
+    writer.write(masked_text_frame(json.dumps(subscribe)))
+    await writer.drain()
+    return writer
+
+
+async def test_a_subscriber_that_never_reads_costs_bounded_memory_and_slows_nobody() -> None:
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, str(SERVERS / "flooding_server.py"), stdout=asyncio.subprocess.PIPE
+    )
+    stalled = []
+    try:
+        assert process.stdout is not None
+        port = int(await asyncio.wait_for(process.stdout.readline(), scaled(20)))
+        url = f"ws://127.0.0.1:{port}"
+        stalled = [await never_reading_subscriber(port, "/flood") for _ in range(3)]
+        async with connect(url, timeout=scaled(10)) as client:
+            async with client.subscribe("/flood", qos={"depth": 100}) as sub:
+                for _ in range(1000):  # the stalled sockets' buffers fill meanwhile
+                    await sub.receive()
+                before = rss(process.pid)
+                received = 0
+                for n in range(3000):  # about 3 s, 30 MB published
+                    message = await sub.receive()
+                    assert len(message.data) == 10_000  # type: ignore[attr-defined]
+                    received += 1
+                    if n % 250 == 0:
+                        reply = await client.call("/add_two_ints", {"a": n, "b": 1})
+                        assert reply.sum == n + 1
+                after = rss(process.pid)
+        # Queued without bound, the stalled subscribers would hold 30 MB more by now (the
+        # messages' bytes are shared); bounded, they hold what they held before.
+        assert after - before < 10 * 2**20, (before, after)
+        assert received == 3000
+    finally:
+        for writer in stalled:
+            writer.close()
+        process.kill()
+        await process.wait()
+
+
+async def test_closing_a_client_ends_its_subscriptions_quietly(
+    robot: Server, running: RunningServer, caplog: pytest.LogCaptureFixture
+) -> None:
+    robot.topic("/joint_states", JointState)
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        sub = await client.subscribe("/joint_states").start()
+    assert not sub.active and client.in_flight == 0
+    with pytest.raises(StopAsyncIteration):
+        await sub.receive()
+    assert [r for r in caplog.records if r.levelname == "WARNING"] == []
+
+
+async def test_a_reply_goes_ahead_of_topic_data_the_server_holds() -> None:
+    # The connection's budget is small and its client reads nothing at first: the server holds
+    # most of a burst in the outbox. A call sent then is answered long before the burst ends.
+    server = Server(max_queued_bytes=20_000)
+
+    @server.service("/subtract", Subtract)
+    async def answer(request: Any) -> Any:  # async: answered on the reader, no thread
+        return subtract(request)
+
+    flood = server.topic("/flood", String, qos={"depth": 200})
+    transport = MemoryTransport()
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
+        params = {"topic": "/flood"}
+        await wire.send({"jsonrpc": "2.0", "id": 1, "method": "$/subscribe", "params": params})
+        assert (await recv_topic(wire))["method"] == "$/subscribed"
+        for n in range(100):
+            flood.publish({"data": f"{n:05d}" + "x" * 5000})
+        call = {"jsonrpc": "2.0", "id": 2, "method": "/subtract", "params": {"minuend": 5}}
+        await wire.send(call)
+        order = []
+        while len(order) < 101:
+            message = await recv_topic(wire)
+            order.append("reply" if message.get("id") == 2 else message["params"]["seq"])
+        assert order.index("reply") < 20, order  # behind the budget's few messages, not 100
+        assert [seq for seq in order if seq != "reply"] == list(range(1, 101))
+        await wire.ws.close()
+
+
+async def test_wait_for_topic_is_woken_by_the_announcement(
+    robot: Server, running: RunningServer
+) -> None:
+    async with client_of(running) as client:
+        waiting = asyncio.create_task(client.wait_for_topic("/joint_states"))
+        await client.call("/subtract", {"minuend": 1})  # the client is connected and reading
+        assert not waiting.done()
+        robot.topic("/joint_states", JointState)  # $/topics goes to every connection
+        info = await waiting
+        assert info.name == "/joint_states" and info.type == "sensor_msgs/msg/JointState"
+        assert dict(client.topics) == {"/joint_states": "sensor_msgs/msg/JointState"}
+        with pytest.raises(ServiceUnavailable) as caught:  # a topic that never comes
+            await client.wait_for_topic("/never", timeout=scaled(0.2))
+        assert caught.value.message == (f"the topic was not announced within {scaled(0.2):g} s")
+
+
+async def test_topics_work_with_the_access_log_on(caplog: pytest.LogCaptureFixture) -> None:
+    server = Server(access_log=True)
+    server.add_service("/subtract", Subtract, subtract)
+    pub = server.topic("/joint_states", JointState)
+    transport = MemoryTransport()
+    caplog.set_level(logging.INFO, logger="srvwire.access")
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, timeout=scaled(5)) as client:
+            await client.wait_for_topic("/joint_states")
+            async with client.subscribe("/joint_states") as sub:
+                pub.publish(joints(1))
+                assert (await sub.receive()).position == [1.0]
+                await client.call("/subtract", {"minuend": 2})
+    lines = [r.getMessage() for r in caplog.records if r.name == "srvwire.access"]
+    assert any(" /subtract OK " in line for line in lines), lines

@@ -1,0 +1,382 @@
+"""The rules of topics without I/O: QoS, sequence numbers, the outbox's order and bounds."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from srvwire.errors import InvalidParams
+from srvwire.session import ServerSession
+from srvwire.topics import Gaps, Outbox, QoS, Topic, TopicBoard
+
+
+class Entry:
+    type_name = "std_msgs/msg/String"
+
+
+class NoServices:
+    def get(self, name: str) -> None:
+        return None
+
+    def resolve(self, name: str) -> Any:
+        raise AssertionError(name)
+
+    def services(self, scopes: Any = None) -> list[tuple[str, str]]:
+        return []
+
+    def discover_json(self, scopes: Any = None) -> str:
+        return "{}"
+
+
+DEFAULT = QoS()
+
+
+def topic(name: str = "/chatter", qos: QoS = DEFAULT, **options: Any) -> Topic[Entry]:
+    return Topic(name, Entry(), qos, **options)
+
+
+def drain(outbox: Outbox) -> list[Any]:
+    """Everything the outbox has to write, parsed."""
+    messages = []
+    while (data := outbox.next()) is not None:
+        messages.append(json.loads(data))
+    return messages
+
+
+def data(n: int) -> bytes:
+    """Message ``n``: the same size for every ``n`` under 10 000."""
+    return json.dumps({"data": f"{n:04d}"}).encode()
+
+
+# --- QoS -----------------------------------------------------------------------------------------
+
+
+def test_the_defaults_are_ros_defaults() -> None:
+    assert QoS().to_json() == {"depth": 10, "reliability": "reliable", "durability": "volatile"}
+
+
+@pytest.mark.parametrize(
+    ("settings_", "error"),
+    [
+        ({"depth": 0}, "depth must be an integer from 1 to 10000, not 0"),
+        ({"reliability": "sometimes"}, "reliability must be 'reliable' or 'best_effort'"),
+        ({"durability": "forever"}, "durability must be 'volatile' or 'transient_local'"),
+    ],
+)
+def test_a_bad_qos_says_what_is_wrong(settings_: dict[str, Any], error: str) -> None:
+    with pytest.raises(ValueError, match=error):
+        QoS(**settings_)
+
+
+@pytest.mark.parametrize(
+    ("asked", "path"),
+    [
+        ({"depth": "5"}, "qos.depth"),
+        ({"depth": 0}, "qos.depth"),
+        ({"reliability": 1}, "qos.reliability"),
+        ({"durability": "x"}, "qos.durability"),
+        ({"history": "keep_all"}, "qos.history"),
+        ([], "qos"),
+    ],
+)
+def test_a_subscriber_asking_for_a_bad_qos_gets_the_field_path(asked: Any, path: str) -> None:
+    with pytest.raises(InvalidParams) as caught:
+        QoS().grant(asked)
+    assert caught.value.data["errors"][0]["path"] == path
+
+
+def test_a_volatile_topic_grants_no_history() -> None:
+    granted = QoS(durability="volatile").grant({"durability": "transient_local", "depth": 3})
+    assert granted == QoS(depth=3, reliability="reliable", durability="volatile")
+    kept = QoS(durability="transient_local").grant({"reliability": "best_effort"})
+    assert kept == QoS(depth=10, reliability="best_effort", durability="transient_local")
+
+
+# --- the outbox ----------------------------------------------------------------------------------
+
+
+def test_subscribed_comes_before_the_messages_and_a_message_is_written_once() -> None:
+    chatter = topic()
+    first, second = Outbox(), Outbox()
+    first.subscribe(1, chatter, QoS())
+    second.subscribe("a", chatter, QoS())
+    shared = data(1)
+    assert chatter.publish(shared) == 2
+    assert chatter.history.maxlen == 0  # volatile: nothing kept
+    assert first.subscriptions[1].queue[0][1] is shared
+    assert second.subscriptions["a"].queue[0][1] is shared
+    assert drain(first) == [
+        {
+            "jsonrpc": "2.0",
+            "method": "$/subscribed",
+            "params": {
+                "subscription": 1,
+                "topic": "/chatter",
+                "seq": 0,
+                "depth": 10,
+                "reliability": "reliable",
+                "durability": "volatile",
+            },
+        },
+        {
+            "jsonrpc": "2.0",
+            "method": "$/message",
+            "params": {"subscription": 1, "seq": 1, "dropped": 0, "message": {"data": "0001"}},
+        },
+    ]
+    assert [m["params"]["subscription"] for m in drain(second)] == ["a", "a"]
+
+
+def test_control_goes_ahead_of_queued_data() -> None:
+    chatter = topic()
+    outbox = Outbox()
+    outbox.subscribe(1, chatter, QoS())
+    drain(outbox)
+    chatter.publish(data(1))
+    outbox.push(b'{"jsonrpc":"2.0","id":5,"result":null}')
+    assert [m.get("id", m.get("method")) for m in drain(outbox)] == [5, "$/message"]
+
+
+def test_subscriptions_take_turns() -> None:
+    flooded, quiet = topic("/flooded"), topic("/quiet")
+    outbox = Outbox()
+    outbox.subscribe(1, flooded, QoS(depth=100))
+    outbox.subscribe(2, quiet, QoS())
+    drain(outbox)
+    for n in range(50):
+        flooded.publish(data(n))
+    quiet.publish(data(999))
+    order = [m["params"]["subscription"] for m in drain(outbox)]
+    assert order[:3] == [1, 2, 1]  # the quiet topic's message is second, not 51st
+    assert len(order) == 51
+
+
+def test_best_effort_drops_the_oldest_and_says_how_many() -> None:
+    chatter = topic(qos=QoS(depth=3, reliability="best_effort"))
+    outbox = Outbox()
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    for n in range(1, 8):
+        chatter.publish(data(n))
+    messages = [m["params"] for m in drain(outbox)]
+    assert [(m["seq"], m["dropped"]) for m in messages] == [(5, 4), (6, 0), (7, 0)]
+
+
+def test_reliable_ends_a_subscriber_that_cannot_keep_up() -> None:
+    chatter = topic(qos=QoS(depth=2))
+    outbox = Outbox()
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    assert chatter.publish(data(1)) == 1
+    assert chatter.publish(data(2)) == 1
+    assert chatter.publish(data(3)) == 0  # ended, not reached
+    assert not chatter.subscriptions and not outbox.subscriptions
+    assert outbox.queued == 0
+    [ended] = drain(outbox)
+    assert ended["id"] == 1
+    assert ended["error"]["data"]["status"] == "RESOURCE_EXHAUSTED"
+    assert ended["error"]["message"].startswith(
+        "the subscriber to /chatter did not keep up: its queue of 2 messages"
+    )
+
+
+def test_the_bytes_queued_on_a_connection_are_bounded() -> None:
+    chatter = topic(qos=QoS(depth=100, reliability="best_effort"))
+    outbox = Outbox(max_bytes=10 * len(data(0)))
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    for n in range(50):
+        chatter.publish(data(n))
+        assert outbox.queued <= outbox.max_bytes
+    messages = [m["params"] for m in drain(outbox)]
+    assert len(messages) == 10
+    assert messages[0]["dropped"] == 40
+
+
+def test_a_message_larger_than_the_budget_still_passes_alone() -> None:
+    chatter = topic()
+    outbox = Outbox(max_bytes=4)
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    chatter.publish(data(1))
+    assert [m["params"]["seq"] for m in drain(outbox)] == [1]
+
+
+def test_transient_local_replays_the_last_depth_messages() -> None:
+    chatter = topic(qos=QoS(depth=3, durability="transient_local"))
+    for n in range(1, 6):
+        chatter.publish(data(n))
+    outbox = Outbox()
+    outbox.subscribe(1, chatter, chatter.qos)
+    late = Outbox()
+    late.subscribe(2, chatter, chatter.qos.grant({"depth": 2}))
+    assert [m["params"].get("seq") for m in drain(outbox)] == [5, 3, 4, 5]
+    assert [m["params"].get("seq") for m in drain(late)] == [5, 4, 5]
+
+
+def test_ending_a_subscription_drops_its_queue_and_answers_once() -> None:
+    chatter = topic()
+    woken: list[int] = []
+    outbox = Outbox(lambda: woken.append(1))
+    outbox.subscribe(1, chatter, QoS())
+    assert woken == [1]
+    chatter.publish(data(1))
+    assert woken == [1]  # woken once until the writer finds it empty
+    assert outbox.cancel(1)
+    assert not outbox.cancel(1)
+    assert outbox.queued == 0 and not outbox.ready and not chatter.subscriptions
+    messages = drain(outbox)
+    assert [m.get("method") for m in messages] == ["$/subscribed", None]
+    assert messages[1]["error"]["data"]["status"] == "CANCELLED"
+    chatter.publish(data(2))
+    assert outbox.next() is None
+
+
+def test_removing_a_topic_ends_its_subscriptions_with_a_reply() -> None:
+    board: TopicBoard[Entry] = TopicBoard()
+    board.add(topic())
+    outbox = Outbox()
+    subscription = board.subscribe(outbox, 4, {"topic": "chatter"}, frozenset())
+    assert not isinstance(subscription, bytes)
+    board.remove("/chatter")
+    messages = drain(outbox)
+    assert messages[-1]["id"] == 4
+    assert messages[-1]["error"]["message"] == "the topic /chatter was removed"
+    assert messages[-1]["error"]["data"]["status"] == "SERVICE_NOT_FOUND"
+
+
+def test_the_board_refuses_what_a_connection_may_not_do() -> None:
+    board: TopicBoard[Entry] = TopicBoard()
+    board.add(topic("/secret", scopes=frozenset({"admin"})))
+    outbox = Outbox()
+
+    def refused(params: Any) -> Any:
+        reply = board.subscribe(outbox, 1, params, frozenset())
+        assert isinstance(reply, bytes)
+        return json.loads(reply)["error"]
+
+    assert refused({"topic": "/secret"})["data"]["status"] == "PERMISSION_DENIED"
+    assert refused({"topic": "/nothing"})["message"] == "no topic named /nothing (topics: none)"
+    assert refused({"topic": 3})["data"]["errors"][0]["path"] == "topic"
+    assert refused(["/secret"])["data"]["status"] == "INVALID_PARAMS"
+    assert [t.name for t in board.visible(frozenset())] == []
+    assert [t.name for t in board.visible(frozenset({"admin"}))] == ["/secret"]
+
+
+def test_the_session_hands_topic_requests_to_the_board() -> None:
+    board: TopicBoard[Entry] = TopicBoard()
+    board.add(topic())
+    outbox = Outbox()
+    session = ServerSession(NoServices(), topics=board, outbox=outbox)
+    subscribe = {
+        "jsonrpc": "2.0",
+        "id": 3,
+        "method": "$/subscribe",
+        "params": {"topic": "/chatter"},
+    }
+    assert session.receive(json.dumps(subscribe)) == []
+    assert 3 in outbox.subscriptions
+    again = json.loads(session.receive(json.dumps(subscribe))[0])
+    assert again["error"]["data"]["status"] == "INVALID_REQUEST"
+    in_a_batch = json.loads(session.receive(json.dumps([{**subscribe, "id": 4}]))[0])
+    assert in_a_batch[0]["error"]["message"] == (
+        "Invalid Request: $/subscribe is read only on its own, with an id"
+    )
+    publish = {"jsonrpc": "2.0", "method": "$/publish", "params": {"topic": "/chatter"}}
+    assert session.receive(json.dumps(publish)) == []  # a notification: never answered
+    refused = json.loads(session.receive(json.dumps({**publish, "id": 9}))[0])
+    assert refused["error"]["data"]["status"] == "INVALID_PARAMS"
+    publish["params"]["message"] = {}
+    denied = json.loads(session.receive(json.dumps({**publish, "id": 10}))[0])
+    assert denied["error"]["message"] == (
+        "the server does not take messages on /chatter; only subscribe to it"
+    )
+    cancel = {"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 3}}
+    assert session.receive(json.dumps(cancel)) == []
+    assert not outbox.subscriptions
+    [subscribed, cancelled] = drain(outbox)
+    assert subscribed["method"] == "$/subscribed"
+    assert cancelled == {
+        "jsonrpc": "2.0",
+        "id": 3,
+        "error": {
+            "code": cancelled["error"]["code"],
+            "message": "the subscriber cancelled the subscription",
+            "data": {"status": "CANCELLED"},
+        },
+    }
+
+
+# --- what a subscriber counts --------------------------------------------------------------------
+
+
+def test_gaps_count_what_was_missed_across_a_reconnection() -> None:
+    gaps = Gaps()
+    gaps.subscribed(0)
+    assert gaps.accept(1, 0) == 0
+    assert gaps.accept(4, 2) == 2
+    gaps.subscribed(9)  # reconnected: the topic went on meanwhile, and replays 8 and 9
+    assert gaps.resumed == 1
+    assert gaps.accept(3, 0) is None  # seen already
+    assert gaps.accept(8, 0) == 3  # 5, 6, 7
+    assert gaps.missed == 5
+    gaps.subscribed(2)  # the server restarted: numbers cannot be compared
+    assert gaps.restarts == 1
+    assert gaps.accept(1, 0) == 0
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    depth=st.integers(min_value=1, max_value=8),
+    best_effort=st.booleans(),
+    steps=st.lists(st.integers(min_value=0, max_value=5), min_size=1, max_size=60),
+)
+def test_order_and_sequence_numbers_hold_under_any_depth(
+    depth: int, best_effort: bool, steps: list[int]
+) -> None:
+    """Publish bursts and take a few messages in turn: a subscriber sees increasing sequence
+    numbers, whose gaps are exactly what was said dropped; a reliable one sees every message
+    or is ended, never a gap; no queue ever holds more than its depth."""
+    qos = QoS(depth=depth, reliability="best_effort" if best_effort else "reliable")
+    chatter = topic(qos=qos)
+    outbox = Outbox()
+    subscription = outbox.subscribe(1, chatter, qos)
+    drain(outbox)
+    seen: list[dict[str, Any]] = []
+    ended = False
+    for burst in steps:
+        for _ in range(burst):
+            chatter.publish(data(chatter.seq + 1))
+            assert len(subscription.queue) <= depth
+        for _ in range(2):
+            taken = outbox.next()
+            if taken is None:
+                break
+            message = json.loads(taken)
+            if "error" in message:
+                ended = True
+                assert message["error"]["data"]["status"] == "RESOURCE_EXHAUSTED"
+            else:
+                seen.append(message["params"])
+    for message in drain(outbox):
+        if "error" in message:
+            ended = True
+        else:
+            seen.append(message["params"])
+    previous = 0
+    for params in seen:
+        assert params["seq"] > previous
+        assert params["seq"] - previous - 1 == params["dropped"]
+        assert params["message"] == json.loads(data(params["seq"]))
+        if not best_effort:
+            assert params["dropped"] == 0
+        previous = params["seq"]
+    if best_effort:
+        assert not ended
+        assert previous == chatter.seq  # the last one is never dropped
+    elif not ended:
+        assert previous == chatter.seq
+    assert outbox.queued == 0
