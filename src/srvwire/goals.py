@@ -17,9 +17,10 @@ Invariants:
   than its client reads costs one message of memory, not a queue. Goals are served
   round-robin, so one busy goal cannot starve another. ``seq`` counts every feedback the
   handler gave, so a gap shows how many were replaced.
-* **Feedback never goes ahead of control.** The outbox is only data: the connection sends
-  it when no reply is being sent, and a goal's pending feedback is dropped when its outcome
-  is written (the result supersedes it).
+* **Feedback never goes ahead of control.** The outbox is only data: the connection's writer
+  (:class:`srvwire.serving.Writer`) takes it in turn with topic data, behind every reply and
+  control message, and not while the connection is past its budget; a goal's pending
+  feedback is dropped when its outcome is written (the result supersedes it).
 """
 
 from __future__ import annotations
