@@ -21,6 +21,7 @@ import srvwire
 from srvwire.testing import Wire
 
 Trigger = srvwire.load_service("std_srvs/srv/Trigger")
+SetBool = srvwire.load_service("std_srvs/srv/SetBool")
 
 JOINTS = ["joint_0", "joint_1", "joint_2", "joint_3", "joint_4"]
 
@@ -119,3 +120,32 @@ async def test_a_handler_that_raises(
 
 
 # --8<-- [end:handler_errors]
+
+
+# --8<-- [start:credentials]
+class TestTheMotors:
+    """A server with authentication: the marker gives the fixtures' clients a token."""
+
+    @pytest.fixture
+    def srvwire_server(self) -> srvwire.Server:  # this class's server, not conftest.py's
+        operator = srvwire.Identity("operator", scopes={"robot:write"})
+        server = srvwire.Server(auth=srvwire.TokenAuth({"op-token": operator, "view": "viewer"}))
+
+        @server.service("/motors", SetBool, scopes={"robot:write"})
+        async def motors(request: Any) -> Any:
+            return {"success": True, "message": "on" if request.data else "off"}
+
+        return server
+
+    @pytest.mark.srvwire(token="op-token")
+    async def test_the_operator_turns_them_on(self, srvwire_client: srvwire.Client) -> None:
+        assert (await srvwire_client.call("/motors", {"data": True})).message == "on"
+
+    @pytest.mark.srvwire(token="view")
+    async def test_a_viewer_may_not(self, srvwire_client: srvwire.Client) -> None:
+        assert "/motors" not in srvwire_client.services  # not even listed to it
+        with pytest.raises(srvwire.PermissionDenied):
+            await srvwire_client.call("/motors", {"data": True}, srv_type=SetBool)
+
+
+# --8<-- [end:credentials]

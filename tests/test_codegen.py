@@ -351,8 +351,14 @@ def test_generated_source_reads_like_hand_written_code(tmp_path: Path) -> None:
         '    from_: Int32 = Field(default=0, alias="from", description=\'Where it "starts".\')\n'
         in source
     )
-    assert "    list: _builtins.list[Int32] = Field(default_factory=_builtins.list)\n" in source
-    assert "    samples: _builtins.list[Float64] = Field(default_factory=lambda: [0.5])\n" in source
+    assert (
+        "    list: _builtins.list[Int32] = Field(default_factory=_builtins.list, fail_fast=True)\n"
+        in source
+    )
+    assert (
+        "    samples: _builtins.list[Float64] = Field("
+        "default_factory=lambda: [0.5], fail_fast=True)" in source
+    )
     assert "import builtins as _builtins\n" in source
     assert (
         '    bytes: Annotated[_builtins.bytes, Field(max_length=4), AcceptBase64] = b"\\x01\\x02"\n'

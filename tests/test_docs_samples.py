@@ -132,6 +132,12 @@ EXPLAINED: dict[tuple[str, str], str] = {
         "against 'uint32 seq'); a type name has one definition per process",
     ): "the conflict error: tests/test_typeregistry.py and tests/test_reflection.py assert it",
     (
+        "interfaces.md",
+        "two different definitions of my_robot/msg/Limits: .../client_interfaces/my_robot/msg/"
+        "Limits.msg and server ws://robot:8765 (declaration 1: 'float64 max_speed' against "
+        "'float32 max_speed'); a type name has one definition per process",
+    ): "a local type that differs from the server's: tests/test_reflection.py asserts its text",
+    (
         "security.md",
         "cannot connect to ws://127.0.0.1:8765: the server refused the connection: HTTP 401: "
         "the token is not valid",

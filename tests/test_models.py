@@ -365,14 +365,16 @@ def test_byte_arrays_are_bytes_written_as_base64(name: str) -> None:
 
 def test_a_list_for_a_byte_array_is_checked_element_by_element() -> None:
     cls = one(unbounded("uint8"))
+    # Up to the first invalid element: as every array, it stops there.
     assert errors_of(cls, {"v": [1, 256, True, "a"]}) == [
         {
             "path": "v[1]",
             "message": "Input should be less than or equal to 255",
             "type": "less_than_equal",
         },
+    ]
+    assert errors_of(cls, {"v": [1, 2, True]}) == [
         {"path": "v[2]", "message": "Input should be a valid integer", "type": "int_type"},
-        {"path": "v[3]", "message": "Input should be a valid integer", "type": "int_type"},
     ]
     assert errors_of(cls, {"v": 5}) == [
         {
@@ -730,31 +732,62 @@ def test_validation_errors_point_into_the_payload() -> None:
 
 
 def test_summarize_errors_says_the_first_and_counts_the_rest() -> None:
-    values = one(unbounded("uint8"))
-    errors = errors_of(values, {"v": [256, -1, 300]})
-    assert (
-        summarize_errors(errors) == "v[0]: Input should be less than or equal to 255 (and 2 more)"
+    three = build_message(
+        msg(
+            "Three",
+            FieldSpec(t("uint8"), "a"),
+            FieldSpec(t("int32"), "b"),
+            FieldSpec(t("string"), "c"),
+        )
     )
-    assert summarize_errors(errors[:1]) == "v[0]: Input should be less than or equal to 255"
-    whole = errors_of(values, [1, 2])  # no path: the payload as a whole is wrong
-    assert summarize_errors(whole) == "Input should be a valid dictionary or instance of One"
+    errors = errors_of(three, {"a": 256, "b": "x", "c": 1})
+    assert summarize_errors(errors) == "a: Input should be less than or equal to 255 (and 2 more)"
+    assert summarize_errors(errors[:1]) == "a: Input should be less than or equal to 255"
+    whole = errors_of(three, [1, 2])  # no path: the payload as a whole is wrong
+    assert summarize_errors(whole) == "Input should be a valid dictionary or instance of Three"
+
+
+@pytest.mark.parametrize(
+    ("element", "good", "bad", "path"),
+    [
+        (t("int32"), 1, {}, "v[1]"),
+        (t("uint8"), 0, 256, "v[1]"),  # a byte array given as a list of integers
+        (t("string"), "s", 5, "v[1]"),
+        (t("Point", package="geo"), {"x": 1.0}, {"x": "no"}, "v[1].x"),
+    ],
+)
+def test_an_array_stops_at_its_first_invalid_element(
+    element: TypeSpec, good: Any, bad: Any, path: str
+) -> None:
+    # 100 000 bad elements cost one error, not 100 000: the work and the reply of a bad
+    # request do not grow with the number of elements it holds. Every kind of array.
+    for type_ in (
+        unbounded(element.name, package=element.package),
+        bounded(element.name, 200_000, package=element.package),
+        fixed(element.name, 100_001, package=element.package),
+    ):
+        cls = build_message(msg("Many", FieldSpec(type_, "v")), geo_resolver())
+        with pytest.raises(pydantic.ValidationError) as caught:
+            cls.model_validate({"v": [good, *[bad] * 100_000]})
+        assert caught.value.error_count() == 1
+        assert [e["path"] for e in error_data(caught.value)["errors"]] == [path]
 
 
 def test_an_error_lists_the_first_problems_and_counts_them_all() -> None:
-    # A reply must not be much larger than the request that caused it: 1 000 bad elements
-    # are reported as the first MAX_LISTED_ERRORS of them, and how many there were.
-    values = one(unbounded("uint8"))
+    # A reply must not be much larger than the request that caused it: of 30 bad fields, the
+    # first MAX_LISTED_ERRORS are listed, and error_count says how many were found.
+    wide = build_message(msg("Wide", *(FieldSpec(t("uint8"), f"f{i}") for i in range(30))))
     with pytest.raises(pydantic.ValidationError) as caught:
-        values.model_validate({"v": [256] * 1_000})
+        wide.model_validate({f"f{i}": 256 for i in range(30)})
     data = error_data(caught.value)
     assert len(data["errors"]) == MAX_LISTED_ERRORS == 10
-    assert [e["path"] for e in data["errors"]] == [f"v[{i}]" for i in range(10)]
-    assert data["error_count"] == 1_000
+    assert [e["path"] for e in data["errors"]] == [f"f{i}" for i in range(10)]
+    assert data["error_count"] == 30
     assert summarize_errors(data["errors"], data["error_count"]) == (
-        "v[0]: Input should be less than or equal to 255 (and 999 more)"
+        "f0: Input should be less than or equal to 255 (and 29 more)"
     )
     with pytest.raises(pydantic.ValidationError) as few:
-        values.model_validate({"v": [256, 257]})
+        wide.model_validate({"f0": 256, "f1": 257})
     assert "error_count" not in error_data(few.value)  # all of them are listed
 
 

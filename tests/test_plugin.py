@@ -172,7 +172,16 @@ def test_without_a_srvwire_server_the_error_says_how_to_give_one(
         (
             "timeout=1",
             "ERROR: test_it.py::test_it: @pytest.mark.srvwire has no option 'timeout' "
-            "(it takes transport=..., handler_errors=...)",
+            "(it takes transport=..., handler_errors=..., token=..., headers=...)",
+        ),
+        (
+            'token=""',
+            "ERROR: test_it.py::test_it: @pytest.mark.srvwire(token=''): use a non-empty string",
+        ),
+        (
+            'headers={"X-Badge": 42}',
+            "ERROR: test_it.py::test_it: @pytest.mark.srvwire(headers={'X-Badge': 42}): "
+            "use a dict of strings",
         ),
     ],
 )
@@ -183,6 +192,94 @@ def test_a_mistake_in_the_marker_stops_the_run(
     result = pytester.runpytest()
     assert result.ret == pytest.ExitCode.USAGE_ERROR
     result.stderr.fnmatch_lines([message])
+
+
+# --- credentials --------------------------------------------------------------------------------
+
+# A server with authentication, whose /motors needs a scope; tokens and a badge header admit.
+SECURE_CONFTEST = """
+import pytest
+
+import srvwire
+
+SetBool = srvwire.load_service("std_srvs/srv/SetBool")
+
+
+async def badge_reader(handshake):
+    if handshake.header("X-Badge") != "42":
+        raise srvwire.Unauthenticated("show badge 42")
+    return srvwire.Identity("badge 42", scopes={"robot:write"})
+
+
+def motors(request, context):
+    return {"success": True, "message": context.identity.name}
+
+
+@pytest.fixture
+def srvwire_server(request):
+    badge = request.node.get_closest_marker("badge") is not None
+    operator = srvwire.Identity("operator", scopes={"robot:write"})
+    auth = badge_reader if badge else srvwire.TokenAuth({"op": operator, "view": "viewer"})
+    server = srvwire.Server(auth=auth)
+    server.add_service("/motors", SetBool, motors, scopes={"robot:write"})
+    return server
+"""
+
+CREDENTIAL_TESTS = """
+import pytest
+
+import srvwire
+
+pytestmark = pytest.mark.srvwire(token="op")  # the module's default: the closest marker wins
+
+
+async def test_the_modules_token(srvwire_client):
+    assert (await srvwire_client.call("/motors", {"data": True})).message == "operator"
+
+
+@pytest.mark.srvwire(token="view")
+async def test_a_token_without_the_scope(srvwire_client):
+    assert "/motors" not in srvwire_client.services
+    with pytest.raises(srvwire.PermissionDenied):
+        await srvwire_client.call("/motors", {"data": True}, srv_type="std_srvs/srv/SetBool")
+
+
+@pytest.mark.srvwire(token="op", transport="websockets")
+def test_the_blocking_client_over_a_socket(srvwire_sync_client):
+    assert srvwire_sync_client.call("/motors", {"data": True}).message == "operator"
+
+
+@pytest.mark.srvwire(token="view")
+async def test_the_wire(srvwire_wire):
+    assert srvwire_wire.services == []
+    reply = await srvwire_wire.request("/motors", {"data": True})
+    assert reply["error"]["data"]["missing_scopes"] == ["robot:write"]
+
+
+@pytest.mark.badge
+@pytest.mark.srvwire(headers={"X-Badge": "42"})
+async def test_a_header_of_your_own(srvwire_client):
+    assert (await srvwire_client.call("/motors", {"data": False})).message == "badge 42"
+
+
+@pytest.mark.srvwire(token="a guess")
+async def test_a_wrong_token(srvwire_client):
+    pass
+"""
+
+
+def test_the_marker_gives_the_clients_their_credentials(pytester: pytest.Pytester) -> None:
+    project(
+        pytester,
+        ini={"markers": "badge: serve with the badge reader"},
+        conftest=SECURE_CONFTEST,
+        test_secure=CREDENTIAL_TESTS,
+    )
+    result = pytester.runpytest()
+    result.assert_outcomes(passed=5, errors=1)
+    result.stdout.fnmatch_lines(
+        ["*ERROR at setup of test_a_wrong_token*", "*ServiceUnavailable*HTTP 401*"]
+    )
 
 
 # --- the blocking client ----------------------------------------------------------------------

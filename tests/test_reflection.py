@@ -31,7 +31,7 @@ from srvwire.errors import (
 from srvwire.loader import ENV_VAR, InterfaceLoader, bundled_interfaces
 from srvwire.models import build_message, build_service
 from srvwire.parser import parse_message, parse_service
-from srvwire.typeregistry import TypeRegistry, process_types
+from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
 from support import scaled
 
 BATTERY = "# The battery, as the robot reports it.\nfloat32 voltage\nuint8 percent 100\n"
@@ -288,6 +288,14 @@ def test_rpc_discover_carries_every_definition_text() -> None:
         "inproc_robot/srv/SetLimits": SET_LIMITS,
         "inproc_robot/msg/Limits": LIMITS,
     }
+    # The fingerprint of the whole: the service and the message it nests, as $/services says.
+    assert method["x-srvwire-fingerprint"] == fingerprint(
+        {
+            "inproc_robot/srv/SetLimits": ("inproc_robot/Limits limits", "---", "bool ok"),
+            "inproc_robot/msg/Limits": ("float64 max_speed 1.0",),
+        }
+    )
+    assert server.registry.fingerprints() == {"/set_limits": method["x-srvwire-fingerprint"]}
 
 
 def test_registering_another_definition_under_a_known_name_is_refused() -> None:
@@ -354,3 +362,131 @@ def test_a_description_with_bad_names_or_text_is_an_interface_error() -> None:
         "server ws://x:2:1: a service needs a '---' line between the request and the response; "
         "found none"
     )
+
+
+# --- a local type that differs from the server's -----------------------------------------------
+
+SPEED_APP = """
+import srvwire
+
+loader = srvwire.InterfaceLoader([{folder!r}])
+SetSpeed = loader.load_service("{package}/srv/SetSpeed")
+server = srvwire.Server()
+
+
+@server.service("/set_speed", SetSpeed)
+def set_speed(request):
+    return {{"ok": True}}
+{older}
+"""
+
+OLDER = """
+server.registry.fingerprints = dict  # as a server from before fingerprints: none announced
+"""
+
+
+def speed_package(root: Path, package: str, limits: str) -> Path:
+    write(root, f"{package}/msg/Limits.msg", limits)
+    write(root, f"{package}/srv/SetSpeed.srv", "# How fast.\nLimits limits\n---\nbool ok\n")
+    return root
+
+
+def serving_speed(tmp_path: Path, package: str, limits: str, older: str = "") -> Iterator[str]:
+    interfaces = speed_package(tmp_path / "server_interfaces", package, limits)
+    app = write(
+        tmp_path,
+        "speed_app.py",
+        SPEED_APP.format(folder=str(interfaces), package=package, older=older),
+    )
+    env = {k: v for k, v in os.environ.items() if k != ENV_VAR}
+    with subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", f"{app}:server", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    ) as process:
+        try:
+            assert process.stdout is not None and process.stderr is not None
+            first = process.stdout.readline()
+            assert first.startswith("serving 1 service on ws://"), first + process.stderr.read()
+            yield first.split(" on ")[1].strip()
+        finally:
+            process.kill()
+
+
+def counting_descriptions(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Record each rpc.discover a client asks for."""
+    asked: list[str] = []
+    methods = srvwire.Client._methods
+
+    async def counted(self: srvwire.Client, *args: Any) -> Any:
+        asked.append(self.url)
+        return await methods(self, *args)
+
+    monkeypatch.setattr(srvwire.Client, "_methods", counted)
+    return asked
+
+
+async def test_a_local_type_that_differs_from_the_servers_is_an_error_before_the_call(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # The client has fp_robot on its own path, with another Limits: its local SetSpeed is
+    # found first, and the fingerprint the server announced says it is not the server's.
+    mine = speed_package(tmp_path / "client_interfaces", "fp_robot", "float64 max_speed\n")
+    loader = InterfaceLoader([mine])
+    asked = counting_descriptions(monkeypatch)
+    for url in serving_speed(tmp_path, "fp_robot", "float32 max_speed\nfloat32 max_turn\n"):
+        async with srvwire.connect(
+            url, timeout=scaled(10), type_resolver=loader.load_service
+        ) as client:
+            with pytest.raises(InterfaceConflictError) as excinfo:
+                await client.call("/set_speed", {"limits": {"max_speed": 1.0}})
+            assert asked == [url]  # the description, asked for only to say what differs
+            # A typed request of the local class is refused the same way: nothing is sent.
+            with pytest.raises(InterfaceConflictError):
+                await client.call(
+                    "/set_speed", loader.load_service("fp_robot/srv/SetSpeed").Request()
+                )
+    assert str(excinfo.value) == (
+        f"two different definitions of fp_robot/msg/Limits: {mine / 'fp_robot/msg/Limits.msg'} "
+        f"and server {url} (declaration 1: 'float64 max_speed' against 'float32 max_speed'); "
+        "a type name has one definition per process"
+    )
+
+
+async def test_the_same_local_type_is_compared_without_a_round_trip(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # Comments differ; the definitions do not.
+    mine = speed_package(tmp_path / "client_interfaces", "fp_same", "float32 max_speed  # m/s\n")
+    loader = InterfaceLoader([mine])
+    SetSpeed = loader.load_service("fp_same/srv/SetSpeed")
+    asked = counting_descriptions(monkeypatch)
+    for url in serving_speed(tmp_path, "fp_same", "# Limits.\nfloat32 max_speed\n"):
+        async with srvwire.connect(
+            url, timeout=scaled(10), type_resolver=loader.load_service
+        ) as client:
+            assert (await client.call("/set_speed", {"limits": {"max_speed": 1.0}})).ok
+            assert (await client.call("/set_speed", SetSpeed.Request())).ok
+            link = client._link
+            assert link is not None
+            assert link.fingerprints == {"/set_speed": fingerprint(full_definition(SetSpeed) or {})}
+            assert link.verified == {"/set_speed"}
+    assert asked == []  # no rpc.discover: the types are local, and the fingerprints agree
+
+
+async def test_a_server_that_announces_no_fingerprint_is_not_compared(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # The local Limits differs, but nothing says so: the call goes as before fingerprints.
+    mine = speed_package(tmp_path / "client_interfaces", "fp_older", "float64 max_speed\n")
+    loader = InterfaceLoader([mine])
+    asked = counting_descriptions(monkeypatch)
+    for url in serving_speed(tmp_path, "fp_older", "float32 max_speed\n", OLDER):
+        async with srvwire.connect(
+            url, timeout=scaled(10), type_resolver=loader.load_service
+        ) as client:
+            assert (await client.call("/set_speed", {"limits": {"max_speed": 1.0}})).ok
+            assert client._link is not None and client._link.fingerprints == {}
+    assert asked == []

@@ -30,6 +30,7 @@ from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import CallRunner, ServedConnection
 from srvwire.transports.base import Options, Transport, TransportClosed
 from srvwire.transports.memory import MemoryTransport
+from srvwire.typeregistry import fingerprint, full_definition
 from support import ROOT, scaled
 
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
@@ -907,9 +908,11 @@ async def test_services_are_announced_on_connect_and_on_change(
     server: Server, running: RunningServer
 ) -> None:
     w = await open_wire(running)
+    # Each with the fingerprint of its type's full definition.
+    echo, subtract, sum_ = (fingerprint(full_definition(t) or {}) for t in (Echo, Subtract, Sum))
     assert w.services == [
-        {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
-        {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+        {"name": "/echo", "type": "srvwire_tests/srv/Echo", "fingerprint": echo},
+        {"name": "/subtract", "type": "srvwire_tests/srv/Subtract", "fingerprint": subtract},
     ]
     server.add_service("/robot1/sum", Sum, lambda r: {"sum": r.a + r.b + r.c})
     note = await w.recv()
@@ -918,9 +921,13 @@ async def test_services_are_announced_on_connect_and_on_change(
         "method": "$/services",
         "params": {
             "services": [
-                {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
-                {"name": "/robot1/sum", "type": "srvwire_tests/srv/Sum"},
-                {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+                {"name": "/echo", "type": "srvwire_tests/srv/Echo", "fingerprint": echo},
+                {"name": "/robot1/sum", "type": "srvwire_tests/srv/Sum", "fingerprint": sum_},
+                {
+                    "name": "/subtract",
+                    "type": "srvwire_tests/srv/Subtract",
+                    "fingerprint": subtract,
+                },
             ]
         },
     }
@@ -1974,19 +1981,25 @@ async def test_a_client_that_does_not_read_is_read_no_further_and_closed_after_t
 async def test_a_reply_is_not_much_larger_than_the_request_that_caused_it(
     transport: Transport,
 ) -> None:
-    # 20 000 bad elements: the error lists the first ten and counts them all.
+    # 20 000 bad elements: the array stops at the first (the error says that one), and
+    # 12 bad fields: the error lists the first ten and counts them all.
     server = Server(max_message_size=None)
-    many = build("int32[] values\n---\nbool ok\n", "Many")
+    fields = "".join(f"int32[] v{i}\n" for i in range(12))
+    many = build(f"{fields}---\nbool ok\n", "Many")
     server.add_service("/many", many, lambda request: {"ok": True})
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running, max_message_size=None)
-        message = json.dumps(request("/many", {"values": ["x"] * 20_000}))
+        params = {f"v{i}": [1, *["x"] * (20_000 if i == 0 else 1)] for i in range(12)}
+        message = json.dumps(request("/many", params))
         await w.send(message)
         reply = await w.recv_reply()
         assert error(reply) == (1, -32602, "INVALID_PARAMS")
         data = reply["error"]["data"]
-        assert len(data["errors"]) == 10 and data["error_count"] == 20_000
-        assert reply["error"]["message"].endswith("(and 19999 more)")
+        assert [e["path"] for e in data["errors"]] == [f"v{i}[1]" for i in range(10)]
+        assert data["error_count"] == 12
+        assert reply["error"]["message"] == (
+            "invalid params for /many: v0[1]: Input should be a valid integer (and 11 more)"
+        )
         assert len(json.dumps(reply)) < len(message) // 50
         await w.ws.close()
 

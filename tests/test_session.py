@@ -33,6 +33,7 @@ from srvwire.session import (
     ServicesChanged,
     Stray,
 )
+from srvwire.typeregistry import fingerprint, full_definition
 
 
 def registry() -> ServiceRegistry:
@@ -255,16 +256,43 @@ def test_a_cancel_in_the_same_batch_reaches_its_call(server: ServerSession[Servi
 
 
 def test_the_announcement_lists_every_service(server: ServerSession[ServiceEntry]) -> None:
+    # Each with the fingerprint of its type's full definition (typeregistry.fingerprint).
+    echo, subtract = (fingerprint(full_definition(srv) or {}) for srv in (Echo, Subtract))
     assert json.loads(server.announcement()) == {
         "jsonrpc": "2.0",
         "method": "$/services",
         "params": {
             "services": [
-                {"name": "/echo", "type": "srvwire_tests/srv/Echo"},
-                {"name": "/subtract", "type": "srvwire_tests/srv/Subtract"},
+                {"name": "/echo", "type": "srvwire_tests/srv/Echo", "fingerprint": echo},
+                {
+                    "name": "/subtract",
+                    "type": "srvwire_tests/srv/Subtract",
+                    "fingerprint": subtract,
+                },
             ]
         },
     }
+    assert echo != subtract and len(echo) == 16
+
+
+def test_the_client_reads_the_fingerprints_and_does_without(
+    server: ServerSession[ServiceEntry],
+) -> None:
+    client: ClientSession[str] = ClientSession()
+    (announced,) = client.receive(server.announcement())
+    assert announced.fingerprints == {
+        "/echo": fingerprint(full_definition(Echo) or {}),
+        "/subtract": fingerprint(full_definition(Subtract) or {}),
+    }
+    older = json.dumps(  # a server from before fingerprints
+        {
+            "jsonrpc": "2.0",
+            "method": "$/services",
+            "params": {"services": [{"name": "/a", "type": "p/srv/A"}]},
+        }
+    )
+    (plain,) = client.receive(older)
+    assert (plain.services, plain.fingerprints) == ({"/a": "p/srv/A"}, {})
 
 
 # --- the client's side ----------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """What a type checker sees of a call: mypy, run on a small user file, reveals the types.
 
-The user file imports classes written by ``srvwire gen`` (the typed path) and one loaded with
+The user file, for the async client and the blocking one, imports classes written by
+``srvwire gen`` (the typed path) and one loaded with
 ``load_service`` (known to mypy only as ``type[Service]``), as a user's project would.
 """
 
@@ -16,6 +17,7 @@ from support import DATA, ROOT
 
 USER_CODE = """\
 import srvwire
+import srvwire.sync
 from wire_types import Capture, Scan
 
 
@@ -31,6 +33,16 @@ async def use(client: srvwire.Client) -> None:
     reveal_type(await client.call("/scan", loaded.Request(), srv_type=loaded))
     mean: str = (await client.call("/scan", Scan.Request())).mean
     frame: bytes = (await client.proxy("/capture", Capture)()).frame.data
+
+
+def use_blocking(client: srvwire.sync.Client) -> None:
+    reveal_type(client.call("/scan", Scan.Request(fill=1.0)))
+    reveal_type(client.call("/scan", {"fill": 1.0}, srv_type=Scan))
+    reveal_type(client.proxy("/capture", Capture))
+    reveal_type(client.proxy("/capture", Capture, timeout=5.0)(width=2, height=1))
+    reveal_type(client.call("/scan", {"fill": 1.0}))
+    reveal_type(client.proxy("/scan")())
+    mean: str = client.call("/scan", Scan.Request()).mean
 """
 
 
@@ -55,15 +67,23 @@ def test_mypy_sees_the_response_type_of_typed_calls(tmp_path: Path) -> None:
     )
     assert stderr == ""
     assert [line.split("user.py:", 1)[1] for line in stdout.splitlines()] == [
-        '6: note: Revealed type is "wire_types.Scan_Response"',
         '7: note: Revealed type is "wire_types.Scan_Response"',
         '8: note: Revealed type is "wire_types.Scan_Response"',
-        '9: note: Revealed type is "srvwire.client.ServiceProxy[wire_types.Capture_Response]"',
-        '10: note: Revealed type is "wire_types.Capture_Response"',
-        '11: note: Revealed type is "Any"',
+        '9: note: Revealed type is "wire_types.Scan_Response"',
+        '10: note: Revealed type is "srvwire.client.ServiceProxy[wire_types.Capture_Response]"',
+        '11: note: Revealed type is "wire_types.Capture_Response"',
         '12: note: Revealed type is "Any"',
-        '14: note: Revealed type is "Any"',
-        '15: error: Incompatible types in assignment (expression has type "float", variable has '
+        '13: note: Revealed type is "Any"',
+        '15: note: Revealed type is "Any"',
+        '16: error: Incompatible types in assignment (expression has type "float", variable has '
+        'type "str")  [assignment]',
+        '21: note: Revealed type is "wire_types.Scan_Response"',
+        '22: note: Revealed type is "wire_types.Scan_Response"',
+        '23: note: Revealed type is "srvwire.sync.ServiceProxy[wire_types.Capture_Response]"',
+        '24: note: Revealed type is "wire_types.Capture_Response"',
+        '25: note: Revealed type is "Any"',
+        '26: note: Revealed type is "Any"',
+        '27: error: Incompatible types in assignment (expression has type "float", variable has '
         'type "str")  [assignment]',
     ]
     assert status == 1

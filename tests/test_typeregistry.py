@@ -7,7 +7,14 @@ import pytest
 from srvwire.errors import InterfaceConflictError
 from srvwire.models import build_message, build_service
 from srvwire.parser import parse_message, parse_service
-from srvwire.typeregistry import TypeRegistry, definition_lines, process_types
+from srvwire.typeregistry import (
+    TypeRegistry,
+    definition_lines,
+    fingerprint,
+    first_difference,
+    full_definition,
+    process_types,
+)
 
 POINT = "# A point.\nfloat64 x  # along x\nfloat64 y 1.5\nuint8 ORIGIN=0\n"
 
@@ -104,3 +111,37 @@ def test_adopt_records_a_class_declared_elsewhere_once() -> None:
 def test_the_process_has_one_registry() -> None:
     assert process_types() is process_types()
     assert repr(TypeRegistry()) == "<TypeRegistry of 0 types>"
+
+
+def speed_service(limits: str) -> type:
+    Limits = build_message(parse_message(limits, "fp", "Limits"))
+    spec = parse_service("Limits limits\nLimits[] more\n---\nbool ok\n", "fp", "SetSpeed")
+    return build_service(spec, lambda type_: Limits)
+
+
+def test_a_fingerprint_covers_the_service_and_every_message_it_nests() -> None:
+    plain = speed_service("float32 max_speed\n")
+    assert full_definition(plain) == {
+        "fp/srv/SetSpeed": ("fp/Limits limits", "fp/Limits[] more", "---", "bool ok"),
+        "fp/msg/Limits": ("float32 max_speed",),
+    }
+    commented = speed_service("# Limits.\nfloat32 max_speed  # m/s\n")
+    other = speed_service("float64 max_speed\n")
+    same, differs = (fingerprint(full_definition(s) or {}) for s in (commented, other))
+    assert fingerprint(full_definition(plain) or {}) == same != differs
+    assert len(same) == 16 and int(same, 16) >= 0
+    assert first_difference(full_definition(plain) or {}, full_definition(other) or {}) == (
+        "fp/msg/Limits",
+        "declaration 1: 'float32 max_speed' against 'float64 max_speed'",
+    )
+    assert first_difference({"a": ("x",)}, {"a": ("x",), "b": ()}) == (
+        "b",
+        "only the second defines it",
+    )
+
+
+def test_a_class_written_by_hand_has_no_definition() -> None:
+    class Handmade:
+        pass
+
+    assert full_definition(Handmade) is None

@@ -17,7 +17,12 @@ from typing import Any, TypeAlias
 from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticSerializationError
 
-from srvwire.errors import InterfaceError, InterfaceNotFoundError, InvalidParams
+from srvwire.errors import (
+    InterfaceConflictError,
+    InterfaceError,
+    InterfaceNotFoundError,
+    InvalidParams,
+)
 from srvwire.idl import MessageSpec, TypeSpec
 from srvwire.models import (
     INF_NAN_MODES,
@@ -39,7 +44,14 @@ from srvwire.models import (
 )
 from srvwire.parser import parse_action, parse_message, parse_service
 from srvwire.protocol import describe_value, encode_json, timeout_seconds
-from srvwire.typeregistry import TypeRegistry, process_types
+from srvwire.typeregistry import (
+    TypeRegistry,
+    definition_lines,
+    fingerprint,
+    first_difference,
+    full_definition,
+    process_types,
+)
 
 __all__ = [
     "MessageResolver",
@@ -210,6 +222,7 @@ class ServiceTypes:
         self._inf_nan: InfNan = inf_nan
         self._by_name: dict[str, ServiceCodec] = {}
         self._by_class: dict[type[Service], ServiceCodec] = {}
+        self._fingerprints: dict[type[Service], str | None] = {}
 
     def known(self, srv_type: SrvType | None, advertised: str | None) -> ServiceCodec | None:
         """Return the type of a call when it is known already (the quick path), else None."""
@@ -281,11 +294,55 @@ class ServiceTypes:
             nested.load(other)
         return self._types.intern(spec, source, lambda: build_action(spec, nested))
 
+    def fingerprint(self, service: type[Service]) -> str | None:
+        """The fingerprint of ``service``'s full definition, computed once per class; None
+        for a class with no spec (written by hand), which has nothing to compare."""
+        if service not in self._fingerprints:
+            definition = full_definition(service)
+            self._fingerprints[service] = None if definition is None else fingerprint(definition)
+        return self._fingerprints[service]
+
+    def conflict(
+        self, service: type[Service], definitions: Mapping[str, str] | None, source: str
+    ) -> InterfaceConflictError:
+        """The error for a local ``service`` whose fingerprint differs from the server's.
+
+        ``definitions`` is the server's description (text by full name), when it could be
+        had, to say which type differs and how; ``source`` says where it came from.
+        """
+        ours = full_definition(service) or {}
+        theirs: dict[str, tuple[str, ...]] = {}
+        try:
+            for name, text in (definitions or {}).items():
+                theirs[name] = definition_lines(_parse_named(name, text, source))
+        except InterfaceError:
+            theirs = {}
+        if theirs:
+            name, difference = first_difference(ours, theirs)
+        else:
+            name, difference = service.type_name, "their fingerprints differ"
+        known = self._types.get(name)
+        spec_path = getattr(getattr(service, "spec", None), "path", None)
+        local = known.source if known is not None else (spec_path or "the local class")
+        return InterfaceConflictError(name, local, source, difference)
+
     def _codec(self, service: type[Service]) -> ServiceCodec:
         codec = self._by_class.get(service)
         if codec is None:
             codec = self._by_class[service] = ServiceCodec(service, self._inf_nan)
         return codec
+
+
+def _parse_named(name: str, text: str, source: str) -> Any:
+    """Parse the definition ``text`` of the full type ``name`` (msg, srv or action)."""
+    parts = name.split("/")
+    if len(parts) != 3:
+        raise InterfaceError(f"the {source} describes a type with no full name: {name!r}")
+    package, kind, short = parts
+    parse = {"msg": parse_message, "srv": parse_service, "action": parse_action}.get(kind)
+    if parse is None:
+        raise InterfaceError(f"the {source} describes {name!r}, of no known kind")
+    return parse(text, package, short, path=source)
 
 
 def encode_message(topic: str, msg_type: type[BaseModel], message: Any) -> str:

@@ -434,6 +434,8 @@ class Client:
                 except RPCError as exc:  # asking for the description failed: this call did
                     exc.service = method
                     raise
+        if codec is not None and method not in link.verified:
+            await self._verify(link, method, codec, advertised, deadline, budget)
         params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
         try:
@@ -725,6 +727,36 @@ class Client:
             return self._types.remote(method, name, described[1].get(method), source)
         finally:
             self._describing.release()
+
+    async def _verify(
+        self,
+        link: Link,
+        method: str,
+        codec: ServiceCodec,
+        advertised: str | None,
+        deadline: float,
+        budget: float,
+    ) -> None:
+        """Compare the type a call of ``method`` uses with the server's, once per connection
+        (again after ``$/services`` changes), by the fingerprint ``$/services`` announced.
+
+        Equal, or not announced (an older server, a class written by hand), the call goes
+        on. Different: raise :class:`~srvwire.errors.InterfaceConflictError` naming the
+        local file and the server, and the first declaration that differs, read from the
+        server's description (asked for only then).
+        """
+        service = codec.service
+        theirs = link.fingerprints.get(method)
+        if theirs is not None and service.type_name == advertised:
+            ours = self._types.fingerprint(service)
+            if ours is not None and ours != theirs:
+                try:
+                    methods = await self._methods(link, deadline, budget)
+                except RPCError:
+                    methods = []
+                definitions = _described(methods).get(method)
+                raise self._types.conflict(service, definitions, f"server {self.url}")
+        link.verified.add(method)
 
     # --- topics -----------------------------------------------------------------------------
 
@@ -1467,7 +1499,12 @@ class connect(Coroutine[Any, Any, Client]):
        texts the server gives in ``rpc.discover`` (asked once per connection, when first
        needed). The messages it nests are taken from the local path when they are there.
 
-    A service type found locally is used without asking the server. When the description is
+    A service type found locally is used without asking the server for its description: it
+    is compared, before the connection's first call of the service, with the fingerprint the
+    server announced in ``$/services``, and one that differs is an
+    :class:`~srvwire.errors.InterfaceConflictError` naming the local file, the server and the
+    first declaration that differs (the description is read then, to say which). When the
+    description is
     read, every type in it is compared with the local file or the process's class of the same
     name (through the process's :class:`~srvwire.typeregistry.TypeRegistry`): one the server
     defines as the local file does is the local class, and one it defines differently is an

@@ -495,6 +495,8 @@ class _Writer:
             keywords.append(Keyword("alias", Text(field.name)))
         if field.doc:
             keywords.append(Keyword("description", Text(field.doc)))
+        if type_.is_array and not is_bytes:  # as models._field_info
+            keywords.append(Keyword("fail_fast", "True"))
         default: Keyword
         if type_.is_primitive:
             value = default_value(field)

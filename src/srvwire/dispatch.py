@@ -58,7 +58,7 @@ import re
 import threading
 import time
 import typing
-from collections.abc import Callable, Coroutine, Iterable, Iterator
+from collections.abc import Callable, Coroutine, Iterable, Iterator, Mapping
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from types import CoroutineType
@@ -91,7 +91,7 @@ from srvwire.models import (
 from srvwire.protocol import Id, canonical_name, encode_json
 from srvwire.threads import ConcurrencyLimit
 from srvwire.topics import TopicBoard
-from srvwire.typeregistry import TypeRegistry, process_types
+from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
 from srvwire.version import __version__
 
 __all__ = [
@@ -509,6 +509,7 @@ class ServiceRegistry:
         self.inf_nan: InfNan = inf_nan
         self._entries: dict[str, ServiceEntry] = {}
         self._discovery: dict[frozenset[str] | None, str] = {}  # by the scopes it shows
+        self._fingerprints: dict[str, str] = {}  # of the types that have a definition
         self.topics: TopicBoard[Any] = TopicBoard()
         """The server's topics (their entries are :class:`srvwire.pubsub.TopicEntry`)."""
         self.types = process_types() if types is None else types
@@ -585,6 +586,9 @@ class ServiceRegistry:
             limit=None if max_concurrency is None else ConcurrencyLimit(max_concurrency),
         )
         self._entries[canonical] = entry
+        definition = full_definition(srv_type)
+        if definition is not None:
+            self._fingerprints[canonical] = fingerprint(definition)
         self._discovery.clear()
         return entry
 
@@ -594,6 +598,7 @@ class ServiceRegistry:
         entry = self._entries.pop(canonical, None)
         if entry is None:
             raise RegistrationError(f"no service named {canonical} is registered")
+        self._fingerprints.pop(canonical, None)
         self._discovery.clear()
         return entry
 
@@ -630,12 +635,23 @@ class ServiceRegistry:
         """Return ``(name, type name)`` of every service ``scopes`` may call, sorted by name."""
         return [(entry.name, entry.type_name) for entry in self.visible(scopes)]
 
+    def fingerprints(self) -> Mapping[str, str]:
+        """The fingerprint of each service's full definition, by service name, for the
+        services whose type has one (see :func:`srvwire.typeregistry.fingerprint`)."""
+        return self._fingerprints
+
     def discover(self, scopes: frozenset[str] | None = None) -> dict[str, Any]:
         """Return the OpenRPC 1.3.2 document describing every service ``scopes`` may call."""
+        methods = []
+        for entry in self.visible(scopes):
+            method = entry.describe()
+            if entry.name in self._fingerprints:
+                method["x-srvwire-fingerprint"] = self._fingerprints[entry.name]
+            methods.append(method)
         return {
             "openrpc": "1.3.2",
             "info": {"title": "srvwire", "version": __version__},
-            "methods": [entry.describe() for entry in self.visible(scopes)]
+            "methods": methods
             + [topic.entry.describe(topic) for topic in self.topics.visible(scopes)],
         }
 

@@ -143,7 +143,18 @@ class Stream(Protocol):
 class Link:
     """One open connection of a client and the calls waiting on it."""
 
-    __slots__ = ("conn", "goals", "limit", "loop", "owner", "reader", "session", "streams")
+    __slots__ = (
+        "conn",
+        "fingerprints",
+        "goals",
+        "limit",
+        "loop",
+        "owner",
+        "reader",
+        "session",
+        "streams",
+        "verified",
+    )
 
     def __init__(self, owner: Owner, conn: Connection, limit: int | None = None) -> None:
         self.owner = owner
@@ -153,6 +164,10 @@ class Link:
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
         self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
+        # What the latest $/services says of each service's definition, and the services
+        # whose local type the client has compared with it since.
+        self.fingerprints: dict[str, str] = {}
+        self.verified: set[str] = set()
         self.streams: dict[int, Stream] = {}  # subscriptions on this connection, by id
 
     @classmethod
@@ -200,6 +215,7 @@ class Link:
             raise ServiceUnavailable(
                 f"cannot connect to {url}: {exc.error.message}", {"url": url}
             ) from exc
+        link.fingerprints = events[0].fingerprints
         return link, events[0].services
 
     def start(self) -> None:
@@ -231,6 +247,8 @@ class Link:
                         if not future.done():
                             future.set_result(event[1])
                     elif kind is ServicesChanged:
+                        self.fingerprints = event.fingerprints
+                        self.verified = set()
                         owner.services_changed(self, event.services)
                     elif kind is Subscribed:
                         stream = self.streams.get(event.id)

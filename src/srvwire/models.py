@@ -19,6 +19,8 @@ Invariants
   Only a few checks call Python: the ``float32`` range (it must let ``inf`` and ``nan``
   through, which a ``ge``/``le`` pair cannot), a non-finite float spelled as a string or
   ``null``, and the reading and writing of byte arrays (once per field).
+* **An array stops at its first invalid element** (``fail_fast=True`` in its ``Field``), so
+  the work and the error list of a bad request do not grow with its element count.
 * **Every field has a default.** A written default is used; otherwise the field takes its ROS
   zero value. Scalars share their immutable default; every list and nested message comes from
   a ``default_factory``, so two instances never share a mutable value. ``Request()`` with no
@@ -375,6 +377,8 @@ def _field_info(spec: MessageSpec, field: FieldSpec, element: Any) -> Any:
     if field.doc:
         keywords["description"] = field.doc
     type_ = field.type
+    if type_.is_array and not _is_bytes(type_):
+        keywords["fail_fast"] = True  # stop at the first invalid element: MAX_LISTED_ERRORS
     if type_.is_primitive:
         value = default_value(field)
         if isinstance(value, list):
@@ -514,7 +518,11 @@ def _path(location: tuple[int | str, ...]) -> str:
 
 
 MAX_LISTED_ERRORS = 10
-"""How many problems an ``INVALID_PARAMS`` error lists; ``error_count`` says how many there were."""
+"""How many problems an ``INVALID_PARAMS`` error lists; ``error_count`` says how many were found.
+
+An array's validation stops at its first invalid element (``Field(fail_fast=True)``), so a
+message of a million bad elements costs one error, not a million: each array contributes at
+most one problem, and ``error_count`` counts the problems found, not every bad element."""
 
 
 def validation_errors(

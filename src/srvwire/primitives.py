@@ -141,9 +141,10 @@ class _NonFiniteInput:
         return "NonFiniteInput()"
 
 
-# Lists of integers are checked in Rust, element by element, so an error points at the element.
+# Lists of integers are checked in Rust, element by element, so an error points at the element;
+# as every array, it stops at the first invalid one (fail_fast).
 _OCTETS = SchemaValidator(
-    core_schema.list_schema(core_schema.int_schema(strict=True, ge=0, le=255))
+    core_schema.list_schema(core_schema.int_schema(strict=True, ge=0, le=255), fail_fast=True)
 )
 
 

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeAlias, TypeVar
 
@@ -411,9 +411,18 @@ def cancel_notification(id: Id) -> Notification:
     return Notification(CANCEL_METHOD, {"id": id})
 
 
-def services_notification(services: Iterable[tuple[str, str]]) -> Notification:
-    """Return the ``$/services`` notification for ``(name, type)`` pairs, sorted by name."""
-    listed = [{"name": name, "type": type_name} for name, type_name in sorted(services)]
+def services_notification(
+    services: Iterable[tuple[str, str]], fingerprints: Mapping[str, str] | None = None
+) -> Notification:
+    """Return the ``$/services`` notification for ``(name, type)`` pairs, sorted by name;
+    an entry whose name has one of ``fingerprints`` carries it as ``"fingerprint"``."""
+    known = fingerprints or {}
+    listed: list[dict[str, str]] = []
+    for name, type_name in sorted(services):
+        entry = {"name": name, "type": type_name}
+        if name in known:
+            entry["fingerprint"] = known[name]
+        listed.append(entry)
     return Notification(SERVICES_METHOD, {"services": listed})
 
 

@@ -47,7 +47,7 @@ from __future__ import annotations
 import itertools
 import re
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -139,6 +139,8 @@ class Services(Protocol[E_co]):
         ...
 
     def services(self, scopes: frozenset[str] | None = None) -> list[tuple[str, str]]: ...
+
+    def fingerprints(self) -> Mapping[str, str]: ...
 
     def discover_json(self, scopes: frozenset[str] | None = None) -> str: ...
 
@@ -557,7 +559,8 @@ class ServerSession(Generic[E]):
 
     def announcement(self) -> bytes:
         """The ``$/services`` notification: the first message, and the one after each change."""
-        return services_notification(self.services.services(self.scopes)).serialize()
+        services = self.services.services(self.scopes)
+        return services_notification(services, self.services.fingerprints()).serialize()
 
     def topics_announcement(self) -> bytes | None:
         """The ``$/topics`` notification, after ``$/services``; None for a server that has no
@@ -604,9 +607,11 @@ def _expired() -> Unauthenticated:
 
 @dataclass(slots=True)
 class ServicesChanged:
-    """The server's ``$/services``: every service it offers now, canonical name -> type."""
+    """The server's ``$/services``: every service it offers now, canonical name -> type, and
+    the fingerprints of their definitions where the server gives them."""
 
     services: dict[str, str]
+    fingerprints: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(slots=True)
@@ -735,7 +740,7 @@ class ClientSession(Generic[W]):
         # Every item is read before any waiter is taken: a violation anywhere in a batch
         # leaves every call pending, for lost() to hand back.
         services = [
-            ServicesChanged(parse_services(message))
+            ServicesChanged(parse_services(message), parse_fingerprints(message))
             for message in messages
             if isinstance(message, Notification) and message.method == SERVICES_METHOD
         ]
@@ -754,6 +759,18 @@ class ClientSession(Generic[W]):
             waiter = self.pending.pop(id, None) if type(id) is int else None
             events.append(Stray(message) if waiter is None else (waiter, message))
         return events
+
+
+def parse_fingerprints(message: Notification) -> dict[str, str]:
+    """Read the fingerprints of a ``$/services`` that :func:`parse_services` accepted, by
+    canonical service name; an entry with none, or one that is not a string, has none."""
+    found: dict[str, str] = {}
+    params: Any = message.params
+    for entry in params["services"]:
+        value = entry.get("fingerprint")
+        if isinstance(value, str):
+            found[canonical_name(entry["name"])] = value
+    return found
 
 
 _TOPIC_NEWS = frozenset({MESSAGE_METHOD, SUBSCRIBED_METHOD, TOPICS_METHOD})

@@ -44,7 +44,7 @@ import threading
 import weakref
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Mapping
 from types import TracebackType
-from typing import Any, ParamSpec, TypeVar
+from typing import Any, Generic, ParamSpec, TypeVar, overload
 
 from pydantic import BaseModel
 
@@ -52,7 +52,7 @@ from srvwire import client as aio
 from srvwire.actions import ClientGoal, GoalResult
 from srvwire.calls import ServiceInfo, SrvType, check_timeout
 from srvwire.errors import ConnectionLost, DeadlineExceeded
-from srvwire.models import Action
+from srvwire.models import Action, Message, ServiceRequest, TypedService
 
 __all__ = [
     "BACKSTOP",
@@ -73,6 +73,7 @@ CLOSE_WITHIN = 10.0
 
 T = TypeVar("T")
 P = ParamSpec("P")
+R = TypeVar("R", bound=Message)
 
 
 class LoopTimeout(TimeoutError):
@@ -281,6 +282,31 @@ class Client:
 
     # --- calls ------------------------------------------------------------------------------
 
+    @overload
+    def call(
+        self,
+        name: str,
+        request: ServiceRequest[R],
+        /,
+        *,
+        timeout: float | None = None,
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
+    def call(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,
+        srv_type: type[TypedService[Any, R]],
+        wait_for_ready: bool = False,
+    ) -> R: ...
+
+    @overload
     def call(
         self,
         name: str,
@@ -290,12 +316,25 @@ class Client:
         timeout: float | None = None,
         srv_type: SrvType | None = None,
         wait_for_ready: bool = False,
+    ) -> Any: ...
+
+    def call(
+        self,
+        name: str,
+        request: Any = None,  # the overloads say what it may be
+        /,
+        *,
+        timeout: float | None = None,
+        srv_type: SrvType | None = None,
+        wait_for_ready: bool = False,
     ) -> Any:
         """Call the service ``name`` with ``request`` and return its response.
 
-        As :meth:`srvwire.Client.call`: the typed ``Response`` when the type is known, else a
-        dict; ``timeout`` is the call's deadline (default: the client's); the
-        :class:`~srvwire.errors.RPCError` subclass of the failure is raised.
+        As :meth:`srvwire.Client.call`: the typed ``Response`` of the service's type;
+        ``timeout`` is the call's deadline (default: the client's); the
+        :class:`~srvwire.errors.RPCError` subclass of the failure is raised. Statically, as
+        there, a generated ``Request`` or a generated service class as ``srv_type`` makes the
+        result that service's ``Response``; otherwise it is ``Any``.
         """
         budget = self._budget(timeout)  # a bad timeout is refused before any coroutine exists
         return self._run(
@@ -306,6 +345,17 @@ class Client:
             name,
         )
 
+    @overload
+    def proxy(
+        self,
+        name: str,
+        srv_type: type[TypedService[Any, R]],
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[R]: ...
+
+    @overload
     def proxy(
         self,
         name: str,
@@ -313,11 +363,21 @@ class Client:
         *,
         timeout: float | None = None,
         wait_for_ready: bool = False,
-    ) -> ServiceProxy:
+    ) -> ServiceProxy[Any]: ...
+
+    def proxy(
+        self,
+        name: str,
+        srv_type: SrvType | None = None,
+        *,
+        timeout: float | None = None,
+        wait_for_ready: bool = False,
+    ) -> ServiceProxy[Any]:
         """Return a callable for the service ``name`` that takes fields as keywords.
 
         ``client.proxy("/add_two_ints")(a=1, b=2)``; the options given here apply to every
-        call made through it.
+        call made through it. With a generated service class as ``srv_type``, a type checker
+        knows its calls return that service's ``Response``.
         """
         proxy = self._client.proxy(name, srv_type, timeout=timeout, wait_for_ready=wait_for_ready)
         return ServiceProxy(self, proxy)
@@ -450,21 +510,20 @@ async def _next(iterator: AsyncIterator[Any]) -> Any:
         return _END
 
 
-class ServiceProxy:
+class ServiceProxy(Generic[R]):
     """A blocking callable bound to one service: ``proxy(request)`` or ``proxy(a=1, b=2)``.
 
     Made by :meth:`Client.proxy`; as :class:`srvwire.ServiceProxy`, the call options are the
-    proxy's, so every field name, ``timeout`` included, is free for the request.
+    proxy's, so every field name, ``timeout`` included, is free for the request. ``R`` is the
+    response type a type checker sees (``Any`` unless made with a generated service class).
     """
 
-    def __init__(self, client: Client, proxy: aio.ServiceProxy[Any]) -> None:
+    def __init__(self, client: Client, proxy: aio.ServiceProxy[R]) -> None:
         self.client = client
         self.name = proxy.name
         self._proxy = proxy
 
-    def __call__(
-        self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
-    ) -> Any:
+    def __call__(self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any) -> R:
         """Call the service; see :meth:`Client.call`."""
         budget = self.client._budget(self._proxy.timeout)
         return self.client._run(self._proxy(request, **fields), budget, self.name)

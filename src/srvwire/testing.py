@@ -17,6 +17,11 @@ ask for the rest:
 * ``srvwire_wire``: a :class:`Wire`, JSON in and out with no client in between;
 * ``srvwire_handler_errors``: the errors the server logged during the test.
 
+``@pytest.mark.srvwire(...)`` on a test, class or module says how they serve and connect:
+``transport="websockets"``, ``handler_errors="allow"``, and the credentials the clients
+open with: ``token="..."`` (sent as ``Authorization: Bearer ...``) and ``headers={...}``,
+for a server with ``auth=`` and services with ``scopes=``.
+
 Rules:
 
 * **Contract mode.** With ``--srvwire-url URL``, ``srvwire_client``, ``srvwire_wire`` and
@@ -45,7 +50,7 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import AsyncIterator, Generator, Iterator
+from collections.abc import AsyncIterator, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -82,10 +87,14 @@ LoopScope = Literal["function", "class", "module", "package", "session"]
 LOOP_SCOPES: tuple[LoopScope, ...] = ("function", "class", "module", "package", "session")
 
 MARKER = (
-    "srvwire(transport='memory', handler_errors='fail'): how the srvwire fixtures serve this "
-    "test: transport='websockets' listens on a real port of 127.0.0.1 instead of in memory; "
-    "handler_errors='allow' lets errors the server logs pass instead of failing the test"
+    "srvwire(transport='memory', handler_errors='fail', token=None, headers={}): how the "
+    "srvwire fixtures serve this test: transport='websockets' listens on a real port of "
+    "127.0.0.1 instead of in memory; handler_errors='allow' lets errors the server logs pass "
+    "instead of failing the test; token and headers are the credentials srvwire_client, "
+    "srvwire_sync_client and srvwire_wire open their connection with"
 )
+
+OPTIONS = "(transport=..., handler_errors=..., token=..., headers=...)"
 
 NO_SERVER = """\
 the srvwire fixtures serve your srvwire.Server, and no fixture provides it: define \
@@ -153,6 +162,13 @@ class _Marked:
 
     transport: str = "memory"
     handler_errors: str = "fail"
+    token: str | None = None
+    headers: tuple[tuple[str, str], ...] = ()
+
+    def opening_headers(self) -> list[tuple[str, str]]:
+        """The headers a connection opens with: ``headers``, then the token's."""
+        bearer = [] if self.token is None else [("Authorization", f"Bearer {self.token}")]
+        return [*self.headers, *bearer]
 
 
 def _marked(item: pytest.Item) -> _Marked:
@@ -160,8 +176,7 @@ def _marked(item: pytest.Item) -> _Marked:
     for marker in item.iter_markers("srvwire"):  # the closest first
         if marker.args:
             raise pytest.UsageError(
-                f"{item.nodeid}: @pytest.mark.srvwire takes keyword arguments only "
-                "(transport=..., handler_errors=...)"
+                f"{item.nodeid}: @pytest.mark.srvwire takes keyword arguments only {OPTIONS}"
             )
         for key, value in marker.kwargs.items():
             found.setdefault(key, value)
@@ -171,12 +186,26 @@ def _marked(item: pytest.Item) -> _Marked:
                 f"{item.nodeid}: @pytest.mark.srvwire({key}={found[key]!r}): "
                 f"use {' or '.join(map(repr, allowed))}"
             )
-    unknown = sorted(set(found) - {"transport", "handler_errors"})
+    unknown = sorted(set(found) - {"transport", "handler_errors", "token", "headers"})
     if unknown:
         raise pytest.UsageError(
-            f"{item.nodeid}: @pytest.mark.srvwire has no option {unknown[0]!r} "
-            "(it takes transport=..., handler_errors=...)"
+            f"{item.nodeid}: @pytest.mark.srvwire has no option {unknown[0]!r} (it takes "
+            f"{OPTIONS.strip('()')})"
         )
+    token = found.get("token")
+    if token is not None and not (isinstance(token, str) and token):
+        raise pytest.UsageError(
+            f"{item.nodeid}: @pytest.mark.srvwire(token={token!r}): use a non-empty string"
+        )
+    headers = found.get("headers", {})
+    if not (
+        isinstance(headers, Mapping)
+        and all(isinstance(k, str) and isinstance(v, str) for k, v in headers.items())
+    ):
+        raise pytest.UsageError(
+            f"{item.nodeid}: @pytest.mark.srvwire(headers={headers!r}): use a dict of strings"
+        )
+    found["headers"] = tuple(headers.items())
     return _Marked(**found)
 
 
@@ -236,8 +265,9 @@ def srvwire_client(request: pytest.FixtureRequest) -> Client:
 def srvwire_sync_client(request: pytest.FixtureRequest) -> Iterator[sync.Client]:
     """An open blocking client to ``srvwire_server``, served in a thread; closed after the test."""
     url = _url(request.config)
+    headers = _marked(request.node).opening_headers()
     if url is not None:
-        with sync.connect(url, timeout=TIMEOUT) as client:
+        with sync.connect(url, timeout=TIMEOUT, headers=headers) as client:
             yield client
         return
     if ON_THE_TESTS_LOOP & set(request.fixturenames):
@@ -253,7 +283,7 @@ def srvwire_sync_client(request: pytest.FixtureRequest) -> Iterator[sync.Client]
         running = thread.run(
             serving.enter_async_context(_serving(server, transport, errors)), TIMEOUT
         )
-        options = connect(running.url, transport=transport, timeout=TIMEOUT)
+        options = connect(running.url, transport=transport, timeout=TIMEOUT, headers=headers)
         with sync.Client(options, loop=thread) as client:
             yield client
     finally:
@@ -338,15 +368,23 @@ def _define(scope: LoopScope) -> dict[str, Any]:
             yield value
 
     @async_fixture(loop_scope=scope, name=f"_srvwire_client_{scope}")
-    async def client(srvwire_url: str, srvwire_transport: Transport) -> AsyncIterator[Client]:
+    async def client(
+        request: pytest.FixtureRequest, srvwire_url: str, srvwire_transport: Transport
+    ) -> AsyncIterator[Client]:
         # Types not on the search path come from the server's description: in this process,
         # the very classes the server registered.
-        async with connect(srvwire_url, transport=srvwire_transport, timeout=TIMEOUT) as value:
+        headers = _marked(request.node).opening_headers()
+        async with connect(
+            srvwire_url, transport=srvwire_transport, timeout=TIMEOUT, headers=headers
+        ) as value:
             yield value
 
     @async_fixture(loop_scope=scope, name=f"_srvwire_wire_{scope}")
-    async def wire(srvwire_url: str, srvwire_transport: Transport) -> AsyncIterator[Wire]:
-        value = await Wire.open(srvwire_url, transport=srvwire_transport)
+    async def wire(
+        request: pytest.FixtureRequest, srvwire_url: str, srvwire_transport: Transport
+    ) -> AsyncIterator[Wire]:
+        headers = _marked(request.node).opening_headers()
+        value = await Wire.open(srvwire_url, transport=srvwire_transport, headers=headers)
         try:
             yield value
         finally:
@@ -443,9 +481,13 @@ class Wire:
         *,
         transport: str | Transport = "websockets",
         within: float = TIMEOUT,
+        headers: Sequence[tuple[str, str]] = (),
     ) -> Wire:
-        """Connect to ``url`` and read the ``$/services`` the server opens the session with."""
-        connection = await get_transport(transport).connect(url, Options())
+        """Connect to ``url`` and read the ``$/services`` the server opens the session with.
+
+        ``headers`` go with the opening request as they are (credentials:
+        ``[("Authorization", "Bearer ...")]``)."""
+        connection = await get_transport(transport).connect(url, Options(), headers=headers)
         try:
             wire = cls(connection, [])
             first = await wire.recv(within)

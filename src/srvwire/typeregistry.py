@@ -19,6 +19,10 @@ Invariants:
   that differs. Nothing is replaced: the first definition stays.
 * **Failures are not recorded.** A build that raises leaves the registry as it was.
 * **Threads.** One re-entrant lock; a build runs under it, and may intern the types it nests.
+* **A fingerprint stands for a full definition.** :func:`fingerprint` digests the definitions
+  (as above) of a service or action and of every message it nests, by name: two classes have
+  the same fingerprint exactly when all of those are the same. A server announces its
+  services' fingerprints, so that a client can compare its own classes with no round trip.
 
 :func:`process_types` is module-level state, like the loader's shared cache: one class per type
 *per process* cannot live anywhere else. Code that wants a separate world (a test of conflicting
@@ -27,15 +31,25 @@ definitions) passes its own :class:`TypeRegistry`.
 
 from __future__ import annotations
 
+import hashlib
 import threading
-from collections.abc import Callable
+import typing
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from srvwire.errors import InterfaceConflictError
 from srvwire.idl import ActionSpec, MessageSpec, ServiceSpec
 
-__all__ = ["Interned", "Spec", "TypeRegistry", "definition_lines", "process_types"]
+__all__ = [
+    "Interned",
+    "Spec",
+    "TypeRegistry",
+    "definition_lines",
+    "fingerprint",
+    "full_definition",
+    "process_types",
+]
 
 Spec = MessageSpec | ServiceSpec | ActionSpec
 T = TypeVar("T")
@@ -65,6 +79,67 @@ def definition_lines(spec: Spec) -> tuple[str, ...]:
             lines.append("---")
         lines.extend(definition_lines(part))
     return tuple(lines)
+
+
+def full_definition(cls: Any) -> dict[str, tuple[str, ...]] | None:
+    """Return the :func:`definition_lines` of ``cls`` and of every message it nests, by name.
+
+    ``cls`` is a message, service or action class carrying its ``spec``; the nested messages
+    are found through its (and its parts') fields. None when ``cls`` has no spec (a class
+    written by hand): it has no definition to compare. A nested class without a spec is left
+    out.
+    """
+    spec = getattr(cls, "spec", None)
+    if not isinstance(spec, MessageSpec | ServiceSpec | ActionSpec):
+        return None
+    found: dict[str, tuple[str, ...]] = {spec.type_name: definition_lines(spec)}
+    parts = ("Request", "Response", "Goal", "Result", "Feedback")
+    todo: list[Any] = [cls, *(getattr(cls, part) for part in parts if hasattr(cls, part))]
+    while todo:
+        fields = getattr(todo.pop(), "model_fields", None) or {}
+        for info in fields.values():
+            for nested in _classes_in(info.annotation):
+                nested_spec = getattr(nested, "spec", None)
+                if isinstance(nested_spec, MessageSpec) and nested_spec.type_name not in found:
+                    found[nested_spec.type_name] = definition_lines(nested_spec)
+                    todo.append(nested)
+    return found
+
+
+def _classes_in(annotation: Any) -> Iterator[type]:
+    if isinstance(annotation, type) and hasattr(annotation, "model_fields"):
+        yield annotation
+    for argument in typing.get_args(annotation):
+        yield from _classes_in(argument)
+
+
+def fingerprint(definition: dict[str, tuple[str, ...]]) -> str:
+    """A short digest (16 hex digits) of a :func:`full_definition`: equal definitions, equal
+    digests; a digest says nothing of comments, blank lines or where the files live."""
+    digest = hashlib.sha256()
+    for name in sorted(definition):
+        digest.update(name.encode())
+        for line in definition[name]:
+            digest.update(b"\n" + line.encode())
+        digest.update(b"\n\n")
+    return digest.hexdigest()[:16]
+
+
+def first_difference(
+    ours: dict[str, tuple[str, ...]], theirs: dict[str, tuple[str, ...]]
+) -> tuple[str, str]:
+    """Say where two full definitions first part: the type's name, and the line each has
+    there (``declaration 2: 'int64 b' against 'int32 b'``), or that one of them lacks it."""
+    names = [name for name in ours if name in theirs] + sorted(set(ours) ^ set(theirs))
+    for name in names:
+        mine, other = ours.get(name), theirs.get(name)
+        if mine is None:
+            return name, "only the second defines it"
+        if other is None:
+            return name, "only the first defines it"
+        if mine != other:
+            return name, _difference(Interned(None, mine, ""), other)
+    return "", "the same declarations"
 
 
 @dataclass(frozen=True, slots=True)
