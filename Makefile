@@ -50,9 +50,12 @@ test: lint typecheck docs pytest
 
 # Not part of `make test`: several minutes of srvwire against a raw-websockets baseline,
 # asyncio then uvloop (benchmarks/README.md). BENCH_ARGS=--quick for a smoke run.
+# Each transport against its own raw floor, and the native one against raw websockets too.
+BENCH_COMPARE ?= --compare baseline,srvwire --compare picows,srvwire-picows \
+	--compare baseline,srvwire-picows
 bench: $(INSTALLED)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
-	$(BIN)/python benchmarks/run.py --loop asyncio,uvloop $(BENCH_ARGS)
+	$(BIN)/python benchmarks/run.py --loop asyncio,uvloop $(BENCH_COMPARE) $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) site build dist .mypy_cache .ruff_cache .pytest_cache

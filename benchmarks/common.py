@@ -110,6 +110,12 @@ def add_process_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", choices=["asyncio", "uvloop"], default="asyncio")
     parser.add_argument("--cpu", type=int, default=None, help="pin this process to one CPU")
     parser.add_argument("--profile", type=Path, default=None, help="write cProfile stats here")
+    parser.add_argument(
+        "--transport",
+        choices=["websockets", "picows"],
+        default="websockets",
+        help="srvwire's transport (the srvwire scripts only)",
+    )
 
 
 def run(main: Callable[[], Coroutine[Any, Any, T]], args: argparse.Namespace) -> T:

@@ -4,11 +4,14 @@ Usage::
 
     python benchmarks/run.py [--quick] [--repeat 3] [--workloads W1,W2,W3,W4,MEM,CORPUS]
                              [--loop asyncio|uvloop|asyncio,uvloop] [--json out.json]
-                             [--compare baseline,srvwire]
+                             [--compare baseline,srvwire [--compare A,B ...]]
 
-``--compare A,B`` picks the two implementations of :data:`IMPLEMENTATIONS` to compare:
+``--compare A,B`` picks two implementations of :data:`IMPLEMENTATIONS` to compare:
 ``baseline`` (raw ``websockets``, nothing typed), ``floor`` (the least a typed JSON-RPC
-framework must do per call) and ``srvwire``.
+framework must do per call), ``srvwire``, and on the native transport ``picows`` (raw
+``picows``, nothing typed: that transport's own floor) and ``srvwire-picows``. Given several
+times, every implementation named is measured once per repeat, in the same alternation, and
+one table is printed per pair.
 
 Every measurement starts a fresh server process (on 127.0.0.1, port 0, its port read from its
 stdout) and a fresh client process, pinned to different CPUs when there are two. The client
@@ -48,11 +51,18 @@ from typing import IO, Any
 HERE = Path(__file__).resolve().parent
 PYTHON = sys.executable
 
-IMPLEMENTATIONS = {
-    "baseline": (HERE / "baseline_server.py", HERE / "baseline_client.py"),
-    "floor": (HERE / "floor_server.py", HERE / "floor_client.py"),
-    "srvwire": (HERE / "srvwire_server.py", HERE / "srvwire_client.py"),
+IMPLEMENTATIONS: dict[str, tuple[Path, Path, tuple[str, ...]]] = {
+    "baseline": (HERE / "baseline_server.py", HERE / "baseline_client.py", ()),
+    "floor": (HERE / "floor_server.py", HERE / "floor_client.py", ()),
+    "srvwire": (HERE / "srvwire_server.py", HERE / "srvwire_client.py", ()),
+    "picows": (HERE / "picows_server.py", HERE / "picows_client.py", ()),
+    "srvwire-picows": (
+        HERE / "srvwire_server.py",
+        HERE / "srvwire_client.py",
+        ("--transport", "picows"),
+    ),
 }
+"""Each implementation's server script, client script, and the options both take."""
 NETWORK_WORKLOADS = ["W1", "W2", "W3", "W4", "MEM"]
 ALL_WORKLOADS = [*NETWORK_WORKLOADS, "CORPUS"]
 
@@ -188,13 +198,14 @@ class Config:
 
 async def measure(impl: str, workload: str, config: Config) -> dict[str, Any]:
     """Run one workload once against one implementation; return the client's result, enriched."""
-    server_script, client_script = IMPLEMENTATIONS[impl]
+    server_script, client_script, extra = IMPLEMENTATIONS[impl]
     server_cpu, client_cpu = config.cpus()
     options = config.options(workload)
     server = await Process.start(
         f"{impl} server",
         server_script,
         *process_options(config.loop, server_cpu, config.profile(workload, "server")),
+        *extra,
     )
     try:
         port = (await server.expect("listening", STARTUP_TIMEOUT))["port"]
@@ -207,6 +218,7 @@ async def measure(impl: str, workload: str, config: Config) -> dict[str, Any]:
             "--workload",
             "IDLE" if workload == "MEM" else workload,
             *process_options(config.loop, client_cpu, config.profile(workload, "client")),
+            *extra,
         ]
         for name, value in options.items():
             client_argv += [f"--{name}", str(value)]
@@ -439,7 +451,9 @@ def machine() -> dict[str, Any]:
                 model = line.split(":", 1)[1].strip()
                 break
     versions: dict[str, str | None] = {}
-    for package in ("srvwire", "websockets", "pydantic", "pydantic-core", "orjson", "uvloop"):
+    for package in (
+        *("srvwire", "websockets", "picows", "pydantic", "pydantic-core", "orjson", "uvloop"),
+    ):
         try:
             versions[package] = importlib.metadata.version(package)
         except importlib.metadata.PackageNotFoundError:
@@ -458,23 +472,36 @@ def log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+def pair_labels(pair: list[str]) -> list[str]:
+    """The two column names of a pair: comparing an implementation with itself (the harness's
+    own check) needs two."""
+    return pair if pair[0] != pair[1] else [pair[0], f"{pair[1]}#2"]
+
+
 async def bench_loop(
-    config: Config, workloads: list[str], repeat: int, impls: list[str]
-) -> tuple[Table, list[dict[str, Any]]]:
-    # Comparing an implementation with itself (the harness's own check) needs two column names.
-    labels = impls if impls[0] != impls[1] else [impls[0], f"{impls[1]}#2"]
-    table = Table(labels)
+    config: Config, workloads: list[str], repeat: int, pairs: list[list[str]]
+) -> tuple[list[Table], list[dict[str, Any]]]:
+    tables = [Table(pair_labels(pair)) for pair in pairs]
+    measured: list[tuple[str, str]] = []  # (implementation, label), each once
+    for pair in pairs:
+        for impl, label in zip(pair, pair_labels(pair), strict=True):
+            if (impl, label) not in measured:
+                measured.append((impl, label))
     runs: list[dict[str, Any]] = []
     for index in range(repeat):
-        order = list(zip(impls, labels, strict=True))
+        # Rotate who goes first, and reverse on odd repeats, so drift lands on every one.
+        shift = index % len(measured)
+        order = measured[shift:] + measured[:shift]
         if index % 2:
             order.reverse()
         for workload in workloads:
             if workload == "CORPUS":
-                if "srvwire" not in labels:
+                if not any("srvwire" in table.impls for table in tables):
                     continue
                 result = await measure_corpus()
-                table.add("srvwire", workload, metrics_of(workload, result))
+                for table in tables:
+                    if "srvwire" in table.impls:
+                        table.add("srvwire", workload, metrics_of(workload, result))
                 runs.append({"impl": "srvwire", "workload": workload, "repeat": index, **result})
                 log(f"[{config.loop} {index + 1}/{repeat}] CORPUS srvwire: {result}")
                 continue
@@ -483,22 +510,24 @@ async def bench_loop(
                 where = f"[{config.loop} {index + 1}/{repeat}] {workload} {label}"
                 result = await measure_quietly(impl, workload, config, where)
                 numbers = metrics_of(workload, result)
-                table.add(label, workload, numbers)
+                for table in tables:
+                    if label in table.impls:
+                        table.add(label, workload, numbers)
                 runs.append({"impl": label, "workload": workload, "repeat": index, **result})
                 shown = ", ".join(f"{name} {fmt(value)}" for name, value in numbers.items())
                 took = time.perf_counter() - started
                 other = result.get("other_load_cpus", 0.0)
                 log(f"{where}: {shown} (other load {other:.2f} CPUs; {took:.1f} s)")
-    return table, runs
+    return tables, runs
 
 
-async def profile_loop(config: Config, workloads: list[str]) -> None:
+async def profile_loop(config: Config, workloads: list[str], impl: str = "srvwire") -> None:
     assert config.profile_dir is not None
     config.profile_dir.mkdir(parents=True, exist_ok=True)
     for workload in workloads:
         if workload in {"CORPUS", "MEM"}:
             continue
-        await measure("srvwire", workload, config)
+        await measure(impl, workload, config)
         for side in ("server", "client"):
             path = config.profile(workload, side)
             assert path is not None
@@ -523,9 +552,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--no-pin", action="store_true", help="leave both processes unpinned")
     parser.add_argument(
         "--compare",
-        default="baseline,srvwire",
+        action="append",
+        default=None,
         help=f"two of {', '.join(IMPLEMENTATIONS)}; the ratios are the second / the first"
-        " (baseline,baseline checks the harness itself)",
+        " (baseline,baseline checks the harness itself); repeat it for more tables from the"
+        " same runs (default: baseline,srvwire)",
     )
     parser.add_argument("--profile", type=Path, default=None, help="profile srvwire into DIR")
     parser.add_argument(
@@ -537,15 +568,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     args.workloads = [name.strip().upper() for name in args.workloads.split(",") if name.strip()]
     args.loops = [name.strip() for name in args.loop.split(",") if name.strip()]
-    args.impls = [name.strip() for name in args.compare.split(",")]
+    args.pairs = [
+        [name.strip() for name in pair.split(",")] for pair in args.compare or ["baseline,srvwire"]
+    ]
     for name in args.workloads:
         if name not in ALL_WORKLOADS:
             parser.error(f"unknown workload {name!r}; choose from {', '.join(ALL_WORKLOADS)}")
     for name in args.loops:
         if name not in {"asyncio", "uvloop"}:
             parser.error(f"unknown loop {name!r}; choose asyncio or uvloop")
-    if len(args.impls) != 2 or not set(args.impls) <= set(IMPLEMENTATIONS):
-        parser.error("--compare takes two of: " + ", ".join(IMPLEMENTATIONS))
+    for pair in args.pairs:
+        if len(pair) != 2 or not set(pair) <= set(IMPLEMENTATIONS):
+            parser.error("--compare takes two of: " + ", ".join(IMPLEMENTATIONS))
     if args.repeat is None:
         args.repeat = 1 if args.quick else 3
     return args
@@ -559,13 +593,22 @@ async def amain(args: argparse.Namespace) -> int:
     for loop in args.loops:
         config = Config(loop, args.quick, not args.no_pin, args.max_other_load, args.profile)
         if args.profile is not None:
-            await profile_loop(config, args.workloads)
+            candidate = args.pairs[0][1]
+            await profile_loop(
+                config, args.workloads, candidate if candidate.startswith("srvwire") else "srvwire"
+            )
             continue
-        table, runs = await bench_loop(config, args.workloads, args.repeat, args.impls)
+        tables, runs = await bench_loop(config, args.workloads, args.repeat, args.pairs)
         scale = "quick, 1/20 size" if args.quick else "full size"
-        title = f"\n== {loop} event loop: medians of {args.repeat} run(s), {scale} =="
-        print(table.render(title), flush=True)
-        report[loop] = {"summary": table.summary(), "runs": runs}
+        for table in tables:
+            title = f"\n== {loop} event loop: medians of {args.repeat} run(s), {scale} =="
+            print(table.render(title), flush=True)
+        # The first pair's table stays "summary"; every pair's is in "summaries".
+        report[loop] = {
+            "summary": tables[0].summary(),
+            "summaries": {",".join(table.impls): table.summary() for table in tables},
+            "runs": runs,
+        }
     log(f"total time {time.perf_counter() - started:.0f} s")
     if args.json is not None:
         args.json.write_text(json.dumps(report, indent=2) + "\n")

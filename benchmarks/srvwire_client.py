@@ -3,10 +3,12 @@
 Each call passes a typed ``RobotStateQuery.Request`` (built once) and gets the typed
 ``Response`` back, with the call's deadline enforced by the client. The only option changed
 from the defaults is ``max_message_size``, so W4's 1.7 MB replies are accepted.
+``--transport picows`` connects on the native transport instead of ``websockets``.
 """
 
 from __future__ import annotations
 
+import argparse
 import functools
 from contextlib import AsyncExitStack
 
@@ -17,12 +19,17 @@ from typed import make_request, values_of
 from workloads import Adapter, Call, main
 
 
-async def open_connection(url: str, stack: AsyncExitStack) -> Call:
+async def open_connection(url: str, stack: AsyncExitStack, transport: str) -> Call:
     client = await stack.enter_async_context(
-        connect(url, timeout=CALL_TIMEOUT, max_message_size=MAX_MESSAGE)
+        connect(url, timeout=CALL_TIMEOUT, max_message_size=MAX_MESSAGE, transport=transport)
     )
     return functools.partial(client.call, SERVICE, timeout=CALL_TIMEOUT)
 
 
 if __name__ == "__main__":
-    main(Adapter(open_connection, make_request, values_of), __doc__ or "")
+    # workloads.main reads every option; the transport is needed before, to open connections.
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--transport", default="websockets")
+    transport = pre.parse_known_args()[0].transport
+    opener = functools.partial(open_connection, transport=transport)
+    main(Adapter(opener, make_request, values_of), __doc__ or "")

@@ -3,8 +3,10 @@ writes it.
 
 The handler is ``async`` and returns a typed ``Response`` built from the shared reply data, so
 every call pays for what a real srvwire service pays for: request validation, the handler's
-task, response validation and encoding. The only option changed from the defaults is
-``max_message_size``, so W4's large replies fit on the way back from the server too.
+task, response validation and encoding. The only options changed from the defaults are
+``max_message_size``, so W4's large replies fit on the way back from the server too, and
+``max_connections``, so MEM's 1 000 idle connections are all admitted.
+``--transport picows`` serves on the native transport instead of ``websockets``.
 """
 
 from __future__ import annotations
@@ -25,9 +27,10 @@ async def get_robot_state(request: Any) -> Any:
 
 async def main(args: argparse.Namespace) -> None:
     control = ServerControl()
-    server = Server(max_message_size=MAX_MESSAGE)
+    # MEM holds 1 000 connections, past the default cap of 512: raised, as a user would.
+    server = Server(max_message_size=MAX_MESSAGE, max_connections=2000)
     server.add_service(SERVICE, RobotStateQuery, get_robot_state)
-    async with serve(server, args.host, 0) as running:
+    async with serve(server, args.host, 0, transport=args.transport) as running:
         emit("listening", port=running.port)
         await control.stopped.wait()
 

@@ -107,7 +107,7 @@ async def open_wire(running: RunningServer | str, **options: Any) -> Wire:
     return wire
 
 
-TRANSPORTS = ["websockets", "memory"]
+TRANSPORTS = ["websockets", "picows", "memory"]
 
 
 def make_transport(name: str) -> Transport:
@@ -122,6 +122,9 @@ def transport(request: pytest.FixtureRequest) -> Transport:
 
 
 websockets_only = pytest.mark.parametrize("transport", ["websockets"], indirect=True)
+"""For a test of what only the websockets library does."""
+
+real_websockets = pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
 """For a test of what only a real WebSocket has: binary frames, keepalive, raw frames."""
 
 

@@ -107,10 +107,35 @@ def test_the_floor_runs_every_workload_like_srvwire(tmp_path: Path) -> None:
     assert "ratio = srvwire / floor" in done.stdout
 
 
+def test_the_picows_pairs_run_every_workload_alike_from_the_same_runs(tmp_path: Path) -> None:
+    out = tmp_path / "report.json"
+    done = harness(
+        "--quick", "--repeat", "1", "--workloads", "W1,W4", "--loop", "asyncio",
+        "--compare", "picows,srvwire-picows", "--compare", "baseline,srvwire-picows",
+        "--no-pin", "--max-other-load", "64", "--json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(out.read_text())["asyncio"]
+    # Three implementations, each measured once: both tables read srvwire-picows' one run.
+    check_quick_runs(report["runs"], ["baseline", "picows", "srvwire-picows"])
+    assert list(report["summaries"]) == ["picows,srvwire-picows", "baseline,srvwire-picows"]
+    assert report["summary"] == report["summaries"]["picows,srvwire-picows"]
+    rates = {
+        pair: next(row for row in rows if (row["workload"], row["metric"]) == ("W1", "calls/s"))
+        for pair, rows in report["summaries"].items()
+    }
+    assert (
+        rates["picows,srvwire-picows"]["srvwire-picows"]
+        == rates["baseline,srvwire-picows"]["srvwire-picows"]
+    )
+    assert "ratio = srvwire-picows / picows" in done.stdout
+    assert "ratio = srvwire-picows / baseline" in done.stdout
+
+
 def test_a_bad_choice_is_refused_before_anything_runs() -> None:
     done = harness("--compare", "baseline,nothing")
     assert done.returncode == 2
-    assert "--compare takes two of: baseline, floor, srvwire" in done.stderr
+    assert "--compare takes two of: baseline, floor, srvwire, picows, srvwire-picows" in done.stderr
     done = harness("--workloads", "W9")
     assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
 

@@ -1431,11 +1431,17 @@ def add(request):
 """
 
 
-def test_serve_a_file_until_ctrl_c(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+@pytest.mark.parametrize("transport", [[], ["--transport", "picows"]], ids=["default", "picows"])
+def test_serve_a_file_until_ctrl_c(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, transport: list[str]
+) -> None:
     app = tmp_path / "cli_app.py"
     app.write_text(APP, encoding="utf-8")
     process = subprocess.Popen(
-        [sys.executable, "-m", "srvwire", "serve", str(app), "--port", "0", "--log-level", "debug"],
+        [
+            *(sys.executable, "-m", "srvwire", "serve", str(app)),
+            *("--port", "0", "--log-level", "debug", *transport),
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -1462,6 +1468,20 @@ def test_serve_a_file_until_ctrl_c(capsys: pytest.CaptureFixture[str], tmp_path:
     assert "Traceback" not in err
     assert "DEBUG srvwire.server: connection from" in err
     assert "serving" not in err and "shutting down" not in err  # said once, on stdout
+
+
+def test_serve_on_picows_without_it_names_the_extra(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    app = tmp_path / "cli_app_no_picows.py"
+    app.write_text(APP, encoding="utf-8")
+    monkeypatch.setitem(sys.modules, "picows", None)  # what importing it does when it is absent
+    monkeypatch.delitem(sys.modules, "srvwire.transports.picows", raising=False)
+    code, out, err = run(capsys, "serve", str(app), "--port", "0", "--transport", "picows")
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err) == (
+        "the picows transport needs the picows package: pip install 'srvwire[fast]'"
+    )
 
 
 def test_serve_on_two_hosts_with_an_access_log(

@@ -45,6 +45,7 @@ RUN_ELSEWHERE = {
 # any URL written as PORT, since each run listens on a port of its own.
 SCRIPTS = {
     "quickstart.py": "2 + 3 = 5\n",
+    "native_transport.py": "2 + 3 = 5 over picows\n",
     "logging_setup.py": (
         "2 + 3 = 5\nnot found: no service named /add_to_ints; did you mean /add_two_ints?\n"
     ),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 import srvwire
 
 PACKAGE = Path(srvwire.__file__).parent
@@ -27,6 +29,7 @@ LAYERS: dict[str, int] = {
     "auth": 2,
     "transports.memory": 2,
     "transports.websockets": 2,
+    "transports.picows": 2,
     "typeregistry": 2,
     "goals": 2,
     "topics": 2,
@@ -126,9 +129,13 @@ def test_the_layer_table_in_the_design_page_agrees() -> None:
         assert any(shown in row for row in rows), f"docs/design.md: {module} in layer {layer}"
 
 
-def test_only_the_websocket_transport_imports_websockets() -> None:
+@pytest.mark.parametrize(
+    ("library", "owner"),
+    [("websockets", "transports.websockets"), ("picows", "transports.picows")],
+)
+def test_only_its_transport_imports_a_websocket_library(library: str, owner: str) -> None:
     for module, path in MODULES.items():
-        if module == "transports.websockets":
+        if module == owner:
             continue
         tree = ast.parse(path.read_text(encoding="utf-8"))
         for node in ast.walk(tree):
@@ -139,4 +146,4 @@ def test_only_the_websocket_transport_imports_websockets() -> None:
                 if isinstance(node, ast.ImportFrom)
                 else []
             )
-            assert all(name.split(".")[0] != "websockets" for name in names), module
+            assert all(name.split(".")[0] != library for name in names), module

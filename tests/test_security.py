@@ -85,17 +85,23 @@ TOKENS = TokenAuth(
 )
 
 
+@pytest.fixture(params=["websockets", "picows"])
+def edge(request: pytest.FixtureRequest) -> str:
+    """Each WebSocket transport: both carry out the edge policy at the upgrade."""
+    return str(request.param)
+
+
 @pytest.fixture
-async def open_robot() -> AsyncIterator[tuple[Robot, RunningServer]]:
+async def open_robot(edge: str) -> AsyncIterator[tuple[Robot, RunningServer]]:
     robot = Robot()
-    async with serve(robot.server, "127.0.0.1", 0) as running:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
         yield robot, running
 
 
 @pytest.fixture
-async def authed_robot() -> AsyncIterator[tuple[Robot, RunningServer]]:
+async def authed_robot(edge: str) -> AsyncIterator[tuple[Robot, RunningServer]]:
     robot = Robot(auth=TOKENS)
-    async with serve(robot.server, "127.0.0.1", 0) as running:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
         yield robot, running
 
 
@@ -195,9 +201,9 @@ async def test_a_page_of_the_server_itself_is_served(
     assert robot.calls == [("/add", None)]
 
 
-async def test_listed_origins_are_served_and_name_the_server() -> None:
+async def test_listed_origins_are_served_and_name_the_server(edge: str) -> None:
     robot = Robot(origins=["https://app.example", "null"])
-    async with serve(robot.server, "127.0.0.1", 0) as running:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
         port = running.port
         status, _, _ = await http(port, headers={"Origin": "https://app.example"})
         assert status == 101
@@ -212,9 +218,9 @@ async def test_listed_origins_are_served_and_name_the_server() -> None:
         assert (status, body) == (403, EVIL_ORIGIN)
 
 
-async def test_star_allows_every_origin_and_host() -> None:
+async def test_star_allows_every_origin_and_host(edge: str) -> None:
     robot = Robot(origins=["*"])
-    async with serve(robot.server, "127.0.0.1", 0) as running:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
         status, _, _ = await http(
             running.port, headers={"Host": "evil.example", "Origin": "https://evil.example"}
         )
@@ -241,7 +247,7 @@ async def test_a_client_without_a_token_is_refused_with_401(
     assert (status, body) == (401, NO_CREDENTIALS + "\n")
     assert answer["www-authenticate"] == "Bearer"
     with pytest.raises(ServiceUnavailable) as exc:
-        await connect(running.url, timeout=scaled(5))
+        await connect(running.url, transport=running.transport, timeout=scaled(5))
     assert exc.value.message == (
         f"cannot connect to {running.url}: the server refused the connection: HTTP 401: "
         + NO_CREDENTIALS
@@ -255,7 +261,7 @@ async def test_a_wrong_token_is_refused_and_never_logged(
     robot, running = authed_robot
     caplog.set_level(logging.DEBUG)
     with pytest.raises(ServiceUnavailable) as exc:
-        await connect(running.url, token="guess", timeout=scaled(5))
+        await connect(running.url, transport=running.transport, token="guess", timeout=scaled(5))
     assert exc.value.message == (
         f"cannot connect to {running.url}: the server refused the connection: HTTP 401: "
         "the token is not valid"
@@ -271,7 +277,9 @@ async def test_the_right_token_reaches_the_handler_as_an_identity(
     authed_robot: tuple[Robot, RunningServer],
 ) -> None:
     robot, running = authed_robot
-    async with connect(running.url, token=TOKEN, timeout=scaled(5)) as client:
+    async with connect(
+        running.url, transport=running.transport, token=TOKEN, timeout=scaled(5)
+    ) as client:
         assert (await client.call("/arm", {"minuend": 5, "subtrahend": 3})).difference == 2
     assert robot.calls == [("/arm", Identity("operator", {"robot:write"}))]
 
@@ -318,12 +326,12 @@ async def test_a_browser_sends_the_token_as_a_subprotocol_which_is_never_echoed(
     )
 
 
-async def test_a_token_lookup_function_and_the_query_string_when_asked() -> None:
+async def test_a_token_lookup_function_and_the_query_string_when_asked(edge: str) -> None:
     async def lookup(token: str) -> Identity | None:
         return Identity("from-query") if token == "q" else None
 
     robot = Robot(auth=TokenAuth(lookup, query_parameter="access_token"))
-    async with serve(robot.server, "127.0.0.1", 0) as running:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
         async with ws_connect(running.url + "/?access_token=q") as ws:
             await ws.recv()
             await ws.send('{"jsonrpc":"2.0","id":1,"method":"/add","params":[1,1]}')
@@ -369,7 +377,9 @@ async def test_a_call_without_the_scope_is_denied_before_validation(
     authed_robot: tuple[Robot, RunningServer],
 ) -> None:
     robot, running = authed_robot
-    async with connect(running.url, token=READER_TOKEN, timeout=scaled(5)) as client:
+    async with connect(
+        running.url, transport=running.transport, token=READER_TOKEN, timeout=scaled(5)
+    ) as client:
         assert dict(client.services) == {"/add": "srvwire_tests/srv/Subtract"}
         assert [info.name for info in await client.list_services()] == ["/add"]
         with pytest.raises(PermissionDenied) as exc:
@@ -386,7 +396,9 @@ async def test_an_identity_with_the_scope_sees_and_calls_everything(
     authed_robot: tuple[Robot, RunningServer],
 ) -> None:
     _, running = authed_robot
-    async with connect(running.url, token=TOKEN, timeout=scaled(5)) as client:
+    async with connect(
+        running.url, transport=running.transport, token=TOKEN, timeout=scaled(5)
+    ) as client:
         assert sorted(client.services) == ["/add", "/arm"]
         assert [info.name for info in await client.list_services()] == ["/add", "/arm"]
 
@@ -395,13 +407,13 @@ async def test_a_scoped_service_is_hidden_without_authentication(
     open_robot: tuple[Robot, RunningServer],
 ) -> None:
     _, running = open_robot
-    async with connect(running.url, timeout=scaled(5)) as client:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
         assert list(client.services) == ["/add"]
         with pytest.raises(PermissionDenied):
             await client.call("/arm", {"minuend": 1, "subtrahend": 1})
 
 
-async def test_expired_credentials_are_answered_unauthenticated() -> None:
+async def test_expired_credentials_are_answered_unauthenticated(edge: str) -> None:
     robot = Robot(
         auth=TokenAuth(
             {
@@ -410,11 +422,15 @@ async def test_expired_credentials_are_answered_unauthenticated() -> None:
             }
         )
     )
-    async with serve(robot.server, "127.0.0.1", 0) as running:
-        async with connect(running.url, token="old", timeout=scaled(5)) as client:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
+        async with connect(
+            running.url, transport=running.transport, token="old", timeout=scaled(5)
+        ) as client:
             with pytest.raises(Unauthenticated) as exc:
                 await client.call("/add", {"minuend": 1, "subtrahend": 1})
-        async with connect(running.url, token="new", timeout=scaled(5)) as client:
+        async with connect(
+            running.url, transport=running.transport, token="new", timeout=scaled(5)
+        ) as client:
             await client.call("/add", {"minuend": 1, "subtrahend": 1})
     assert str(exc.value) == (
         "UNAUTHENTICATED (-32005) [/add]: the credentials of this connection expired; "
@@ -455,24 +471,30 @@ def server_context(ca: trustme.CA, *, client_ca: trustme.CA | None = None) -> ss
     return context
 
 
-async def test_tls_round_trip_with_a_ca_file(ca: trustme.CA, tmp_path: Path) -> None:
+async def test_tls_round_trip_with_a_ca_file(ca: trustme.CA, tmp_path: Path, edge: str) -> None:
     robot = Robot()
     cafile = tmp_path / "ca.pem"
     ca.cert_pem.write_to_path(str(cafile))
-    async with serve(robot.server, "localhost", 0, ssl=server_context(ca)) as running:
+    async with serve(
+        robot.server, "localhost", 0, transport=edge, ssl=server_context(ca)
+    ) as running:
         assert running.url.startswith("wss://localhost:")
         assert running.reach == (
             "only programs on this machine can connect (loopback); no authentication; over TLS"
         )
-        async with connect(running.url, ssl=cafile, timeout=scaled(5)) as client:
+        async with connect(
+            running.url, transport=running.transport, ssl=cafile, timeout=scaled(5)
+        ) as client:
             assert (await client.call("/add", {"minuend": 3, "subtrahend": 1})).difference == 2
         with pytest.raises(ServiceUnavailable) as exc:
-            await connect(running.url, timeout=scaled(5))
+            await connect(running.url, transport=running.transport, timeout=scaled(5))
         assert exc.value.message.startswith(
             f"cannot connect to {running.url}: the server's TLS certificate is not trusted: "
         )
         with pytest.raises(ServiceUnavailable) as plain:
-            await connect(running.url.replace("wss:", "ws:"), timeout=scaled(5))
+            await connect(
+                running.url.replace("wss:", "ws:"), transport=running.transport, timeout=scaled(5)
+            )
         assert "it may speak TLS (try wss://)" in plain.value.message
         status, _, body = await http(
             running.port, "/healthz", upgrade=False, context=ssl_client(ca)
@@ -492,18 +514,20 @@ async def test_wss_to_a_plain_server_says_it_may_not_speak_tls(
     _, running = open_robot
     url = running.url.replace("ws:", "wss:")
     with pytest.raises(ServiceUnavailable) as exc:
-        await connect(url, timeout=scaled(5))
+        await connect(url, transport=running.transport, timeout=scaled(5))
     assert exc.value.message.startswith(
         f"cannot connect to {url}: the TLS handshake failed; the server may not speak TLS "
         "(try ws://): "
     )
 
 
-async def test_mutual_tls_makes_the_certificate_subject_the_identity(ca: trustme.CA) -> None:
+async def test_mutual_tls_makes_the_certificate_subject_the_identity(
+    ca: trustme.CA, edge: str
+) -> None:
     clients = trustme.CA()
     robot = Robot()
     context = server_context(ca, client_ca=clients)
-    async with serve(robot.server, "localhost", 0, ssl=context) as running:
+    async with serve(robot.server, "localhost", 0, transport=edge, ssl=context) as running:
         assert running.reach == (
             "only programs on this machine can connect (loopback); callers must authenticate; "
             "over TLS"
@@ -515,20 +539,24 @@ async def test_mutual_tls_makes_the_certificate_subject_the_identity(ca: trustme
             organization_name="Lab",
             organization_unit_name="Robots",
         ).configure_cert(mine)
-        async with connect(running.url, ssl=mine, timeout=scaled(5)) as client:
+        async with connect(
+            running.url, transport=running.transport, ssl=mine, timeout=scaled(5)
+        ) as client:
             await client.call("/add", {"minuend": 3, "subtrahend": 1})
         with pytest.raises(ServiceUnavailable):  # no client certificate: no TLS session
-            await connect(running.url, ssl=ssl_client(ca), timeout=scaled(5))
+            await connect(
+                running.url, transport=running.transport, ssl=ssl_client(ca), timeout=scaled(5)
+            )
     assert robot.calls == [("/add", Identity("O=Lab,OU=Robots,CN=operator"))]
 
 
 # --- the connection cap, health, and plain HTTP ---------------------------------------------
 
 
-async def test_past_max_connections_the_handshake_is_503_and_the_others_carry_on() -> None:
+async def test_past_max_connections_the_handshake_is_503_and_the_others_carry_on(edge: str) -> None:
     robot = Robot(max_connections=1)
-    async with serve(robot.server, "127.0.0.1", 0) as running:
-        async with connect(running.url, timeout=scaled(5)) as first:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
+        async with connect(running.url, transport=running.transport, timeout=scaled(5)) as first:
             status, answer, body = await http(running.port)
             assert (status, body) == (
                 503,
@@ -537,11 +565,11 @@ async def test_past_max_connections_the_handshake_is_503_and_the_others_carry_on
             assert answer["retry-after"] == "5"
             assert (await first.call("/add", {"minuend": 2, "subtrahend": 1})).difference == 1
         # The first one left: there is room again.
-        async with connect(running.url, timeout=scaled(5)) as second:
+        async with connect(running.url, transport=running.transport, timeout=scaled(5)) as second:
             await second.call("/add", {"minuend": 2, "subtrahend": 1})
 
 
-async def test_healthz_while_serving_and_while_draining() -> None:
+async def test_healthz_while_serving_and_while_draining(edge: str) -> None:
     release = asyncio.Event()
     entered = asyncio.Event()
     server = Server(grace_period=scaled(5))
@@ -552,8 +580,8 @@ async def test_healthz_while_serving_and_while_draining() -> None:
         await release.wait()
         return subtract(request)
 
-    running = await serve(server, "127.0.0.1", 0)
-    async with connect(running.url, timeout=scaled(10)) as client:
+    running = await serve(server, "127.0.0.1", 0, transport=edge)
+    async with connect(running.url, transport=running.transport, timeout=scaled(10)) as client:
         status, _, body = await http(running.port, "/healthz", upgrade=False)
         assert (status, body) == (200, "ok\n")
         call = asyncio.create_task(client.call("/slow", {"minuend": 1, "subtrahend": 1}))
@@ -650,12 +678,14 @@ async def test_serving_a_public_address_without_authentication_warns(
 
 
 async def test_credentials_that_expire_mid_connection_end_its_calls(
-    caplog: pytest.LogCaptureFixture,
+    caplog: pytest.LogCaptureFixture, edge: str
 ) -> None:
     caplog.set_level(logging.INFO)
     robot = Robot(auth=TokenAuth({"t": Identity("op", expires=time.time() + 3600)}))
-    async with serve(robot.server, "127.0.0.1", 0) as running:
-        async with connect(running.url, token="t", timeout=scaled(5)) as client:
+    async with serve(robot.server, "127.0.0.1", 0, transport=edge) as running:
+        async with connect(
+            running.url, transport=running.transport, token="t", timeout=scaled(5)
+        ) as client:
             await client.call("/add", {"minuend": 1, "subtrahend": 1})
             (served,) = running._connections
             assert served.expiry is not None

@@ -21,7 +21,7 @@ from websockets.sync.client import connect as sync_connect
 from websockets.uri import parse_uri
 
 import srvwire
-from conftest import Echo, Hang, Subtract, Wire, build, open_wire, subtract, websockets_only
+from conftest import Echo, Hang, Subtract, Wire, build, open_wire, real_websockets, subtract
 from srvwire import serving
 from srvwire.dispatch import Context
 from srvwire.errors import RegistrationError, ServiceError
@@ -772,16 +772,17 @@ async def first_ping(url: str) -> Frame:
         await writer.wait_closed()
 
 
-async def test_keepalive_pings_are_on_by_default() -> None:
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+async def test_keepalive_pings_are_on_by_default(transport: str) -> None:
     default = Server()
     assert (default.ping_interval, default.ping_timeout) == (20.0, 20.0)
     # The interval reaches the socket: with a short one, a ping arrives on a quiet connection.
-    async with serve(Server(ping_interval=0.01), "127.0.0.1", 0) as running:
+    async with serve(Server(ping_interval=0.01), "127.0.0.1", 0, transport=transport) as running:
         ping = await first_ping(running.url)
     assert ping.opcode is Opcode.PING
 
 
-@websockets_only
+@real_websockets
 async def test_binary_frames_are_read_as_utf8(running: RunningServer) -> None:
     async with ws_connect(running.url, compression=None) as ws:
         await ws.recv()  # $/services

@@ -12,10 +12,13 @@ import contextlib
 import errno
 import itertools
 import logging
+import sys
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import picows
 import pytest
 from websockets.asyncio.client import connect as websockets_connect
 
@@ -23,7 +26,10 @@ import srvwire
 import srvwire.transports
 from srvwire.transports import get_transport
 from srvwire.transports.base import (
+    Admitted,
+    Answered,
     Connection,
+    Handshake,
     Listener,
     Options,
     Transport,
@@ -33,19 +39,22 @@ from srvwire.transports.base import (
     write_timeout_reason,
 )
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
+from srvwire.transports.picows import PicowsTransport
 from srvwire.transports.websockets import WebSocketsTransport, _url
 from support import scaled
 
-SCHEMES = {"websockets": "ws", "memory": "memory"}
+SCHEMES = {"websockets": "ws", "picows": "ws", "memory": "memory"}
 
 # Enough turns of the event loop for anything that can happen without the peer to happen.
 TURNS = 1000
 
 
-@pytest.fixture(params=["websockets", "memory"])
+@pytest.fixture(params=["websockets", "picows", "memory"])
 def transport(request: pytest.FixtureRequest) -> Transport:
     if request.param == "websockets":
         return WebSocketsTransport()
+    if request.param == "picows":
+        return PicowsTransport()
     return MemoryTransport()
 
 
@@ -125,6 +134,22 @@ async def test_text_travels_both_ways(transport: Transport) -> None:
         assert await pair.server.recv() == "héllo ☃"
         await pair.server.send("wörld")
         assert await pair.client.recv() == "wörld"
+
+
+async def test_messages_sent_without_a_pause_arrive_whole_and_in_order(
+    transport: Transport,
+) -> None:
+    # The picows server corks them into one write, and writes at once past 64 KiB.
+    sent = [f"small {index}" for index in range(100)] + ["x" * 200_000, "é" * 70_000, "last"]
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+
+        async def send_all() -> None:
+            for message in sent:
+                await pair.server.send(message)
+
+        sending = asyncio.create_task(send_all())
+        assert [await pair.client.recv() for _ in sent] == sent
+        await sending
 
 
 async def test_utf8_bytes_are_received_as_text(transport: Transport) -> None:
@@ -270,7 +295,7 @@ async def test_message_over_the_size_limit_closes_with_1009(transport: Transport
             # The reason names the side and the setting that refused the message.
             assert closed.reason == (
                 "over the server's max_message_size (message of 1001 bytes, limit 1000 bytes)"
-                if transport.name == "memory"
+                if transport.name in ("memory", "picows")
                 else "over the server's max_message_size (frame with 1001 bytes exceeds limit of "
                 "1000 bytes)"
             )
@@ -462,6 +487,7 @@ async def test_connect_to_a_bad_url_raises_transport_error(transport: Transport)
         str(info.value)
         == {
             "websockets": "http://127.0.0.1:1 isn't a valid URI: scheme isn't ws or wss",
+            "picows": "not a WebSocket URL: 'http://127.0.0.1:1' (the scheme must be ws or wss)",
             "memory": "not a memory URL: 'http://127.0.0.1:1' (the scheme is not memory)",
         }[transport.name]
     )
@@ -580,7 +606,7 @@ def test_get_transport_refuses_an_unknown_name() -> None:
     with pytest.raises(ValueError) as info:
         get_transport("pigeons")
     assert str(info.value) == (
-        "unknown transport 'pigeons': use 'websockets' or a Transport instance, "
+        "unknown transport 'pigeons': use 'websockets', 'picows' or a Transport instance, "
         "such as MemoryTransport()"
     )
 
@@ -744,9 +770,6 @@ async def test_memory_listener_waits_for_its_handlers(memory: MemoryTransport) -
         waiting.cancel()
 
 
-# The WebSocket transport only
-
-
 async def test_with_keepalive_a_peer_that_does_not_read_is_closed_after_a_ping_period() -> None:
     # No write timeout, but keepalive: websockets' own ping deadline cannot start while the
     # buffer does not drain, so the interval plus the timeout bounds the congestion instead.
@@ -767,22 +790,192 @@ async def test_with_keepalive_a_peer_that_does_not_read_is_closed_after_a_ping_p
                     await pair.client.recv()
 
 
-async def test_a_binary_frame_is_received_as_bytes() -> None:
-    transport = WebSocketsTransport()
-    received: asyncio.Queue[str | bytes] = asyncio.Queue()
+# Real WebSockets: what the websockets and picows transports both do with a raw peer
+
+
+@pytest.fixture(params=["websockets", "picows"])
+def real(request: pytest.FixtureRequest) -> Transport:
+    """Each WebSocket transport: they speak the same wire, so a raw peer is the same for both."""
+    return get_transport(request.param)
+
+
+@contextlib.asynccontextmanager
+async def listening(
+    transport: Transport, options: Options | None = None, **listen: Any
+) -> AsyncIterator[tuple[Listener, asyncio.Queue[Connection]]]:
+    """Listen on 127.0.0.1 and yield the listener and a queue of the connections it accepted,
+    each held open until exit."""
+    accepted: asyncio.Queue[Connection] = asyncio.Queue()
+    done = asyncio.Event()
 
     async def handler(connection: Connection) -> None:
-        received.put_nowait(await connection.recv())
+        accepted.put_nowait(connection)
+        await done.wait()
 
-    listener = await transport.listen(handler, "127.0.0.1", 0, Options())
+    listener = await transport.listen(handler, "127.0.0.1", 0, options or Options(), **listen)
     try:
-        async with (
-            asyncio.timeout(scaled(5)),
-            websockets_connect(listener.url, open_timeout=None) as ws,
-        ):
-            await ws.send(b"\x00\xff binary")
-            assert await received.get() == b"\x00\xff binary"
+        yield listener, accepted
     finally:
+        done.set()
         listener.close()
         async with asyncio.timeout(scaled(5)):
             await listener.wait_closed()
+
+
+async def test_a_binary_frame_is_received_as_bytes(real: Transport) -> None:
+    async with (
+        listening(real) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        await ws.send(b"\x00\xff binary")
+        assert await (await accepted.get()).recv() == b"\x00\xff binary"
+
+
+async def test_fragments_are_joined_into_one_message(real: Transport) -> None:
+    async with (
+        listening(real) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        await ws.send(["hé", "llo", " ☃"])  # one text message in three frames
+        await ws.send([b"\x00", b"\xff"])  # one binary message in two
+        await ws.send("after")
+        server = await accepted.get()
+        assert [await server.recv() for _ in range(3)] == ["héllo ☃", b"\x00\xff", "after"]
+
+
+async def test_fragments_over_the_size_limit_close_with_1009(real: Transport) -> None:
+    async with (
+        listening(real, Options(max_message_size=10)) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        await ws.send("small")
+        await ws.send(["x" * 6, "x" * 6])  # every frame is under the limit, the message is not
+        server = await accepted.get()
+        assert await server.recv() == "small"
+        assert (await closed_with(server)).code == 1009
+        await ws.wait_closed()
+        assert ws.close_code == 1009
+
+
+async def test_no_pong_within_the_timeout_closes_with_1011(real: Transport) -> None:
+    # A peer that never answers pings: picows' client with its automatic pong turned off.
+    keepalive = Options(ping_interval=scaled(0.05), ping_timeout=scaled(0.05))
+    async with listening(real, keepalive) as (listener, accepted):
+        silent, _ = await picows.ws_connect(picows.WSListener, listener.url, enable_auto_pong=False)
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+            closed = await closed_with(server)
+            assert (closed.code, closed.reason) == (1011, "keepalive ping timeout")
+        finally:
+            silent.disconnect()
+
+
+async def test_picows_ends_a_peer_that_neither_reads_nor_answers_pings_with_1011() -> None:
+    # A congested one ends by the write timeout first (a ping period): the budget's tests.
+    keepalive = Options(ping_interval=scaled(0.05), ping_timeout=scaled(0.05))
+    async with listening(get_transport("picows"), keepalive) as (listener, accepted):
+        transport, _ = await picows.ws_connect(
+            picows.WSListener, listener.url, enable_auto_pong=False
+        )
+        transport.underlying_transport.pause_reading()  # and it reads nothing either
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+                closed = await closed_with(server)
+            assert (closed.code, closed.reason) == (1011, "keepalive ping timeout")
+        finally:
+            transport.disconnect(False)
+
+
+class Ponger(picows.WSListener):  # type: ignore[misc]
+    """A raw peer that answers pings by hand and says when it has answered three."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.pings = 0
+        self.three = asyncio.get_running_loop().create_future()
+
+    def on_ws_frame(self, transport: picows.WSTransport, frame: picows.WSFrame) -> None:
+        if frame.msg_type == picows.WSMsgType.PING:
+            transport.send_pong(frame.get_payload_as_bytes())
+            self.pings += 1
+            if self.pings == 3 and not self.three.done():
+                self.three.set_result(None)
+
+
+async def test_pings_go_on_while_pongs_come_back(real: Transport) -> None:
+    keepalive = Options(ping_interval=scaled(0.02), ping_timeout=scaled(1))
+    async with listening(real, keepalive) as (listener, accepted):
+        transport, ponger = await picows.ws_connect(Ponger, listener.url, enable_auto_pong=False)
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+                await ponger.three  # a ping after each pong: the keepalive goes on
+                await server.send("still open")
+            assert server.close_code is None
+        finally:
+            transport.disconnect()
+
+
+@pytest.mark.parametrize(("server", "client"), [("websockets", "picows"), ("picows", "websockets")])
+async def test_each_websocket_transport_talks_to_the_other(server: str, client: str) -> None:
+    async with listening(get_transport(server)) as (listener, accepted):
+        near = await get_transport(client).connect(listener.url, Options())
+        async with asyncio.timeout(scaled(5)):
+            far = await accepted.get()
+            await near.send("ping ☃")
+            assert await far.recv() == "ping ☃"
+            await far.send(b'{"pong": 1}')
+            assert await near.recv() == '{"pong": 1}'
+            await near.close(4000, "done")
+        assert (await closed_with(far)).code == 4000
+        assert (near.close_code, near.close_reason) == (4000, "done")
+
+
+async def test_picows_refuses_a_gate_that_waits_with_500(caplog: pytest.LogCaptureFixture) -> None:
+    async def gate(handshake: Handshake) -> Admitted | Answered:
+        await asyncio.sleep(0)  # an authenticator that asks a database, say
+        return Admitted()
+
+    async with listening(get_transport("picows"), gate=gate) as (listener, _):
+        with pytest.raises(TransportError) as info:
+            await get_transport("picows").connect(listener.url, Options())
+    assert str(info.value) == (
+        "the server refused the connection: HTTP 500: the server failed to check the credentials"
+    )
+    [record] = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "its check waited for I/O" in record.getMessage()
+
+
+async def test_picows_refuses_compression_on_both_ends() -> None:
+    transport = get_transport("picows")
+    deflate = Options(compression="deflate")
+    message = (
+        "the picows transport has no compression: pass compression=None, "
+        "or use the websockets transport"
+    )
+    with pytest.raises(ValueError) as listening_info:
+        await transport.listen(hold, "127.0.0.1", 0, deflate)
+    with pytest.raises(ValueError) as connecting_info:
+        await transport.connect("ws://127.0.0.1:1", deflate)
+    assert str(listening_info.value) == str(connecting_info.value) == message
+
+
+def test_get_transport_makes_the_picows_transport() -> None:
+    transport = get_transport("picows")
+    assert isinstance(transport, PicowsTransport)
+    assert transport.name == "picows"
+
+
+def test_a_missing_picows_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "picows", None)  # what importing it does when it is absent
+    monkeypatch.delitem(sys.modules, "srvwire.transports.picows")
+    with pytest.raises(ValueError) as info:
+        get_transport("picows")
+    assert str(info.value) == (
+        "the picows transport needs the picows package: pip install 'srvwire[fast]'"
+    )

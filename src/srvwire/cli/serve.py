@@ -25,6 +25,7 @@ from typing import Any
 from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, port
 from srvwire.handshake import EdgePolicy, is_loopback
 from srvwire.server import RunningServer, Server
+from srvwire.transports import get_transport
 
 _ATTRIBUTE_PATH = re.compile(r"^[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*$")
 _DEFAULT_TARGET_ATTRIBUTES = ("server", "app")
@@ -101,11 +102,22 @@ def register(commands: Commands) -> None:
         action="store_true",
         help="log a line per call: peer, service, outcome, duration (logger srvwire.access)",
     )
+    serve.add_argument(
+        "--transport",
+        choices=["websockets", "picows"],
+        default="websockets",
+        help="the WebSocket library to serve on: websockets (default), or picows, the native "
+        "one (pip install 'srvwire[fast]')",
+    )
     serve.set_defaults(command=_cmd_serve)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     server = _load_target(args.target, factory=args.factory)
+    try:
+        transport = get_transport(args.transport)
+    except ValueError as exc:
+        raise CommandError(str(exc), ExitCode.USAGE) from None
     hosts: list[str] = args.host or ["127.0.0.1"]
     host: str | list[str] = hosts[0] if len(hosts) == 1 else hosts
     if args.access_log:
@@ -150,7 +162,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     try:
         # run() stops on SIGINT or SIGTERM, and takes a KeyboardInterrupt where it cannot.
-        server.run(host, args.port, ready=ready, stopping=stopping, ssl=context)
+        server.run(
+            host, args.port, ready=ready, stopping=stopping, ssl=context, transport=transport
+        )
     except BrokenPipeError:
         raise  # stdout was closed, which is not a listening problem
     except OSError as exc:

@@ -3,6 +3,8 @@
 * :mod:`~srvwire.transports.base`: the seam, :class:`~srvwire.transports.base.Transport` and
   :class:`~srvwire.transports.base.Connection`, and the rules every transport keeps;
 * :mod:`~srvwire.transports.websockets`: WebSocket over TCP, the default;
+* :mod:`~srvwire.transports.picows`: WebSocket over TCP on ``picows`` (``srvwire[fast]``), the
+  native one: the same wire, with frames parsed in C and no reader task per connection;
 * :mod:`~srvwire.transports.memory`: an in-process pair, for tests, with no port.
 """
 
@@ -25,12 +27,20 @@ def get_transport(transport: str | Transport) -> Transport:
         from srvwire.transports.websockets import WebSocketsTransport
 
         return WebSocketsTransport()
+    if transport == "picows":
+        try:
+            from srvwire.transports.picows import PicowsTransport
+        except ImportError as exc:
+            raise ValueError(
+                "the picows transport needs the picows package: pip install 'srvwire[fast]'"
+            ) from exc
+        return PicowsTransport()
     if transport == "memory":
         raise ValueError(
             "the memory transport is a world shared by a server and its clients: "
             "pass a MemoryTransport() instance, the same one to both, not the name 'memory'"
         )
     raise ValueError(
-        f"unknown transport {transport!r}: use 'websockets' or a Transport instance, "
+        f"unknown transport {transport!r}: use 'websockets', 'picows' or a Transport instance, "
         "such as MemoryTransport()"
     )

@@ -1,0 +1,735 @@
+"""The native WebSocket transport, on ``picows``' callback API: the only module that imports it.
+
+``picows`` parses frames in C and calls :meth:`PicowsConnection.on_ws_frame` for each one, in
+the event loop's read callback: there is no asyncio stream and no reader task per connection.
+This module adds what srvwire's rules (:mod:`srvwire.transports.base`) ask and ``picows``
+leaves to its user:
+
+* **Whole messages.** Fragments are joined; a text message is decoded once, and one that is
+  not UTF-8 fails the connection with 1007. A message larger than ``max_message_size`` fails it
+  with 1009; the reason names the side and the setting (``over the server's
+  max_message_size (message of 2000 bytes, limit 1000 bytes)``), so that the peer's error says
+  what to raise. Messages received before either are still
+  delivered. The bytes held for one frame are bounded too: ``picows`` refuses a frame over
+  :data:`FRAME_SLACK` times the limit as soon as its header arrives (1009, with its own
+  reason); a message that arrived in the same read just before that frame is then lost with
+  the connection.
+* **Flow control both ways.** ``send`` puts the message in the connection's buffer and waits
+  only while ``picows`` says the socket's buffer is past its high-water mark
+  (``pause_writing``/``resume_writing``). A client's message is framed and written by ``picows``
+  at once (it masks it). A server frames its own messages (unmasked: a header and the bytes)
+  and *corks* them: the replies made while draining one read go out in one write, when
+  ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
+  comes first. The budget (``max_queued_bytes``) is the socket buffer's high-water mark: a
+  ``send`` that finds the connection congested waits before it queues anything, and a
+  connection congested for ``write_timeout`` (or a ping period, when sooner) is dropped at once
+  and ends with :class:`~srvwire.transports.base.WriteTimedOut`. Messages not yet received
+  are held in a queue; past :data:`READ_HIGH_WATER` of them the socket is not read until
+  ``recv`` has taken them down to :data:`READ_LOW_WATER`.
+* **Keepalive** as ``websockets`` does it: a ping every ``ping_interval``; no pong within
+  ``ping_timeout`` fails the connection with 1011 ``keepalive ping timeout``.
+* **Closing.** A close frame received is answered with the same code, then the TCP connection
+  is closed. :meth:`PicowsConnection.close` waits for the peer's answer at most
+  :data:`CLOSE_TIMEOUT` seconds, then drops the connection.
+* **The gate at the upgrade.** ``picows`` hands the opening request to a synchronous
+  function and sends what it returns: a listener (101) or an HTTP response. The gate is a
+  coroutine, so it is run here to its end without the loop: srvwire's own policy
+  (:class:`~srvwire.handshake.EdgePolicy`) and a synchronous authenticator never wait. An
+  authenticator that does wait is refused with 500 and an error in the log that says so; use
+  the ``websockets`` transport for it.
+* **No compression**: ``picows`` has no permessage-deflate, so ``compression="deflate"`` is
+  refused with a ``ValueError`` on both ends.
+
+Exceptions are mapped here and nowhere else: how a connection ended (the close frame received,
+else the one sent, else none) -> :class:`TransportClosed`; ``OSError`` and ``picows``' errors
+while connecting -> :class:`TransportError`, saying why as the ``websockets`` transport does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import ssl as _ssl
+import struct
+import urllib.parse
+from collections import deque
+from collections.abc import Coroutine, Sequence
+from http import HTTPStatus
+from typing import Any
+
+from picows import (
+    WSError,
+    WSFrame,
+    WSHandshakeError,
+    WSListener,
+    WSMsgType,
+    WSTransport,
+    WSUpgradeRequest,
+    WSUpgradeResponse,
+    WSUpgradeResponseWithListener,
+    ws_connect,
+)
+from picows.picows import WSAutoPingStrategy, WSProtocol  # type: ignore[attr-defined]
+
+from srvwire.transports.base import (
+    Admitted,
+    Answered,
+    Connection,
+    ConnectionHandler,
+    Gate,
+    Handshake,
+    Hosts,
+    Listener,
+    Options,
+    Transport,
+    TransportClosed,
+    TransportError,
+    WriteTimedOut,
+)
+
+__all__ = ["PicowsConnection", "PicowsListener", "PicowsTransport"]
+
+READ_HIGH_WATER = 64
+"""Messages received and not yet taken by ``recv`` at which the socket is no longer read."""
+READ_LOW_WATER = 16
+"""Messages still queued at which reading the socket resumes."""
+HANDSHAKE_TIMEOUT = 10.0
+"""Seconds a server waits for a new connection's opening request (as ``websockets``)."""
+CLOSE_TIMEOUT = 10.0
+"""Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
+NO_LIMIT = 2**62
+"""``picows``' frame limit when ``max_message_size`` is None."""
+DEFAULT_BUDGET = 2**16
+"""The budget of bytes waiting to be sent when ``max_queued_bytes`` is None: the socket
+buffer's high-water mark (its low one is a quarter). A server writes its corked frames at
+once past a quarter of it, instead of at the end of the read (see
+:meth:`PicowsConnection._flush`), so at most the budget and a quarter wait, plus one message."""
+FRAME_SLACK = 4
+"""``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
+
+_TLS_HANDSHAKE_RECORD = 0x16  # the first byte of a TLS ClientHello
+_TEXT = WSMsgType.TEXT
+_BINARY = WSMsgType.BINARY
+_CONTINUATION = WSMsgType.CONTINUATION
+_CLOSE = WSMsgType.CLOSE
+_PONG = WSMsgType.PONG
+
+log = logging.getLogger(__name__)
+
+
+def _header(size: int) -> bytes:
+    """The header of an unmasked, final text frame of ``size`` bytes (RFC 6455, 5.2)."""
+    if size < 126:
+        return bytes((0x81, size))
+    if size < 2**16:
+        return struct.pack("!BBH", 0x81, 126, size)
+    return struct.pack("!BBQ", 0x81, 127, size)
+
+
+_HEADER = [_header(size) for size in range(126)]
+
+
+def _url(host: str, port: int, tls: bool = False) -> str:
+    """Return the ``ws://`` (``wss://``) URL of ``host``:``port``, an IPv6 host in brackets."""
+    scheme = "wss" if tls else "ws"
+    return f"{scheme}://[{host}]:{port}" if ":" in host else f"{scheme}://{host}:{port}"
+
+
+def _code(value: Any) -> int:
+    """A close code as an ``int``, whether ``picows`` gives its enum or a number."""
+    return int(getattr(value, "value", value))
+
+
+class PicowsConnection(WSListener, Connection):
+    """One WebSocket connection, server or client side: ``picows``' listener for it, too.
+
+    ``picows`` calls the ``on_ws_*`` methods and ``pause_writing``/``resume_writing`` from the
+    event loop; srvwire calls :meth:`recv`, :meth:`send` and :meth:`close`.
+    """
+
+    def __init__(self, options: Options, identity: object = None) -> None:
+        super().__init__()
+        self.identity = identity
+        self.remote_address: Any = None
+        self._loop = asyncio.get_running_loop()
+        self._ws: WSTransport | None = None
+        self._limit = options.max_message_size
+        self._ping_interval = options.ping_interval
+        self._ping_timeout = options.ping_timeout
+        self._keepalive: asyncio.TimerHandle | None = None  # the next ping, or its deadline
+        self._awaiting_pong = False
+        self._messages: deque[str | bytes] = deque()
+        self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
+        self._reading = True
+        self._parts: list[bytes] = []  # the fragments of a message being received
+        self._parts_size = 0
+        self._parts_text = False
+        self._writable: asyncio.Future[None] | None = None  # set while writing is paused
+        self._corked: list[bytes] = []  # a server's frames not yet written (see _flush)
+        self._corked_size = 0
+        self._framing = False  # whether send frames here: on a server (no mask), once open
+        self._received: tuple[int, str] | None = None  # the close frame received
+        self._sent: tuple[int, str] | None = None  # the close frame sent
+        self._ended: TransportClosed | None = None  # set once the TCP connection is gone
+        self._gone: asyncio.Future[None] = self._loop.create_future()
+        budget = options.max_queued_bytes
+        self._budget = DEFAULT_BUDGET if budget is None else budget
+        # How long congestion may last: write_timeout, or a ping period when that is sooner
+        # (a ping cannot be answered through a buffer that does not drain).
+        limits = [options.write_timeout]
+        if options.ping_interval is not None and options.ping_timeout is not None:
+            limits.append(options.ping_interval + options.ping_timeout)
+        self._write_timeout = min((t for t in limits if t is not None), default=None)
+        self._stall: asyncio.TimerHandle | None = None
+        self._timed_out = False
+
+    # What picows calls.
+
+    def on_ws_connected(self, transport: WSTransport) -> None:
+        self._ws = transport
+        self._framing = not transport.is_client_side
+        transport.underlying_transport.set_write_buffer_limits(
+            high=self._budget, low=self._budget // 4
+        )
+        self.remote_address = transport.underlying_transport.get_extra_info("peername")
+        if self._ping_interval is not None:
+            self._keepalive = self._loop.call_later(self._ping_interval, self._ping)
+
+    def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
+        kind = frame.msg_type
+        if kind is _TEXT or kind is _BINARY:
+            if self._parts_size or self._parts:
+                self._fail(1002, "a new message began before the last one ended")
+            elif frame.fin:
+                self._deliver(frame.get_payload_as_bytes(), kind is _TEXT)
+            else:
+                self._parts_text = kind is _TEXT
+                self._add_part(frame.get_payload_as_bytes())
+        elif kind is _CONTINUATION:
+            if not self._parts:
+                self._fail(1002, "a continuation frame without a message to continue")
+            elif self._add_part(frame.get_payload_as_bytes()) and frame.fin:
+                payload = b"".join(self._parts)
+                self._parts = []
+                self._parts_size = 0
+                self._deliver(payload, self._parts_text)
+        elif kind is _CLOSE:
+            code = _code(frame.get_close_code())
+            # A close frame without a code is 1005 (RFC 6455, section 7.1.5).
+            self._received = (code or 1005, frame.get_close_reason() or "")
+            if not transport.is_close_frame_sent:
+                self._send_close(code or 1000, self._received[1] if code else "")
+            transport.disconnect()
+        elif kind is _PONG:
+            self._pong()
+
+    def on_ws_disconnected(self, transport: WSTransport) -> None:
+        if self._sent is None:
+            # picows itself may have failed the connection (a frame over its limit).
+            handshake = transport.close_handshake
+            sent = None if handshake is None else handshake.sent
+            if sent is not None:
+                self._sent = (_code(sent.code), sent.reason or "")
+        final = self._received if self._received is not None else self._sent
+        if self._timed_out:
+            assert self._write_timeout is not None
+            self._ended = WriteTimedOut(self._write_timeout)
+        else:
+            self._ended = TransportClosed(None) if final is None else TransportClosed(*final)
+        if self._keepalive is not None:
+            self._keepalive.cancel()
+            self._keepalive = None
+        self._wake()
+        self.resume_writing()
+        if not self._gone.done():
+            self._gone.set_result(None)
+
+    def pause_writing(self) -> None:
+        if self._writable is None:
+            self._writable = self._loop.create_future()
+            if self._write_timeout is not None and self._ended is None:
+                self._stall = self._loop.call_later(self._write_timeout, self._stalled)
+
+    def resume_writing(self) -> None:
+        if self._stall is not None:
+            self._stall.cancel()
+            self._stall = None
+        writable, self._writable = self._writable, None
+        if writable is not None and not writable.done():
+            writable.set_result(None)
+
+    # What srvwire calls.
+
+    async def recv(self) -> str | bytes:
+        messages = self._messages
+        while not messages:
+            if self._corked:
+                self._flush()  # the replies to everything read so far, in one write
+            if self._ended is not None:
+                raise self._closing()
+            waiter = self._waiter = self._loop.create_future()
+            try:
+                await waiter
+            finally:
+                self._waiter = None
+        message = messages.popleft()
+        if not self._reading and len(messages) <= READ_LOW_WATER and self._ws is not None:
+            self._reading = True
+            self._ws.underlying_transport.resume_reading()
+        return message
+
+    async def send(self, message: str | bytes) -> None:
+        if self._writable is not None:
+            await self.writable()  # congested: queue nothing until the peer has read
+        ws = self._ws
+        if ws is None or self._ended is not None or ws.is_close_frame_sent:
+            raise self._closing()
+        data = message.encode() if isinstance(message, str) else message
+        if self._framing:
+            corked = self._corked
+            if not corked:
+                self._loop.call_soon(self._flush)
+            size = len(data)
+            corked.append(
+                _HEADER[size] if size < 126 else _header(size)  # a text frame, unmasked
+            )
+            corked.append(data)
+            self._corked_size += size
+            if self._corked_size >= self._budget // 4:
+                self._flush()
+        else:
+            ws.send(_TEXT, data)
+
+    @property
+    def congested(self) -> bool:
+        """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
+        return self._writable is not None
+
+    async def writable(self) -> None:
+        """Wait until the connection is not :attr:`congested`; raise :class:`TransportClosed`
+        when it ended while this waited."""
+        if self._writable is None:
+            return
+        while self._writable is not None:
+            await asyncio.shield(self._writable)
+        if self._ended is not None:
+            raise self._closing()
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        ws = self._ws
+        if ws is None or self._gone.done():
+            return
+        if not ws.is_close_frame_sent:
+            self._send_close(code, reason)
+        if not self._reading:  # the peer's close frame, or its dropping, must be read
+            self._reading = True
+            ws.underlying_transport.resume_reading()
+        try:
+            await asyncio.wait_for(asyncio.shield(self._gone), CLOSE_TIMEOUT)
+        except TimeoutError:
+            ws.disconnect(graceful=False)
+            await asyncio.shield(self._gone)
+
+    @property
+    def close_code(self) -> int | None:
+        return None if self._ended is None else self._ended.code
+
+    @property
+    def close_reason(self) -> str:
+        return "" if self._ended is None else self._ended.reason
+
+    def __repr__(self) -> str:
+        state = "open" if self._ended is None else str(self._ended)
+        return f"<PicowsConnection {self.remote_address!r}: {state}>"
+
+    # Helpers.
+
+    def _deliver(self, payload: bytes, text: bool) -> None:
+        limit = self._limit
+        if limit is not None and len(payload) > limit:
+            self._fail(1009, self._too_big(len(payload)))
+            return
+        if text:
+            try:
+                message: str | bytes = payload.decode()
+            except UnicodeDecodeError as exc:
+                self._fail(1007, f"{exc.reason} at position {exc.start}")
+                return
+        else:
+            message = payload
+        messages = self._messages
+        messages.append(message)
+        if len(messages) >= READ_HIGH_WATER and self._reading and self._ws is not None:
+            self._reading = False
+            self._ws.underlying_transport.pause_reading()
+        self._wake()
+
+    def _add_part(self, part: bytes) -> bool:
+        """Keep one fragment; fail with 1009 (and return False) past the size limit."""
+        self._parts.append(part)
+        self._parts_size += len(part)
+        limit = self._limit
+        if limit is not None and self._parts_size > limit:
+            self._parts = []
+            self._fail(1009, self._too_big(self._parts_size))
+            return False
+        return True
+
+    def _too_big(self, size: int) -> str:
+        """The close reason of a message over the limit: the side and the setting to raise."""
+        side = "client" if self._ws is not None and self._ws.is_client_side else "server"
+        limit = self._limit
+        return f"over the {side}'s max_message_size (message of {size} bytes, limit {limit} bytes)"
+
+    def _wake(self) -> None:
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    def _flush(self) -> None:
+        """Write the frames ``send`` corked, in one write: on a server, every reply made while
+        draining one read goes out in one system call instead of one each."""
+        corked = self._corked
+        if not corked:
+            return
+        data = b"".join(corked)
+        corked.clear()
+        self._corked_size = 0
+        ws = self._ws
+        # Nothing may follow a close frame (picows itself may have sent one, on a bad frame).
+        if ws is not None and self._ended is None and not ws.is_close_frame_sent:
+            ws.underlying_transport.write(data)
+
+    def _send_close(self, code: int, reason: str) -> None:
+        assert self._ws is not None
+        self._flush()
+        self._sent = (code, reason)
+        self._ws.send_close(code, reason.encode())  # type: ignore[arg-type]  # any code
+
+    def _fail(self, code: int, reason: str, *, graceful: bool = True) -> None:
+        """End the connection on this side's error: a close frame, then the TCP connection
+        (``graceful``: once what is buffered is written; else at once, dropping it)."""
+        ws = self._ws
+        if ws is None or self._ended is not None:
+            return
+        if not ws.is_close_frame_sent:
+            self._send_close(code, reason)
+        ws.disconnect(graceful)
+
+    def _closing(self) -> TransportClosed:
+        """How the connection ended, or is ending, for ``recv`` and ``send`` to raise."""
+        if self._timed_out:
+            assert self._write_timeout is not None
+            return WriteTimedOut(self._write_timeout)
+        if self._ended is not None:
+            return TransportClosed(self._ended.code, self._ended.reason)
+        final = self._received if self._received is not None else self._sent
+        return TransportClosed(None) if final is None else TransportClosed(*final)
+
+    def _stalled(self) -> None:
+        """Close now: the peer has not read for the write timeout, so a closing handshake
+        would wait for nothing."""
+        self._stall = None
+        self._timed_out = True
+        if self._ws is not None:
+            self._ws.disconnect(graceful=False)
+
+    def _ping(self) -> None:
+        ws = self._ws
+        if ws is None or self._ended is not None:
+            return
+        ws.send_ping()
+        self._awaiting_pong = True
+        if self._ping_timeout is not None:
+            self._keepalive = self._loop.call_later(self._ping_timeout, self._no_pong)
+        else:
+            self._keepalive = None
+
+    def _pong(self) -> None:
+        if not self._awaiting_pong:
+            return  # a pong nobody asked for: the keepalive's timer stays as it is
+        self._awaiting_pong = False
+        if self._keepalive is not None:
+            self._keepalive.cancel()
+        if self._ping_interval is not None and self._ended is None:
+            self._keepalive = self._loop.call_later(self._ping_interval, self._ping)
+
+    def _no_pong(self) -> None:
+        self._keepalive = None
+        # At once: a peer that does not answer may not read either, and then a graceful
+        # close would wait for the buffer to drain forever.
+        self._fail(1011, "keepalive ping timeout", graceful=False)
+
+
+def _check_options(options: Options) -> None:
+    """Refuse what ``picows`` cannot do, saying what to do instead."""
+    if options.compression is not None:
+        raise ValueError(
+            "the picows transport has no compression: pass compression=None, "
+            "or use the websockets transport"
+        )
+
+
+def _frame_limit(options: Options) -> int:
+    """The frame size at which ``picows`` itself fails the connection (see the module)."""
+    limit = options.max_message_size
+    return NO_LIMIT if limit is None else FRAME_SLACK * limit + 2**16
+
+
+def _decide(gate: Gate, handshake: Handshake) -> Admitted | Answered:
+    """Run ``gate`` on ``handshake`` to its end without the event loop (see the module)."""
+    coroutine = gate(handshake)
+    assert isinstance(coroutine, Coroutine)
+    try:
+        coroutine.send(None)
+    except StopIteration as done:
+        answer: Admitted | Answered = done.value
+        return answer
+    coroutine.close()
+    log.error(
+        "refused %r: its check waited for I/O, which the picows transport cannot do during "
+        "the opening handshake; use an authenticator that answers at once, or the "
+        "websockets transport",
+        handshake,
+    )
+    return Answered(500, "the server failed to check the credentials\n")
+
+
+def _response(answer: Answered) -> WSUpgradeResponse:
+    """The plain HTTP response an :class:`Answered` request gets."""
+    response: WSUpgradeResponse = WSUpgradeResponse.create_error_response(
+        400, answer.reason.encode(), list(answer.headers)
+    )
+    response.status = HTTPStatus(answer.status)  # create_error_response takes only 4xx/5xx
+    return response
+
+
+class PicowsListener(Listener):
+    """A ``picows`` server; closing it keeps the connections it accepted, and
+    :meth:`wait_closed` waits for their handlers too.
+
+    ``urls``: for one host name, that name (``localhost`` stays ``localhost``); for several
+    hosts or a wildcard, the address each socket is bound to, IPv4 first (a wildcard stays a
+    wildcard here, where the websockets transport lists the interfaces' addresses).
+    """
+
+    def __init__(self, server: asyncio.Server, handlers: set[asyncio.Task[None]], host: Hosts,
+                 tls: bool) -> None:  # fmt: skip
+        self._server = server
+        self._handlers = handlers
+        sockets = sorted(server.sockets, key=lambda sock: sock.family != socket.AF_INET)
+        port = int(sockets[0].getsockname()[1])
+        if isinstance(host, str) and host not in ("", "0.0.0.0", "::"):
+            self._urls = [_url(host, port, tls)]
+        else:
+            bound = [sock.getsockname()[:2] for sock in sockets]
+            self._urls = list(dict.fromkeys(_url(str(a), int(p), tls) for a, p in bound))
+        self.url = self._urls[0]
+        self.host = self.url.split("://", 1)[1].rsplit(":", 1)[0].strip("[]")
+        self.port = port
+
+    @property
+    def urls(self) -> list[str]:
+        return list(self._urls)
+
+    def close(self) -> None:
+        self._server.close()
+
+    async def wait_closed(self) -> None:
+        await self._server.wait_closed()
+        while self._handlers:
+            await asyncio.gather(*self._handlers, return_exceptions=True)
+
+
+class PicowsTransport(Transport):
+    """WebSocket over TCP on ``picows``, with ``ws://`` URLs: the same wire as
+    ``websockets``, so either end may use either transport."""
+
+    name = "picows"
+
+    async def listen(
+        self,
+        handler: ConnectionHandler,
+        host: Hosts,
+        port: int,
+        options: Options,
+        *,
+        gate: Gate | None = None,
+        ssl: _ssl.SSLContext | None = None,
+    ) -> PicowsListener:
+        _check_options(options)
+        loop = asyncio.get_running_loop()
+        handlers: set[asyncio.Task[None]] = set()
+        logger = logging.getLogger("picows.server")
+
+        async def run(connection: PicowsConnection) -> None:
+            # As websockets does: 1000 when the handler returns, 1011 when it raises.
+            try:
+                await handler(connection)
+            except Exception:
+                log.exception("connection handler failed")
+                await connection.close(1011)
+            else:
+                await connection.close()
+
+        def started(connection: PicowsConnection) -> None:
+            task = loop.create_task(run(connection))
+            handlers.add(task)
+            task.add_done_callback(handlers.discard)
+
+        def protocol() -> WSProtocol:
+            ws_protocol: WSProtocol
+
+            def accept(request: WSUpgradeRequest) -> Any:
+                identity: Any = None
+                subprotocol = None
+                if gate is not None:
+                    answer = _decide(gate, _handshake(ws_protocol, request))
+                    if isinstance(answer, Answered):
+                        return WSUpgradeResponseWithListener(_response(answer), None)
+                    identity, subprotocol = answer.identity, answer.subprotocol
+                connection = _ServerConnection(options, identity, started)
+                headers = [("Sec-WebSocket-Protocol", subprotocol)] if subprotocol else None
+                response = WSUpgradeResponse.create_101_response(headers)
+                return WSUpgradeResponseWithListener(response, connection)
+
+            # picows' own server factory, but with the connection at hand in the gate.
+            ws_protocol = _Opening(
+                None, None, False, accept, logger, True, HANDSHAKE_TIMEOUT,
+                False, 20.0, 20.0, WSAutoPingStrategy.PING_WHEN_IDLE, True,
+                _frame_limit(options), None, 16 * 1024,
+            )  # fmt: skip
+            return ws_protocol
+
+        hosts = list(host) if isinstance(host, Sequence) and not isinstance(host, str) else host
+        server = await loop.create_server(protocol, hosts, port, ssl=ssl)
+        return PicowsListener(server, handlers, host, tls=ssl is not None)
+
+    async def connect(
+        self,
+        url: str,
+        options: Options,
+        *,
+        headers: Sequence[tuple[str, str]] = (),
+        ssl: _ssl.SSLContext | None = None,
+    ) -> PicowsConnection:
+        _check_options(options)
+        try:
+            self.check_url(url)
+        except ValueError as exc:
+            raise TransportError(str(exc)) from exc
+        try:
+            _, listener = await ws_connect(
+                lambda: PicowsConnection(options),
+                url,
+                ssl_context=ssl,
+                websocket_handshake_timeout=None,  # the caller bounds the whole opening
+                max_frame_size=_frame_limit(options),
+                extra_headers=list(headers) or None,
+                max_redirects=0,
+                logger_name="client",
+            )
+        except (OSError, EOFError, WSError) as exc:
+            raise _refusal(exc, url) from exc
+        if listener is None:  # the connection ended before the upgrade's answer came
+            hint = "" if url[:4].lower() == "wss:" else "; it may speak TLS (try wss://)"
+            raise TransportError(
+                f"the server closed the connection during the opening handshake{hint}"
+            )
+        assert isinstance(listener, PicowsConnection)
+        return listener
+
+    def check_url(self, url: str) -> None:
+        try:
+            parts = urllib.parse.urlsplit(url)
+            parts.port  # noqa: B018 (raises ValueError for a port out of range)
+        except ValueError as exc:
+            raise ValueError(f"not a WebSocket URL: {url!r} ({exc})") from exc
+        if parts.scheme.lower() not in ("ws", "wss") or not parts.hostname:
+            raise ValueError(f"not a WebSocket URL: {url!r} (the scheme must be ws or wss)")
+
+
+class _Opening(WSProtocol):  # type: ignore[misc]
+    """``picows``' server protocol, which first looks at the opening bytes: a TLS record on a
+    listener without TLS (a ``wss://`` client) is refused at once by closing the connection,
+    where ``picows`` would wait for the end of an HTTP request until its handshake timeout.
+    The client then says its TLS handshake failed and that the server may not speak TLS."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.opening = True  # until the first bytes have been read
+        self.buffer: memoryview | None = None
+
+    def get_buffer(self, size_hint: int) -> memoryview:
+        buffer: memoryview = super().get_buffer(size_hint)
+        if self.opening:
+            self.buffer = buffer
+        return buffer
+
+    def buffer_updated(self, nbytes: int) -> None:
+        if self.opening:
+            self.opening = False
+            first, self.buffer = self.buffer, None
+            if nbytes and first is not None and first[0] == _TLS_HANDSHAKE_RECORD:
+                self.transport.disconnect()
+                return
+        super().buffer_updated(nbytes)
+
+
+class _ServerConnection(PicowsConnection):
+    """A connection a listener accepted: its handler starts once the upgrade is done."""
+
+    def __init__(self, options: Options, identity: object, started: Any) -> None:
+        super().__init__(options, identity)
+        self._started = started
+
+    def on_ws_connected(self, transport: WSTransport) -> None:
+        super().on_ws_connected(transport)
+        self._started(self)
+
+
+def _handshake(protocol: WSProtocol, request: WSUpgradeRequest) -> Handshake:
+    """The opening request as srvwire's gate reads it."""
+    underlying = protocol.transport.underlying_transport
+    ssl_object = underlying.get_extra_info("ssl_object")
+    certificate = ssl_object.getpeercert() if ssl_object is not None else None
+    offered = [
+        name.strip()
+        for value in request.headers.getall("Sec-WebSocket-Protocol", [])
+        for name in value.split(",")
+        if name.strip()
+    ]
+    return Handshake(
+        path=request.path.decode("latin-1"),
+        headers=list(request.headers.items()),
+        peer=underlying.get_extra_info("peername"),
+        method=request.method.decode("latin-1"),
+        tls=ssl_object is not None,
+        client_certificate=certificate or None,
+        subprotocols=offered,
+    )
+
+
+def _refusal(exc: Exception, url: str) -> TransportError:
+    """Say why opening a connection to ``url`` failed, as a person can act on it."""
+    tls = url.lower().startswith("wss:")
+    if isinstance(exc, WSHandshakeError) and exc.response is not None:
+        body = (exc.raw_body or b"").decode("utf-8", "replace").strip()
+        status = _code(exc.response.status)
+        return TransportError(
+            f"the server refused the connection: HTTP {status}" + (f": {body}" if body else "")
+        )
+    if isinstance(exc, _ssl.SSLCertVerificationError):
+        return TransportError(f"the server's TLS certificate is not trusted: {exc.verify_message}")
+    if tls and isinstance(exc, _ssl.SSLError | ConnectionResetError | EOFError):
+        detail = str(exc) or type(exc).__name__
+        return TransportError(
+            f"the TLS handshake failed; the server may not speak TLS (try ws://): {detail}"
+        )
+    if not tls and isinstance(exc, WSError):
+        return TransportError(
+            "the server closed the connection during the opening handshake; "
+            f"it may speak TLS (try wss://): {exc}"
+        )
+    return TransportError(str(exc) or type(exc).__name__)
