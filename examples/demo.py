@@ -2,14 +2,16 @@
 
 It starts ``robot_state_server.py`` on a free port in a child process, reads the port from the
 line the server logs once it listens, runs ``robot_command_client.py``'s sequence against it in
-this process, then publishes a few joint states with ``joint_state_publisher.py`` (a topic the
-server subscribes to), and stops the server whatever happened. The server's own log is shown
-only when something went wrong.
+this process (the services, then the ``/calibrate`` action with its progress; the calibration
+asks for 1 s, or ``$DEMO_CALIBRATION_TIME``), then publishes a few joint states with
+``joint_state_publisher.py`` (a topic the server subscribes to), and stops the server whatever
+happened. The server's own log is shown only when something went wrong.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import re
 import subprocess
@@ -23,9 +25,10 @@ import robot_command_client
 
 HERE = Path(__file__).resolve().parent
 SERVER = HERE / "robot_state_server.py"
-URL_LINE = re.compile(r"serving \d+ services? on (ws://\S+)")
+URL_LINE = re.compile(r"serving \d+ services?(?: and \d+ actions?)? on (ws://\S+)")
 STARTUP_TIMEOUT = 20.0  # seconds for the server to import srvwire and start listening
 SHUTDOWN_TIMEOUT = 5.0  # seconds for it to stop after SIGTERM before it is killed
+CALIBRATION_TIME = os.environ.get("DEMO_CALIBRATION_TIME", "1")  # seconds: the action's goal
 
 
 class ServerProcess:
@@ -84,7 +87,8 @@ def main() -> int:
         print("make demo: robot_command_client.py runs the tutorial's sequence:", flush=True)
         # The client logs each answer; here, to stdout with the rest, so that it pipes as one.
         logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
-        status = robot_command_client.main(["--url", url])
+        # A short calibration, so that the demo stays quick; the robot's own takes 5 s.
+        status = robot_command_client.main(["--url", url, "--calibration-time", CALIBRATION_TIME])
         if status == 0:
             print(
                 "make demo: joint_state_publisher.py publishes on /joint_states, "

@@ -2,10 +2,13 @@
 
 It waits until the server offers both services, then runs a short sequence — ask for the joint
 positions, the status and the configuration; move; ask for the positions again; stop;
-calibrate; ask for the status — and logs every answer. Start ``robot_state_server.py`` first::
+calibrate; ask for the status — and logs every answer. Then it sends the ``/calibrate``
+action a goal and logs its progress as the feedback comes, then its result. Start
+``robot_state_server.py`` first::
 
     python examples/robot_state_server.py
     python examples/robot_command_client.py --url ws://localhost:8765
+    python examples/robot_command_client.py --calibration-time 1   # a quicker calibration
 
 It exits with status 0 when every call got an answer (even a ``success=False`` one) and with
 status 1, naming the error, when a call failed: no server, a lost connection, a deadline.
@@ -25,6 +28,7 @@ from srvwire.errors import RPCError, ServiceUnavailable
 
 STATE_SERVICE = "/get_robot_state"
 COMMAND_SERVICE = "/execute_robot_command"
+CALIBRATE_ACTION = "/calibrate"
 DEFAULT_URL = "ws://localhost:8765"
 
 logger = logging.getLogger("robot_command_client")
@@ -102,11 +106,14 @@ async def run(
     url: str,
     timeout: float = 5.0,  # noqa: ASYNC109 - the client's deadline for every call
     on_response: Callable[[Step, Any], object] = log_response,
+    calibration_time: float = 5.0,
 ) -> int:
-    """Wait for the robot's services at ``url``, run the demo sequence; return the exit code.
+    """Wait for the robot's services at ``url``, run the demo sequence, then calibrate with
+    the action; return the exit code.
 
     ``timeout`` bounds connecting, the wait for the services, and each call. ``on_response``
     is called with each step and its response as it arrives (the default logs it).
+    ``calibration_time`` is how long the calibration goal asks to take (0: no action goal).
     """
     try:
         client = await connect(url, timeout=timeout, open_timeout=timeout)
@@ -121,6 +128,9 @@ async def run(
             for service in (STATE_SERVICE, COMMAND_SERVICE):
                 await client.wait_for_service(service, timeout=timeout)
             await run_sequence(client, demo_sequence(), on_response)
+            if calibration_time > 0:
+                await client.wait_for_service(CALIBRATE_ACTION, timeout=timeout)
+                await calibrate(client, calibration_time)
         except RPCError as exc:  # every failure srvwire reports is one of these
             report_failure(exc)
             return 1
@@ -128,6 +138,38 @@ async def run(
 
 
 # --8<-- [end:run]
+
+
+# --8<-- [start:calibrate]
+async def calibrate(
+    client: Client, duration: float, on_feedback: Callable[[Any], object] | None = None
+) -> Any:
+    """Send ``/calibrate`` a goal, report each feedback, and return the result.
+
+    The goal's deadline covers the whole calibration, with room to spare.
+    """
+    handle = await client.send_goal(CALIBRATE_ACTION, {"duration": duration}, timeout=duration + 5)
+    logger.info("%-40s -> accepted", f"action calibrate ({duration:g} s)")
+    async for feedback in handle.feedback():  # the latest each time: a slow reader skips
+        if on_feedback is not None:
+            on_feedback(feedback)
+        else:
+            logger.info(
+                "  calibrating %s: %3.0f%% done", feedback.current_joint, 100 * feedback.progress
+            )
+    outcome = await handle.result()
+    result = outcome.result  # a Calibrate.Result
+    logger.info(
+        "%-40s -> %s: %s (%d joints done)",
+        "action calibrate",
+        outcome.status,
+        result.message,
+        result.joints_done,
+    )
+    return result
+
+
+# --8<-- [end:calibrate]
 
 
 def report_failure(exc: RPCError) -> None:
@@ -148,6 +190,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="seconds allowed for connecting, for the services to appear, and for each call "
         "(default: %(default)s)",
     )
+    parser.add_argument(
+        "--calibration-time",
+        type=float,
+        default=5.0,
+        help="seconds the /calibrate goal asks the robot to take; 0 skips the action "
+        "(default: %(default)s)",
+    )
     return parser.parse_args(argv)
 
 
@@ -155,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the demo sequence against the server at ``--url``; return the exit code."""
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    return asyncio.run(run(args.url, args.timeout))
+    return asyncio.run(run(args.url, args.timeout, calibration_time=args.calibration_time))
 
 
 if __name__ == "__main__":

@@ -1,11 +1,17 @@
-"""A simulated robot that answers two services: the robot-state tutorial's server, on srvwire.
+"""A simulated robot that answers two services and an action: the robot-state tutorial's server.
 
 The robot has five joints, a status word and a calibration flag. Two services expose it:
 
 * ``/get_robot_state`` (``advanced_communication_tutorials/srv/RobotStateQuery``) reports the
   joint positions, the status, or the robot's fixed configuration;
 * ``/execute_robot_command`` (``advanced_communication_tutorials/srv/RobotCommand``) moves the
-  joints, stops the robot, or calibrates it.
+  joints, stops the robot, or calibrates it at once;
+
+and one action, for the task that takes a while:
+
+* ``/calibrate`` (``advanced_communication_tutorials/action/Calibrate``) calibrates the joints
+  one by one (5 s in all unless the goal asks otherwise), sends its progress as feedback, and
+  stops early when the client cancels it.
 
 Like the ROS original, it also subscribes to ``/joint_states`` (``sensor_msgs/msg/JointState``):
 whatever a client publishes there (``joint_state_publisher.py``) becomes the joint positions it
@@ -16,24 +22,28 @@ Run it, then call it with ``robot_command_client.py`` or by hand with ``wscat``:
     python examples/robot_state_server.py              # ws://127.0.0.1:8765
     python examples/robot_state_server.py --port 0     # any free port; the URL is logged
 
-Once it listens it logs ``serving 2 services on ws://HOST:PORT`` (with the port it got), then
-logs every request and response, and stops cleanly on Ctrl-C or SIGTERM.
+Once it listens it logs ``serving 2 services and 1 action on ws://HOST:PORT`` (with the port it
+got), then logs every request and response, and stops cleanly on Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import logging
 from dataclasses import dataclass, field
 from typing import Any
 
 # --8<-- [start:load]
-from srvwire.loader import load_message, load_service
+from srvwire.actions import GoalHandle
+from srvwire.loader import load_action, load_message, load_service
 from srvwire.server import Server
 
 # Service types come from .srv files, exactly as in ROS 2: the name is package/srv/Type.
 RobotStateQuery = load_service("advanced_communication_tutorials/srv/RobotStateQuery")
 RobotCommand = load_service("advanced_communication_tutorials/srv/RobotCommand")
+# An action type comes from an .action file: package/action/Type.
+Calibrate = load_action("advanced_communication_tutorials/action/Calibrate")
 # Topics carry messages (.msg files): the joint states clients publish.
 JointState = load_message("sensor_msgs/msg/JointState")
 # --8<-- [end:load]
@@ -43,6 +53,7 @@ logger = logging.getLogger("robot_state_server")
 JOINT_COUNT = 5
 MAX_SPEED = 5.0  # reported by the "configuration" query
 MAX_TORQUE = 10.0
+CALIBRATION_TIME = 5.0  # seconds, as in the original tutorial, unless a goal asks otherwise
 
 
 # --8<-- [start:state]
@@ -145,6 +156,44 @@ class RobotStateNode:
 
     # --8<-- [end:command]
 
+    # --8<-- [start:calibrate]
+    async def calibrate(self, goal: Any, handle: GoalHandle) -> Any:
+        """Run the ``/calibrate`` action: one joint after the other, with progress feedback.
+
+        Each joint takes an equal share of ``goal.duration`` (``CALIBRATION_TIME`` when 0).
+        A cancellation stops it between joints; the result says how far it got, and reports
+        the time of the joints done (the simulated robot's, as the services report theirs).
+        """
+        duration = goal.duration if goal.duration > 0 else CALIBRATION_TIME
+        joints = len(self.state.joint_positions)
+        logger.info("calibrating %d joints over %g s", joints, duration)
+        self.state.status = "CALIBRATING"
+        self.state.calibrated = False
+        done = 0
+        for joint in range(joints):
+            await handle.feedback({"current_joint": f"joint_{joint}", "progress": joint / joints})
+            try:  # the joint's share of the time, unless the client cancels first
+                await asyncio.wait_for(handle.cancelled(), duration / joints)
+            except TimeoutError:
+                done += 1
+                continue
+            break  # cancelled
+        if done == joints:
+            self.state.status, self.state.calibrated = "CALIBRATED", True
+            message = "Robot calibrated"
+        else:
+            self.state.status = "STOPPED"
+            message = f"Calibration canceled after {done} of {joints} joints"
+        logger.info("calibrate -> %s", message)
+        return {
+            "success": done == joints,
+            "message": message,
+            "execution_time": duration * done / joints,
+            "joints_done": done,
+        }
+
+    # --8<-- [end:calibrate]
+
     # --8<-- [start:joint_states]
     def on_joint_states(self, msg: Any) -> None:
         """Keep the joint positions a publisher reports on ``/joint_states``, as the ROS
@@ -165,11 +214,12 @@ class RobotStateNode:
 
 # --8<-- [start:server]
 def build_server(node: RobotStateNode | None = None) -> Server:
-    """Create a srvwire server offering the robot's two services."""
+    """Create a srvwire server offering the robot's two services and its action."""
     node = node if node is not None else RobotStateNode()
     server = Server()
     server.add_service("/get_robot_state", RobotStateQuery, node.get_robot_state)
     server.add_service("/execute_robot_command", RobotCommand, node.execute_robot_command)
+    server.add_action("/calibrate", Calibrate, node.calibrate)
     # Clients publish joint states; a late subscriber (srvwire topic echo) gets the latest one.
     joint_states_qos = {"depth": 1, "durability": "transient_local"}
     server.subscription("/joint_states", JointState, qos=joint_states_qos)(node.on_joint_states)
@@ -202,8 +252,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     server = build_server()
-    # run() logs "serving 2 services on ws://HOST:PORT" once it listens, then blocks until
-    # Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.
+    # run() logs "serving 2 services and 1 action on ws://HOST:PORT" once it listens, then
+    # blocks until Ctrl-C or SIGTERM and shuts down gracefully: calls in flight may finish.
     server.run(args.host, args.port)
     return 0
 

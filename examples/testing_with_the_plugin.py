@@ -45,6 +45,19 @@ async def test_a_misspelt_service_name(srvwire_client: srvwire.Client) -> None:
 # --8<-- [end:client]
 
 
+# --8<-- [start:action]
+async def test_a_short_calibration(srvwire_client: srvwire.Client) -> None:
+    goal = await srvwire_client.send_goal("/calibrate", {"duration": 0.05})
+    progress = [feedback.progress async for feedback in goal.feedback()]
+    outcome = await goal.result()
+
+    assert progress == sorted(progress)  # the latest each time it is read: maybe not all five
+    assert (outcome.status, outcome.result.joints_done) == ("succeeded", 5)
+
+
+# --8<-- [end:action]
+
+
 # --8<-- [start:sync]
 def test_with_the_blocking_client(srvwire_sync_client: srvwire.sync.Client) -> None:
     stop = srvwire_sync_client.proxy("/execute_robot_command")
@@ -94,12 +107,12 @@ async def test_a_handler_that_raises(
     srvwire_client: srvwire.Client,
     srvwire_handler_errors: list[logging.LogRecord],
 ) -> None:
-    async def calibrate(request: Any, response: Any) -> Any:
+    async def home(request: Any, response: Any) -> Any:
         raise RuntimeError("the arm is stuck")
 
-    srvwire_server.add_service("/calibrate", Trigger, calibrate)  # the server being served
+    srvwire_server.add_service("/home", Trigger, home)  # the server being served
     with pytest.raises(srvwire.InternalError):
-        await srvwire_client.call("/calibrate")
+        await srvwire_client.call("/home")
 
     [record] = srvwire_handler_errors  # what the server logged, with the traceback
     assert record.exc_info is not None and str(record.exc_info[1]) == "the arm is stuck"

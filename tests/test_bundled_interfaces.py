@@ -46,7 +46,10 @@ _PLAIN = sorted(
 
 EXPECTED: dict[str, dict[str, list[str]]] = {
     "action_msgs": {"msg": ["GoalInfo", "GoalStatus", "GoalStatusArray"], "srv": ["CancelGoal"]},
-    "advanced_communication_tutorials": {"srv": ["RobotCommand", "RobotStateQuery"]},
+    "advanced_communication_tutorials": {
+        "action": ["Calibrate"],
+        "srv": ["RobotCommand", "RobotStateQuery"],
+    },
     "builtin_interfaces": {"msg": ["Duration", "Time"]},
     "diagnostic_msgs": {
         "msg": ["DiagnosticArray", "DiagnosticStatus", "KeyValue"],
@@ -200,7 +203,7 @@ def test_each_package_holds_exactly_its_ros_types(package: str) -> None:
 
 def test_the_files_on_disk_are_the_expected_ones() -> None:
     assert ON_DISK == EXPECTED_NAMES
-    assert len(ON_DISK) == 153  # 151 from ROS 2, and the two services of the tutorial
+    assert len(ON_DISK) == 154  # 151 from ROS 2, and the two services and action of the tutorial
 
 
 # --- every file loads and round-trips --------------------------------------------------------

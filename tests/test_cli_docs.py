@@ -242,7 +242,9 @@ def test_sample(
     sample: Sample,
 ) -> None:
     words = sample.command.split()
-    robot = words[1] in ("service", "topic") or (words[1] == "call" and words[2] in ROBOT_SERVICES)
+    robot = words[1] in ("service", "topic", "action") or (
+        words[1] == "call" and words[2] in ROBOT_SERVICES
+    )
     monkeypatch.setenv("SRVWIRE_URL", servers.robot if robot else servers.other)
     command, output = sample.command, sample.output
     if "ws://localhost:9999" in command:  # a server that is not there: a port nobody uses

@@ -136,7 +136,7 @@ def test_handling_errors_logs_the_lost_connection() -> None:
 
 
 @pytest.mark.parametrize(
-    ("example", "tests"), [("testing_services.py", 7), ("testing_with_the_plugin.py", 9)]
+    ("example", "tests"), [("testing_services.py", 7), ("testing_with_the_plugin.py", 10)]
 )
 def test_the_testing_page_passes_under_pytest(example: str, tests: int) -> None:
     # An examples/ file is not collected by the suite (testpaths is tests/): run it on its own.

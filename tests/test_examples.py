@@ -26,10 +26,12 @@ import pytest
 
 from srvwire import connect
 from srvwire.errors import ServiceUnavailable
+from srvwire.server import serve
+from srvwire.transports.memory import MemoryTransport
 from support import ROOT, scaled
 
 EXAMPLES = ROOT / "examples"
-URL_LINE = re.compile(r"serving \d+ services? on (ws://\S+)")
+URL_LINE = re.compile(r"serving \d+ services?(?: and \d+ actions?)? on (ws://\S+)")
 
 
 def load_example(name: str) -> ModuleType:
@@ -143,6 +145,7 @@ async def test_the_demo_sequence(robot_server: RunningServer) -> None:
         robot_server.url,
         scaled(5),
         on_response=lambda step, response: seen.append((step, response)),
+        calibration_time=0,  # the services only: the action has tests of its own below
     )
     assert status == 0
     asked = [step.describe() for step, _ in seen]
@@ -236,7 +239,8 @@ def test_the_client_logs_each_answer(
     robot_server: RunningServer, caplog: pytest.LogCaptureFixture
 ) -> None:
     caplog.set_level("INFO", logger="robot_command_client")
-    assert client_example.main(["--url", robot_server.url, "--timeout", str(scaled(5))]) == 0
+    argv = ["--url", robot_server.url, "--timeout", str(scaled(5)), "--calibration-time", "0.5"]
+    assert client_example.main(argv) == 0
     lines = [record.getMessage() for record in caplog.records]
     assert lines[0] == "query position".ljust(40) + (
         " -> ok: Current joint positions "
@@ -245,10 +249,16 @@ def test_the_client_logs_each_answer(
     assert lines[3] == "command move [1.0, 0.5, -0.5, 0.0, 0.3]".ljust(40) + (
         " -> ok: Moving to the requested joint positions (took 1.0 s)"
     )
-    assert lines[-1] == "query status".ljust(40) + (
+    assert lines[7] == "query status".ljust(40) + (
         " -> ok: Robot status: CALIBRATED [is_calibrated=1.0]"
     )
-    assert len(lines) == 8
+    # Then the action: accepted, its progress (the latest each time it is read), its result.
+    assert lines[8] == "action calibrate (0.5 s)".ljust(40) + " -> accepted"
+    progress = lines[9:-1]
+    assert progress and all(line.startswith("  calibrating joint_") for line in progress)
+    assert lines[-1] == "action calibrate".ljust(40) + (
+        " -> succeeded: Robot calibrated (5 joints done)"
+    )
 
 
 PORT = re.compile(r"(ws://127\.0\.0\.1:)\d+")
@@ -286,6 +296,7 @@ def test_the_url_is_read_from_the_server_log_whatever_the_count(
     for line in (
         "INFO srvwire.server: serving 1 service on ws://127.0.0.1:1234",
         "INFO srvwire.server: serving 2 services on ws://127.0.0.1:1234",
+        "INFO srvwire.server: serving 2 services and 1 action on ws://127.0.0.1:1234",
     ):
         for pattern in (demo.URL_LINE, URL_LINE):
             match = pattern.search(line)
@@ -403,6 +414,38 @@ async def command(node: Any, kind: str, parameters: list[float] | None = None) -
 @pytest.fixture
 def node() -> Any:
     return server_example.RobotStateNode()
+
+
+async def test_the_calibrate_action_reports_progress_and_succeeds(node: Any) -> None:
+    transport = MemoryTransport()
+    async with (
+        serve(server_example.build_server(node), "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        seen: list[Any] = []
+        result = await client_example.calibrate(client, scaled(0.1), on_feedback=seen.append)
+    assert (result.success, result.message, result.joints_done) == (True, "Robot calibrated", 5)
+    assert seen and all(type(fb) is server_example.Calibrate.Feedback for fb in seen)
+    assert seen[0].current_joint == "joint_0" and seen[0].progress == 0.0
+    assert [fb.progress for fb in seen] == sorted(fb.progress for fb in seen)
+    assert (node.state.status, node.state.calibrated) == ("CALIBRATED", True)
+
+
+async def test_the_calibrate_action_stops_when_cancelled(node: Any) -> None:
+    transport = MemoryTransport()
+    async with (
+        serve(server_example.build_server(node), "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        handle = await client.send_goal("/calibrate", {"duration": 60})  # a long one
+        first = await anext(handle.feedback())
+        assert first.current_joint == "joint_0"
+        await handle.cancel()
+        outcome = await handle.result()
+    assert outcome.status == "canceled"
+    assert outcome.result.joints_done == 0
+    assert outcome.result.message == "Calibration canceled after 0 of 5 joints"
+    assert (node.state.status, node.state.calibrated) == ("STOPPED", False)
 
 
 async def test_query_position(node: Any) -> None:

@@ -58,7 +58,7 @@ def test_the_notebook_calls_the_robot_with_await_and_with_the_blocking_client() 
     shown = [text_of(cell) for cell in code]
     # With logging not configured, run() says where it listens and who can reach it, on stderr.
     assert re.fullmatch(
-        r"\S+ \S+ INFO srvwire\.server: serving 2 services on ws://127\.0\.0\.1:\d+\n"
+        r"\S+ \S+ INFO srvwire\.server: serving 2 services and 1 action on ws://127\.0\.0\.1:\d+\n"
         r"\S+ \S+ INFO srvwire\.server: only programs on this machine can connect \(loopback\); "
         r"no authentication; unencrypted\n",
         shown[0],

@@ -27,6 +27,7 @@ from srvwire.session import (
     CancelCall,
     ClientSession,
     Dropped,
+    Notice,
     NotificationCall,
     ServerSession,
     ServicesChanged,
@@ -357,7 +358,9 @@ def test_services_are_announced_by_canonical_name() -> None:
     message["params"] = {"services": [{"name": "a", "type": "p/srv/A"}]}
     (changed,) = client.receive(json.dumps(message))
     assert changed == ServicesChanged({"/a": "p/srv/A"})
-    assert client.receive(json.dumps({"jsonrpc": "2.0", "method": "$/later"})) == []
+    # Other notifications are handed on, parsed, to whoever follows their method.
+    later = {"jsonrpc": "2.0", "method": "$/goal", "params": {"call": 1}}
+    assert client.receive(json.dumps(later)) == [Notice("$/goal", {"call": 1})]
 
 
 @pytest.mark.parametrize(

@@ -425,3 +425,41 @@ async def test_connect_is_still_awaited_as_before(running: RunningServer) -> Non
         async with client:
             assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
     assert asyncio.iscoroutine(srvwire.connect(running.url))
+
+
+# --- goals ------------------------------------------------------------------------------------
+
+
+def test_a_goal_with_feedback_result_and_cancel() -> None:
+    fibonacci = srvwire.load_action("example_interfaces/action/Fibonacci")
+    server = Server(grace_period=0)
+
+    @server.action("/fibonacci", fibonacci)
+    async def run(goal: Any, handle: srvwire.GoalHandle) -> Any:
+        sequence = [0, 1]
+        for _ in range(goal.order - 1):
+            sequence.append(sequence[-1] + sequence[-2])
+            await handle.feedback({"sequence": sequence})  # returns once it went out
+        if goal.order > 10:  # a long one: until cancelled
+            await handle.cancelled()
+        return {"sequence": sequence}
+
+    with (
+        served_in_a_thread(server) as running,
+        srvwire.sync.connect(running.url, timeout=scaled(5)) as client,
+    ):
+        goal = client.send_goal("/fibonacci", {"order": 4})
+        assert len(goal.goal_id or "") == 36
+        seen = [fb.sequence for fb in goal.feedback()]
+        assert seen[-1] == [0, 1, 1, 2, 3]  # the last one went out before the result
+        assert goal.result() == srvwire.GoalResult(
+            "succeeded", fibonacci.Result(sequence=[0, 1, 1, 2, 3])
+        )
+        assert goal.status == "succeeded"
+
+        long = client.send_goal("/fibonacci", {"order": 11})
+        first = next(long.feedback())  # the latest when it is read
+        assert first.sequence[:3] == [0, 1, 1]
+        assert long.cancel() is True
+        outcome = long.result()
+        assert outcome.status == "canceled" and len(outcome.result.sequence) == 12

@@ -1,6 +1,7 @@
 """srvwire: ROS 2 style services in plain Python, over JSON-RPC 2.0 on WebSockets."""
 
 from srvwire import sync  # the blocking client: srvwire.sync.connect(url)
+from srvwire.actions import ClientGoal, GoalHandle, GoalResult
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, ServiceInfo, ServiceProxy, Subscription, TopicInfo, connect
 from srvwire.dispatch import Context
@@ -9,6 +10,7 @@ from srvwire.errors import (
     ConnectionLost,
     DeadlineExceeded,
     ErrorCode,
+    GoalRejected,
     InterfaceConflictError,
     InterfaceError,
     InterfaceNotFoundError,
@@ -48,10 +50,14 @@ __all__ = [
     "Action",
     "Cancelled",
     "Client",
+    "ClientGoal",
     "ConnectionLost",
     "Context",
     "DeadlineExceeded",
     "ErrorCode",
+    "GoalHandle",
+    "GoalRejected",
+    "GoalResult",
     "HandlerThreads",
     "Handshake",
     "Identity",

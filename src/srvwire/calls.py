@@ -26,10 +26,12 @@ from srvwire.errors import (
 from srvwire.idl import MessageSpec, TypeSpec
 from srvwire.models import (
     INF_NAN_MODES,
+    Action,
     InfNan,
     Message,
     ModelDecoder,
     Service,
+    build_action,
     build_message,
     build_service,
     dump_json,
@@ -268,6 +270,29 @@ class ServiceTypes:
         service = self._types.intern(spec, source, lambda: build_service(spec, nested))
         codec = self._by_name[name] = self._codec(service)
         return codec
+
+    def remote_action(
+        self, method: str, name: str, definitions: Mapping[str, str] | None, source: str
+    ) -> type[Action]:
+        """Build the action ``name`` from the server's ``definitions``, as :meth:`remote`
+        builds a service type."""
+        text = None if definitions is None else definitions.get(name)
+        parts = name.split("/")
+        if text is None or len(parts) != 3 or parts[1] != "action":
+            why = "does not describe it" if definitions is not None else "does not describe types"
+            raise InterfaceNotFoundError(
+                name,
+                f"cannot type the goals of {method}: {name} is not on the local search path, "
+                f"and the {source} {why}",
+            )
+        spec = parse_action(text, parts[0], parts[2], path=source)
+        nested = _RemoteMessages(definitions or {}, source, self._resolve_message, self._types)
+        messages = [other for other in definitions or {} if _is_message_name(other)]
+        for other in messages:
+            nested.check(other)
+        for other in messages:
+            nested.load(other)
+        return self._types.intern(spec, source, lambda: build_action(spec, nested))
 
     def fingerprint(self, service: type[Service]) -> str | None:
         """The fingerprint of ``service``'s full definition, computed once per class; None

@@ -60,6 +60,7 @@ from typing import Any, Generic, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
+from srvwire.actions import ClientGoal, goal_service, reply_done
 from srvwire.calls import (
     MessageResolver,
     ServiceCodec,
@@ -83,10 +84,12 @@ from srvwire.errors import (
     ServiceNotFound,
     ServiceUnavailable,
 )
+from srvwire.inline import Pending, finish_within, first_step
 from srvwire.link import Arrived, Link, LoggerLike, foreign_loop
-from srvwire.loader import SearchPath, load_message, load_service
+from srvwire.loader import SearchPath, load_action, load_message, load_service
 from srvwire.models import (
     INF_NAN_MODES,
+    Action,
     InfNan,
     Message,
     ModelDecoder,
@@ -449,6 +452,94 @@ class Client:
                 service=method,
             ) from None
 
+    async def send_goal(
+        self,
+        name: str,
+        goal: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+        action_type: type[Action] | str | None = None,
+    ) -> ClientGoal[Any]:
+        """Send ``goal`` to the action ``name``; return its handle once the server accepted it.
+
+        ``goal`` is a ``Goal`` model or a mapping of its fields. ``timeout`` (default: the
+        client's) is the deadline of the whole goal, until its outcome. The action's type is
+        ``action_type``, or the one the server advertised, found as :meth:`call` finds a
+        service's. Then ``async for fb in handle.feedback()``, ``await handle.result()``,
+        ``await handle.cancel()``, ``handle.status``.
+
+        Raise :class:`~srvwire.errors.GoalRejected` with the server's reason when it refused
+        the goal, and the errors :meth:`call` raises.
+        """
+        method = canonical_name(name)
+        budget = self.timeout if timeout is None else check_timeout(timeout)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + budget
+        link = self._link
+        if link is None:
+            raise self._not_connected(method)
+        named = action_type if action_type is not None else self._services.get(method)
+        if named is None:
+            raise service_not_found(method, self._services)
+        action = await self._action_of(link, method, named, deadline, budget)
+        service = goal_service(action)
+        codec = ServiceCodec(service, self.options.inf_nan)
+        params = encode_request(method, codec, goal)
+        remaining = deadline - loop.time()
+        handle: ClientGoal[Any] = ClientGoal(
+            link, method, action, ModelDecoder(service.Response), deadline, budget
+        )
+        handle.id, data = link.session.request(method, params, round(remaining, 6), handle.reply)
+        if link.limit is not None and len(data) > link.limit:
+            link.session.pending.pop(handle.id, None)
+            raise link.too_large(method, len(data))
+        link.goals[handle.id] = handle
+        handle.reply.add_done_callback(reply_done(link.goals, handle.id))
+        try:
+            sending = first_step(link.conn.send(data))
+            if isinstance(sending, Pending):
+                await finish_within(sending, deadline - loop.time())
+            await handle.accepted()
+        except TimeoutError:
+            handle.give_up()
+            raise DeadlineExceeded(
+                f"no response within {budget:g} s", {"timeout": budget}, service=method
+            ) from None
+        except asyncio.CancelledError:
+            handle.give_up()
+            raise
+        except TransportClosed as exc:
+            closed = {"close_code": exc.code, "close_reason": exc.reason, "url": self.url}
+            raise ConnectionLost(str(exc), closed, service=method) from exc
+        return handle
+
+    async def _action_of(
+        self, link: Link, method: str, named: type[Action] | str, deadline: float, budget: float
+    ) -> type[Action]:
+        """The action type ``named``: the class given, the local search path, or the
+        server's description."""
+        if not isinstance(named, str):
+            return named
+        try:
+            return load_action(named, search_path=self.options.search_path)
+        except InterfaceNotFoundError:
+            pass
+        described = self._description
+        if described is None or described[0] is not link:
+            try:
+                async with asyncio.timeout_at(deadline):
+                    methods = await self._methods(link, deadline, budget)
+            except TimeoutError:
+                raise DeadlineExceeded(
+                    f"no response within {budget:g} s", {"timeout": budget}, service=method
+                ) from None
+            except (ServiceNotFound, InternalError):
+                methods = []
+            described = self._description = (link, _described(methods))
+        source = f"server {self.url}"
+        return self._types.remote_action(method, named, described[1].get(method), source)
+
     @overload
     def proxy(
         self,
@@ -518,6 +609,23 @@ class Client:
             and isinstance(entry.get("name"), str)
             and isinstance(entry.get("x-srvwire-type"), str)
             and entry.get("x-srvwire-kind", "service") == "service"
+        ]
+        return sorted(found, key=lambda info: info.name)
+
+    async def list_actions(
+        self,
+        *,
+        timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> list[ServiceInfo]:
+        """Ask the server for every action it offers (``rpc.discover``), sorted by name."""
+        methods = await self._discover(timeout)
+        found = [
+            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
+            for entry in methods
+            if isinstance(entry, dict)
+            and isinstance(entry.get("name"), str)
+            and isinstance(entry.get("x-srvwire-type"), str)
+            and entry.get("x-srvwire-kind") == "action"
         ]
         return sorted(found, key=lambda info: info.name)
 
@@ -947,7 +1055,7 @@ def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
         if isinstance(entry, dict)
         and isinstance(entry.get("name"), str)
         and "x-srvwire-definitions" in entry
-        and entry.get("x-srvwire-kind", "service") == "service"
+        and entry.get("x-srvwire-kind", "service") in ("service", "action")
     }
 
 

@@ -152,7 +152,9 @@ class Context:
         "_cancel_error",
         "_cancelled",
         "_wakeup",
+        "channel",
         "deadline",
+        "goal",
         "identity",
         "peer",
         "request_id",
@@ -167,6 +169,7 @@ class Context:
         peer: Any = None,
         deadline: float | None = None,
         identity: Any = None,
+        channel: Any = None,
     ) -> None:
         self.service = service
         """The canonical name of the service called, such as ``/add_two_ints``."""
@@ -179,6 +182,10 @@ class Context:
         self.identity = identity
         """Who the connection authenticated as (a :class:`~srvwire.auth.Identity`); None when
         the server has no authentication."""
+        self.channel = channel
+        """The connection the call came on, as an action's goal needs it (server use)."""
+        self.goal: Any = None
+        """The :class:`~srvwire.actions.GoalHandle` of an action's goal, once accepted."""
         self._cancelled = False
         self._cancel_error: RPCError | None = None
         self._wakeup: threading.Event | None = None  # made by the first wait()
@@ -398,6 +405,10 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
         "x-srvwire-definitions": definitions(entry.srv_type),
         "x-srvwire-request-schema": request_schema,
     }
+    feedback = getattr(entry.srv_type, "Feedback", None)
+    if isinstance(feedback, type) and issubclass(feedback, BaseModel):  # an action's goal
+        method["x-srvwire-kind"] = "action"
+        method["x-srvwire-feedback-schema"] = _standalone_schema(feedback)
     doc = request_schema.get("description")
     if doc:
         method["description"] = doc
@@ -405,7 +416,11 @@ def _describe(entry: ServiceEntry) -> dict[str, Any]:
 
 
 def nested_messages(srv_type: type[Service]) -> list[type[Message]]:
-    """Every message class ``srv_type``'s request and response nest, at any depth, by name."""
+    """Every message class ``srv_type``'s request and response nest (and an action's
+    feedback), at any depth, by name."""
+    feedback = getattr(srv_type, "Feedback", None)  # an action's
+    if feedback is not None:
+        return nested_messages_of(srv_type.Request, srv_type.Response, feedback)
     return nested_messages_of(srv_type.Request, srv_type.Response)
 
 
@@ -443,6 +458,8 @@ def definitions(srv_type: type[Service]) -> dict[str, str]:
     if isinstance(text, str) and text:
         texts[str(srv_type.type_name)] = text
     for nested in nested_messages(srv_type):
+        if "/msg/" not in nested.type_name:  # an action's result, described with the action
+            continue
         nested_text: object = getattr(getattr(nested, "spec", None), "text", None)
         if isinstance(nested_text, str) and nested_text:
             texts[nested.type_name] = nested_text
@@ -539,6 +556,11 @@ class ServiceRegistry:
             and isinstance(response_model, type)
             and issubclass(response_model, BaseModel)
         ):
+            if hasattr(srv_type, "Goal"):
+                raise RegistrationError(
+                    f"{canonical}: {srv_type!r} is an action type; serve it with "
+                    "server.action(name, Action) (or add_action), not as a service"
+                )
             raise RegistrationError(
                 f"the type of {canonical} must be a service type with Request and Response "
                 f"models (such as load_service('example_interfaces/srv/AddTwoInts')), "

@@ -21,6 +21,7 @@ The tree::
         ├── ResourceExhausted           -32004
         ├── Unauthenticated             -32005
         ├── PermissionDenied            -32006
+        ├── GoalRejected                -32007
         └── ServiceError                any code outside -32768..-32000
 
 An :class:`RPCError` is what travels on the wire: it has a ``code``, a ``message``, optional
@@ -39,6 +40,7 @@ __all__ = [
     "ConnectionLost",
     "DeadlineExceeded",
     "ErrorCode",
+    "GoalRejected",
     "InterfaceConflictError",
     "InterfaceError",
     "InterfaceNotFoundError",
@@ -76,6 +78,7 @@ class ErrorCode(IntEnum):
     RESOURCE_EXHAUSTED = -32004
     UNAUTHENTICATED = -32005
     PERMISSION_DENIED = -32006
+    GOAL_REJECTED = -32007
 
 
 RESERVED_MIN = -32768
@@ -294,6 +297,17 @@ class PermissionDenied(RPCError):
     status = "PERMISSION_DENIED"
 
 
+class GoalRejected(RPCError):
+    """Raised when an action's server refused a goal; the message says why.
+
+    An action's handler (or its ``accept`` function) raises it to refuse the goal it was
+    given, before or after it started; the client's ``send_goal`` raises it back.
+    """
+
+    code = ErrorCode.GOAL_REJECTED
+    status = "GOAL_REJECTED"
+
+
 class ServiceError(RPCError):
     """Raised by a handler to send an application error with its own code and data."""
 
@@ -338,6 +352,7 @@ _BY_CODE: dict[int, type[RPCError]] = {
         ResourceExhausted,
         Unauthenticated,
         PermissionDenied,
+        GoalRejected,
     )
 }
 

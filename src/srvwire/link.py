@@ -19,6 +19,9 @@ Invariants:
 * **A request larger than** ``max_message_size`` **is never sent**: the call raises
   :class:`~srvwire.errors.ResourceExhausted` naming the setting, and the connection carries
   on. The client's limit stands for the server's, which it cannot know.
+* **A goal's news reaches its goal**: the ``$/goal`` and ``$/feedback`` notifications for a
+  call in :attr:`Link.goals` are handed to it, in the order they came; news for a call no
+  longer there (its outcome arrived) is dropped.
 """
 
 from __future__ import annotations
@@ -38,10 +41,18 @@ from srvwire.errors import (
     RPCError,
     ServiceUnavailable,
 )
+from srvwire.goals import FEEDBACK_METHOD, GOAL_METHOD, GoalNews, goal_news
 from srvwire.inline import Pending, finish_within, first_step
-from srvwire.protocol import ErrorResponse, ProtocolViolation, RawReply, Response
+from srvwire.protocol import (
+    ErrorResponse,
+    ProtocolViolation,
+    RawReply,
+    Response,
+    cancel_notification,
+)
 from srvwire.session import (
     ClientSession,
+    Notice,
     ServicesChanged,
     Stray,
     Subscribed,
@@ -115,6 +126,12 @@ class Owner(Protocol):
     def spawn(self, coro: Coroutine[Any, Any, None]) -> None: ...
 
 
+class Follower(Protocol):
+    """What follows a goal's news (the client's goal handle is one)."""
+
+    def news(self, news: GoalNews) -> None: ...
+
+
 class Stream(Protocol):
     """What a link needs of a subscription: where its ``$/subscribed`` and messages go."""
 
@@ -129,6 +146,7 @@ class Link:
     __slots__ = (
         "conn",
         "fingerprints",
+        "goals",
         "limit",
         "loop",
         "owner",
@@ -145,6 +163,7 @@ class Link:
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
+        self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
         # What the latest $/services says of each service's definition, and the services
         # whose local type the client has compared with it since.
         self.fingerprints: dict[str, str] = {}
@@ -237,6 +256,8 @@ class Link:
                             stream.started(event)
                     elif kind is TopicsChanged:
                         owner.topics_changed(self, event.topics)
+                    elif kind is Notice:
+                        self.notice(event)
                     else:
                         assert type(event) is Stray
                         self.stray(event.reply)
@@ -256,6 +277,30 @@ class Link:
             self.fail("the client failed to process a message from the server")
         finally:
             self.lost(None, cause)  # nothing to do when this side failed the connection
+
+    def notice(self, notice: Notice) -> None:
+        """Hand a goal's ``$/goal`` or ``$/feedback`` to its goal; drop anything else."""
+        if notice.method not in (GOAL_METHOD, FEEDBACK_METHOD):
+            return
+        news = goal_news(notice.method, notice.params)
+        if news is None:
+            self.owner.logger.debug("dropping a malformed %s", notice.method)
+            return
+        goal = self.goals.get(news.call)
+        if goal is not None:
+            goal.news(news)
+
+    def cancel_goal(self, id: int) -> bytes | None:
+        """The ``$/cancel`` for the goal ``id``, which keeps waiting for its outcome; None
+        when its outcome arrived already."""
+        if id not in self.session.pending:
+            return None
+        return cancel_notification(id).serialize()
+
+    def forget_goal(self, id: int) -> None:
+        """Wait no more for the goal ``id``'s outcome or news; the server is not told."""
+        self.session.pending.pop(id, None)
+        self.goals.pop(id, None)
 
     def stray(self, reply: Response | ErrorResponse) -> None:
         if reply.id is None and isinstance(reply, ErrorResponse):

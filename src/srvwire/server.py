@@ -39,11 +39,12 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel
 
+from srvwire.actions import DEFAULT_CANCEL_GRACE, Accept, GoalRunner, goal_service
 from srvwire.auth import Authenticator
 from srvwire.dispatch import Handler, ServiceRegistry, normalize_name
 from srvwire.errors import RegistrationError, ServiceUnavailable
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
-from srvwire.models import INF_NAN_MODES, InfNan, Service
+from srvwire.models import INF_NAN_MODES, Action, InfNan, Service
 from srvwire.pubsub import Publisher, TopicEntry, check_handler, qos_of
 from srvwire.serving import ServedConnection
 from srvwire.threads import HandlerThreads
@@ -287,6 +288,73 @@ class Server:
 
         return register
 
+    def add_action(
+        self,
+        name: str,
+        action_type: type[Action],
+        handler: Handler,
+        *,
+        scopes: Iterable[str] = (),
+        accept: Accept | None = None,
+        cancel_grace: float = DEFAULT_CANCEL_GRACE,
+    ) -> None:
+        """Serve the action ``action_type`` under ``name`` with ``handler(goal, handle)``.
+
+        The handler (``async def``, or plain ``def`` run on a thread like a service's) gets
+        the goal and a :class:`~srvwire.actions.GoalHandle`, sends feedback through it,
+        watches ``handle.cancel_requested``, and returns the result (a ``Result``, a dict of
+        its fields, or None for the default). ``accept(goal)`` may refuse a goal before it
+        starts: return False or raise :class:`~srvwire.errors.GoalRejected` with the reason.
+        After the client asks to cancel, the handler has ``cancel_grace`` seconds to return
+        before it is cancelled. ``scopes`` as for :meth:`add_service`, and listed with the
+        services (``$/services``, ``rpc.discover``).
+        """
+        canonical = normalize_name(name)
+        if not (isinstance(action_type, type) and hasattr(action_type, "Goal")):
+            raise RegistrationError(
+                f"the type of the action {canonical} must be an action type (such as "
+                f"load_action('example_interfaces/action/Fibonacci')), not {action_type!r}"
+            )
+        if not callable(handler):
+            raise RegistrationError(
+                f"the handler for {canonical} must be callable, not {type(handler).__name__}"
+            )
+        if accept is not None and not callable(accept):
+            raise RegistrationError(f"the accept function of {canonical} must be callable")
+        if not cancel_grace >= 0:
+            raise RegistrationError(
+                f"the cancel_grace of {canonical} must be a number of seconds, not {cancel_grace!r}"
+            )
+        runner = GoalRunner(
+            canonical, action_type, handler, accept=accept, cancel_grace=cancel_grace
+        )
+        self.add_service(canonical, goal_service(action_type), runner, scopes=scopes)
+
+    def action(
+        self,
+        name: str,
+        action_type: type[Action],
+        *,
+        scopes: Iterable[str] = (),
+        accept: Accept | None = None,
+        cancel_grace: float = DEFAULT_CANCEL_GRACE,
+    ) -> Callable[[H], H]:
+        """Decorate ``handler(goal, handle)`` to serve it as an action under ``name`` (see
+        :meth:`add_action`); the handler is returned unchanged."""
+
+        def register(handler: H) -> H:
+            self.add_action(
+                name,
+                action_type,
+                handler,
+                scopes=scopes,
+                accept=accept,
+                cancel_grace=cancel_grace,
+            )
+            return handler
+
+        return register
+
     # --- topics -----------------------------------------------------------------------------
 
     def topic(
@@ -332,6 +400,15 @@ class Server:
             return handler
 
         return register
+
+    def summary(self) -> str:
+        """What the server offers, for its startup line: ``2 services and 1 action``."""
+        actions = sum(1 for entry in self.registry if isinstance(entry.handler, GoalRunner))
+        services = len(self.registry) - actions
+        said = f"{services} {'service' if services == 1 else 'services'}"
+        if actions:
+            said += f" and {actions} {'action' if actions == 1 else 'actions'}"
+        return said
 
     def remove_topic(self, name: str) -> None:
         """Remove the topic ``name``: its subscriptions end with an error that says so, and
@@ -488,12 +565,9 @@ class Server:
                 replaced.append((signum, previous))
         try:
             async with serve(self, host, port, transport=transport, ssl=ssl) as running:
-                count = len(self.registry)
-                services = "service" if count == 1 else "services"
                 self.logger.info(
-                    "serving %d %s on %s",
-                    count,
-                    services,
+                    "serving %s on %s",
+                    self.summary(),
                     ", ".join(running.urls),
                     extra=_LIFECYCLE,
                 )

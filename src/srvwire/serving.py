@@ -49,7 +49,8 @@ from contextvars import copy_context
 from typing import Any, TypeAlias
 
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
-from srvwire.errors import DeadlineExceeded, InternalError, RPCError, ServiceError
+from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError, ServiceError
+from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
 from srvwire.protocol import Request
 from srvwire.session import Call, CancelCall, Dropped, NotificationCall, Publish, ServerSession
@@ -75,6 +76,7 @@ class CallRunner:
     """
 
     __slots__ = (
+        "channel",
         "conn",
         "counted",
         "executor",
@@ -98,9 +100,11 @@ class CallRunner:
         logger: logging.Logger,
         notification_timeout: float | None = None,
         identity: Any = None,
+        channel: Any = None,
     ) -> None:
         self.session = session
         self.send = send
+        self.channel = channel  # what an action's goal sends its states and feedback through
         self.conn = conn
         self.peer = peer
         self.identity = identity
@@ -145,6 +149,7 @@ class CallRunner:
             peer=self.peer,
             deadline=None if timeout is None else time.monotonic() + timeout,
             identity=self.identity,
+            channel=self.channel,
         )
 
     def arm(self, work: Work) -> asyncio.TimerHandle | None:
@@ -178,6 +183,26 @@ class CallRunner:
         if task is not None and not work.task_cancelled and (work.started or error is None):
             work.task_cancelled = True
             task.cancel()
+
+    def request_cancel(self, work: Work, error: RPCError | None) -> bytes | None:
+        """``$/cancel`` (or shutdown, or the connection's end) reached a call.
+
+        An action's goal that the client cancelled is asked to stop first: its handler sees
+        ``cancel_requested``, and is cancelled only if it has not returned after its grace
+        period. Return the ``$/goal canceling`` to send then. Anything else is cancelled now.
+        """
+        context: Context | None = work.context
+        goal = None if context is None else context.goal
+        if goal is None or type(error) is not Cancelled:
+            self.cancel(work, error)
+            return None
+        canceling: bytes | None = goal.request_cancel(lambda: self.stop_goal(work, error))
+        return canceling
+
+    def stop_goal(self, work: Work, error: RPCError) -> None:
+        """A goal's grace period after its cancellation passed: cancel its handler."""
+        if type(work) is Call and self.session.answering(work):
+            self.cancel(work, error)
 
     @staticmethod
     async def take_back_cancellation() -> None:
@@ -310,16 +335,40 @@ class Writer:
 
     It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
     low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
+
+    Goals' feedback (:attr:`feedback`, keep-latest per goal) is data too: it takes turns with
+    topic data, one message each, behind every control message; :attr:`feedback_sent` is told
+    of each goal whose feedback went out.
     """
 
-    __slots__ = ("conn", "loop", "outbox", "task", "waiter")
+    __slots__ = ("conn", "feedback", "feedback_sent", "loop", "outbox", "task", "turn", "waiter")
 
     def __init__(self, conn: Connection, loop: asyncio.AbstractEventLoop) -> None:
         self.conn = conn
         self.loop = loop
         self.outbox = Outbox(self.wake)
+        self.feedback = FeedbackOutbox()
+        self.feedback_sent: Callable[[Any], object] = lambda call: None
+        self.turn = False  # whether feedback goes before topic data next time both wait
         self.task: asyncio.Task[None] | None = None
         self.waiter: asyncio.Future[None] | None = None
+
+    def next(self) -> tuple[bytes, Any] | None:
+        """The next message and the goal it is feedback of (None for anything else): a
+        control message first, then topic data and feedback in turn; None when nothing waits.
+        """
+        outbox = self.outbox
+        feedback = self.feedback
+        if feedback and not outbox.control and (self.turn or not outbox.ready):
+            self.turn = False
+            call, data = feedback.take()  # type: ignore[misc]  # not empty
+            return data, call
+        self.turn = True
+        data = outbox.next()  # None resets its woken flag: the writer may wait then
+        if data is not None:
+            return data, None
+        taken = feedback.take()
+        return None if taken is None else (taken[1], taken[0])
 
     def wake(self) -> None:
         """The outbox has something to send: start the task, or wake it."""
@@ -340,16 +389,19 @@ class Writer:
                     await conn.writable()
                     await asyncio.sleep(0)
                     continue
-                data = outbox.next()
-                if data is None:
+                taken = self.next()
+                if taken is None:
                     self.waiter = self.loop.create_future()
                     await self.waiter
                     self.waiter = None
                     continue
+                data, goal = taken
                 sending = first_step(send(data))
                 if isinstance(sending, Pending):  # it waited for a drain: so may replies
                     await finish(sending)
                     await asyncio.sleep(0)  # those woken by the same drain go first
+                if goal is not None:
+                    self.feedback_sent(goal)
         except TransportClosed:
             outbox.close()
 
@@ -485,6 +537,7 @@ class ServedConnection:
         "drops_logged",
         "drops_timer",
         "expiry",
+        "flushed",
         "log",
         "loop",
         "reader",
@@ -543,7 +596,11 @@ class ServedConnection:
             logger=logger,
             notification_timeout=notification_timeout,
             identity=identity,
+            channel=self,
         )
+        # Goals' feedback: keep-latest per goal, sent by the writer as topic data is.
+        self.writer.feedback_sent = self.release
+        self.flushed: dict[Any, list[asyncio.Future[None]]] = {}  # feedback_flushed's waiters
         self.drops = 0  # notifications dropped and not logged yet
         self.drops_level = logging.INFO  # the most serious level among them
         self.drops_logged = -DROP_LOG_INTERVAL  # when a line about drops was last written
@@ -579,6 +636,41 @@ class ServedConnection:
             await self.conn.send(data)
         except TransportClosed:
             pass  # the caller left; its calls are being cancelled
+
+    # --- goals' feedback (what an action's GoalHandle needs of its connection) ----------------
+
+    @property
+    def executor(self) -> Executor | None:
+        """Where a plain ``def`` action handler runs."""
+        return self.runner.executor
+
+    def feedback(self, call: Any, message: bytes) -> None:
+        """Keep ``message`` as the goal ``call``'s latest feedback, and have it sent."""
+        waiting = self.writer.feedback
+        if call in waiting:
+            self.release(call)  # its waiting message is superseded
+        waiting.put(call, message)
+        self.writer.wake()
+
+    async def feedback_flushed(self, call: Any) -> None:
+        """Wait until the goal ``call`` has no feedback waiting: it went out, was superseded,
+        or the goal ended."""
+        if call not in self.writer.feedback:
+            return
+        waiter: asyncio.Future[None] = self.loop.create_future()
+        self.flushed.setdefault(call, []).append(waiter)
+        await waiter
+
+    def release(self, call: Any) -> None:
+        """The goal ``call``'s feedback went out, was superseded, or was dropped."""
+        for waiter in self.flushed.pop(call, ()):
+            if not waiter.done():
+                waiter.set_result(None)
+
+    def goal_done(self, call: Any) -> None:
+        """The goal ``call`` ended: the feedback it had not sent is dropped."""
+        self.writer.feedback.discard(call)
+        self.release(call)
 
     def expire(self) -> None:
         """The connection's credentials expired (see :meth:`ServerSession.expire`)."""
@@ -714,7 +806,9 @@ class ServedConnection:
                     if reader.cancelling():
                         await self.ignore_cancellation(None)
                 elif kind is CancelCall:
-                    runner.cancel(event.call, event.error)
+                    canceling = runner.request_cancel(event.call, event.error)
+                    if canceling is not None:
+                        await self.send(canceling)
                 elif kind is Publish:
                     await self.publish(event)
                 else:

@@ -97,6 +97,7 @@ __all__ = [
     "ClientSession",
     "Dropped",
     "Entry",
+    "Notice",
     "NotificationCall",
     "Outbox",
     "Publish",
@@ -614,6 +615,15 @@ class ServicesChanged:
 
 
 @dataclass(slots=True)
+class Notice:
+    """Another notification from the server (a goal's ``$/goal`` or ``$/feedback``), parsed;
+    for whoever follows that method."""
+
+    method: str
+    params: Any
+
+
+@dataclass(slots=True)
 class TopicsChanged:
     """The server's ``$/topics``: every topic it offers now, canonical name -> its entry
     (``type``, ``qos``, ``publish``)."""
@@ -704,7 +714,7 @@ class ClientSession(Generic[W]):
 
     def receive(self, data: str | bytes) -> list[Any]:
         """Read one message from the server; return ``(waiter, reply)`` pairs and news
-        (:class:`ServicesChanged`, :class:`Stray`).
+        (:class:`ServicesChanged`, :class:`Notice`, :class:`Stray`).
 
         A response a call waits for, written as a srvwire server writes it, is handed over
         unparsed (a :class:`~srvwire.protocol.RawReply`, decoded by its caller); anything else
@@ -742,7 +752,9 @@ class ClientSession(Generic[W]):
                     events.append(services.pop(0))
                 elif method in _TOPIC_NEWS:
                     events.append(_topic_news(message))
-                continue  # other notifications: for later versions
+                else:
+                    events.append(Notice(method, message.params))
+                continue
             id = message.id
             waiter = self.pending.pop(id, None) if type(id) is int else None
             events.append(Stray(message) if waiter is None else (waiter, message))

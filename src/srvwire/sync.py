@@ -29,9 +29,10 @@ Invariants:
 
 The same exception classes as the async client's are raised, with the same meaning.
 
-Topics and goals are not part of srvwire's client yet. When they are, their blocking forms
-come here in the same way: a subscription as a plain iterator whose ``next`` waits on the
-loop, and a goal as an object whose methods block.
+An action's goal is a :class:`Goal`, whose methods block: :meth:`Client.send_goal` returns
+once the server accepted it, :meth:`Goal.feedback` is a plain iterator whose ``next`` waits
+on the loop, :meth:`Goal.result` waits for the outcome. Topics are not part of srvwire's
+client yet; when they are, a subscription comes here in the same way, as a plain iterator.
 """
 
 from __future__ import annotations
@@ -41,20 +42,22 @@ import concurrent.futures
 import functools
 import threading
 import weakref
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Mapping
 from types import TracebackType
 from typing import Any, Generic, ParamSpec, TypeVar, overload
 
 from pydantic import BaseModel
 
 from srvwire import client as aio
+from srvwire.actions import ClientGoal, GoalResult
 from srvwire.calls import ServiceInfo, SrvType, check_timeout
 from srvwire.errors import ConnectionLost, DeadlineExceeded
-from srvwire.models import Message, ServiceRequest, TypedService
+from srvwire.models import Action, Message, ServiceRequest, TypedService
 
 __all__ = [
     "BACKSTOP",
     "Client",
+    "Goal",
     "LoopEnded",
     "LoopThread",
     "LoopTimeout",
@@ -393,7 +396,31 @@ class Client:
         budget = self._budget(timeout)
         return self._run(self._client.list_services(timeout=timeout), budget)
 
-    # --- topics and goals: their blocking forms come here once the async client has them ----
+    # --- goals ------------------------------------------------------------------------------
+
+    def send_goal(
+        self,
+        name: str,
+        goal: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        timeout: float | None = None,
+        action_type: type[Action] | str | None = None,
+    ) -> Goal:
+        """Send ``goal`` to the action ``name``; return its :class:`Goal` once accepted.
+
+        As :meth:`srvwire.Client.send_goal`: ``timeout`` is the deadline of the whole goal;
+        a refused goal raises :class:`~srvwire.errors.GoalRejected`.
+        """
+        budget = self._budget(timeout)
+        handle = self._run(
+            self._client.send_goal(name, goal, timeout=timeout, action_type=action_type),
+            budget,
+            name,
+        )
+        return Goal(self, handle, budget)
+
+    # --- topics: their blocking forms come here once the async client has them --------------
 
     # --- closing ----------------------------------------------------------------------------
 
@@ -426,6 +453,61 @@ class Client:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+class Goal:
+    """A goal the blocking client sent: :class:`srvwire.ClientGoal`'s methods, blocking.
+
+    Each waits on the client's loop, at most the goal's deadline (the async client enforces
+    it) plus :data:`BACKSTOP`.
+    """
+
+    def __init__(self, client: Client, handle: ClientGoal[Any], budget: float) -> None:
+        self.client = client
+        self.name = handle.method
+        self._handle = handle
+        self._budget = budget
+
+    def __repr__(self) -> str:
+        return f"<srvwire.sync.Goal {self.name} {self.status}>"
+
+    @property
+    def status(self) -> str:
+        """The goal's state, as :attr:`srvwire.ClientGoal.status`."""
+        return self._handle.status
+
+    @property
+    def goal_id(self) -> str | None:
+        """The server's id for the goal."""
+        return self._handle.goal_id
+
+    def feedback(self) -> Iterator[Any]:
+        """Yield the goal's feedback (typed, the latest each time) until it ends."""
+        feedback = self._handle.feedback()
+        while True:
+            step = self.client._run(_next(feedback), self._budget, self.name)
+            if step is _END:
+                return
+            yield step
+
+    def result(self) -> GoalResult[Any]:
+        """Wait for the outcome: the final status and the typed result."""
+        return self.client._run(self._handle.result(), self._budget, self.name)
+
+    def cancel(self) -> bool:
+        """Ask the server to cancel the goal; see :meth:`srvwire.ClientGoal.cancel`."""
+        return self.client._run(self._handle.cancel(), self._budget, self.name)
+
+
+_END = object()
+
+
+async def _next(iterator: AsyncIterator[Any]) -> Any:
+    """The next item of ``iterator`` on its loop, or ``_END``."""
+    try:
+        return await anext(iterator)
+    except StopAsyncIteration:
+        return _END
 
 
 class ServiceProxy(Generic[R]):

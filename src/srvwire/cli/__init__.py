@@ -8,7 +8,7 @@ run their own event loop with :func:`asyncio.run`, so ``main`` must be called fr
 that has no running loop.
 
 Each command group is a module with a ``register(commands)`` function that adds its parser:
-``call``, ``service``, ``topic``, ``interface``, ``gen`` and ``serve``;
+``call``, ``service``, ``topic``, ``action``, ``interface``, ``gen`` and ``serve``;
 :mod:`srvwire.cli.common` holds what they share.
 """
 
@@ -22,7 +22,7 @@ import sys
 from collections.abc import Callable
 
 from srvwire import version
-from srvwire.cli import call, gen, interface, serve, service, topic
+from srvwire.cli import action, call, gen, interface, serve, service, topic
 from srvwire.cli.common import (
     EXIT_CODES_HELP,
     CommandError,
@@ -58,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
             "  srvwire call /add_two_ints '{a: 1, b: 2}'\n"
             "  srvwire service list -t\n"
             "  srvwire topic echo /joint_states --once\n"
+            "  srvwire action send_goal /fibonacci '{order: 5}' --feedback\n"
             "  srvwire interface show geometry_msgs/msg/Pose\n"
             "  srvwire serve app.py:server\n\n"
             "Run 'srvwire COMMAND --help' for the options of one command.\n\n" + EXIT_CODES_HELP
@@ -69,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     call.register(commands)
     service.register(commands)
     topic.register(commands)
+    action.register(commands)
     interface.register(commands)
     gen.register(commands)
     serve.register(commands)

@@ -59,8 +59,16 @@ EXIT_CODES: Final[Mapping[ErrorCode, ExitCode]] = {
     ErrorCode.RESOURCE_EXHAUSTED: ExitCode.OTHER_RPC_ERROR,
     ErrorCode.UNAUTHENTICATED: ExitCode.OTHER_RPC_ERROR,
     ErrorCode.PERMISSION_DENIED: ExitCode.OTHER_RPC_ERROR,
+    ErrorCode.GOAL_REJECTED: ExitCode.SERVICE_FAILED,
 }
 """The exit code for an error from a call, by the error's JSON-RPC code."""
+
+GOAL_EXIT_CODES: Final[Mapping[str, ExitCode]] = {
+    "succeeded": ExitCode.OK,
+    "aborted": ExitCode.SERVICE_FAILED,
+    "canceled": ExitCode.OTHER_RPC_ERROR,
+}
+"""The exit code of ``srvwire action send_goal``, by the goal's final status."""
 
 
 def exit_code_for(error: RPCError) -> ExitCode:
@@ -82,7 +90,7 @@ exit codes:
   4    deadline exceeded (DEADLINE_EXCEEDED)
   5    no such service or topic (SERVICE_NOT_FOUND)
   6    request or message does not fit its type (INVALID_PARAMS)
-  7    the handler failed (INTERNAL, or an application error)
+  7    the handler failed (INTERNAL, or an application error); a goal GOAL_REJECTED or aborted
   8    any other error from the server (CANCELLED, RESOURCE_EXHAUSTED, ...)
   130  interrupted with Ctrl-C"""
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, plural, port
+from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, port
 from srvwire.handshake import EdgePolicy, is_loopback
 from srvwire.server import RunningServer, Server
 from srvwire.transports import get_transport
@@ -152,7 +152,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     def ready(running: RunningServer) -> None:
         services = server.registry.services()
         urls = ", ".join(running.urls)
-        print(f"serving {plural(len(services), 'service')} on {urls}", flush=True)
+        print(f"serving {server.summary()} on {urls}", flush=True)
         for name, type_name in services:
             print(f"  {name} [{type_name}]", flush=True)
         print(running.reach, flush=True)

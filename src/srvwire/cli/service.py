@@ -75,8 +75,10 @@ def register(commands: Commands) -> None:
 
 
 async def _services(args: argparse.Namespace) -> list[ServiceInfo]:
+    """The services, without the actions (``srvwire action list`` lists those)."""
     async with open_client(args) as client:
-        return await client.list_services(timeout=args.timeout)
+        listed = await client.list_services(timeout=args.timeout)
+        return [info for info in listed if "/action/" not in info.type]
 
 
 def _cmd_service_list(args: argparse.Namespace) -> int:

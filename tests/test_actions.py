@@ -1,0 +1,605 @@
+"""Actions: goals with feedback, cancellation and an outcome, on both transports."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from conftest import open_wire
+from srvwire import GoalHandle, GoalRejected, load_action, load_service
+from srvwire.actions import ClientGoal, GoalResult, goal_service
+from srvwire.auth import Identity, TokenAuth
+from srvwire.client import connect
+from srvwire.errors import ConnectionLost, DeadlineExceeded, PermissionDenied, RegistrationError
+from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notification, goal_news
+from srvwire.models import ModelDecoder, build_action
+from srvwire.parser import parse_action
+from srvwire.server import RunningServer, Server, serve
+from srvwire.serving import ServedConnection, Writer
+from srvwire.topics import Outbox, QoS, Topic
+from srvwire.transports.base import Transport
+from support import scaled
+
+Fibonacci = load_action("example_interfaces/action/Fibonacci")
+
+
+def fibonacci(order: int) -> list[int]:
+    sequence = [0, 1]
+    while len(sequence) < order + 1:
+        sequence.append(sequence[-1] + sequence[-2])
+    return sequence[: order + 1]
+
+
+class Gate:
+    """Things a handler waits for and tells, so that a test awaits instead of sleeping."""
+
+    def __init__(self) -> None:
+        self.started = asyncio.Event()
+        self.release = asyncio.Event()
+        self.ended = asyncio.Event()
+        self.handles: list[GoalHandle] = []
+
+
+@pytest.fixture
+def gate() -> Gate:
+    return Gate()
+
+
+@pytest.fixture
+async def server(gate: Gate) -> Server:
+    server = Server(grace_period=scaled(2))
+
+    @server.action("/fibonacci", Fibonacci)
+    async def run(goal: Any, handle: GoalHandle) -> Any:
+        """Feedback after each number; waits for the gate before the last when order < 0."""
+        sequence = [0, 1]
+        for _ in range(goal.order - 1):
+            sequence.append(sequence[-1] + sequence[-2])
+            await handle.feedback({"sequence": sequence})
+        return Fibonacci.Result(sequence=sequence)
+
+    @server.action("/waits", Fibonacci, cancel_grace=scaled(30))
+    async def waits(goal: Any, handle: GoalHandle) -> Any:
+        """Sends feedback, then waits for the gate or a cancellation; returns what it has."""
+        gate.handles.append(handle)
+        try:
+            await handle.feedback({"sequence": [0]})
+            gate.started.set()
+            done = asyncio.ensure_future(gate.release.wait())
+            cancelled = asyncio.ensure_future(handle.cancelled())
+            await asyncio.wait({done, cancelled}, return_when=asyncio.FIRST_COMPLETED)
+            done.cancel()
+            cancelled.cancel()
+            if goal.order == 1:  # done whatever happened: the result stands
+                handle.succeed()
+            return {"sequence": [0, 1]}
+        finally:
+            gate.ended.set()
+
+    @server.action("/stubborn", Fibonacci, cancel_grace=scaled(0.05))
+    async def stubborn(goal: Any, handle: GoalHandle) -> Any:
+        """Ignores cancellation; only being cancelled ends it."""
+        gate.handles.append(handle)
+        gate.started.set()
+        try:
+            await asyncio.Event().wait()
+        finally:
+            gate.ended.set()
+
+    @server.action("/burst", Fibonacci)
+    async def burst(goal: Any, handle: GoalHandle) -> Any:
+        """Gives ``order`` feedback messages in one step, then waits for the gate."""
+        for n in range(1, goal.order + 1):
+            handle.publish_feedback({"sequence": [n]})
+        await gate.release.wait()
+        return {"sequence": [goal.order]}
+
+    @server.action("/aborts", Fibonacci)
+    async def aborts(goal: Any, handle: GoalHandle) -> Any:
+        handle.abort()
+        return {"sequence": [7]}
+
+    @server.action("/picky", Fibonacci, accept=lambda goal: goal.order <= 10)
+    async def picky(goal: Any, handle: GoalHandle) -> Any:
+        if goal.order == 5:
+            raise GoalRejected("five is not a goal I take")
+        return {"sequence": fibonacci(goal.order)}
+
+    @server.action("/threaded", Fibonacci)
+    def threaded(goal: Any, handle: GoalHandle) -> Any:
+        assert threading.current_thread() is not threading.main_thread()
+        for n in range(1, goal.order + 1):
+            handle.publish_feedback({"sequence": fibonacci(n)})
+        return {"sequence": fibonacci(goal.order)}
+
+    loop = asyncio.get_running_loop()
+
+    @server.action("/steps", Fibonacci)
+    def steps(goal: Any, handle: GoalHandle) -> Any:
+        """A plain def handler: a step at a time until cancelled, feedback after each."""
+        done: list[int] = []
+        try:
+            for n in range(10_000):
+                handle.publish_feedback({"sequence": [n]})
+                if handle.wait_for_cancel(0 if n else None):  # the first step waits for it
+                    break
+                done.append(n)
+            return {"sequence": done}
+        finally:
+            loop.call_soon_threadsafe(gate.ended.set)
+
+    return server
+
+
+@pytest.fixture
+async def running(server: Server, transport: Transport) -> AsyncIterator[RunningServer]:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        yield running
+
+
+def connection(running: RunningServer) -> ServedConnection:
+    (served,) = running._connections
+    return served
+
+
+def assert_nothing_left(served: ServedConnection) -> None:
+    assert served.session.in_flight == 0
+    assert not served.session.calls
+    assert not served.counted
+    assert len(served.writer.feedback) == 0
+
+
+# --- the client's view ------------------------------------------------------------------------
+
+
+async def test_a_goal_succeeds_with_typed_feedback_and_result(running: RunningServer) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        assert client.services["/fibonacci"] == "example_interfaces/action/Fibonacci"
+        handle = await client.send_goal("/fibonacci", {"order": 6})
+        assert handle.status in ("accepted", "executing")
+        seen = [fb async for fb in handle.feedback()]
+        assert all(isinstance(fb, Fibonacci.Feedback) for fb in seen)
+        outcome = await handle.result()
+        assert outcome == GoalResult("succeeded", Fibonacci.Result(sequence=fibonacci(6)))
+        assert isinstance(outcome.result, Fibonacci.Result)
+        assert handle.status == "succeeded"
+        # Keep-latest: what was seen is in order, and may skip, but never repeats.
+        assert [len(fb.sequence) for fb in seen] == sorted({len(fb.sequence) for fb in seen})
+        assert not client._link.goals and not client._link.session.pending  # type: ignore[union-attr]
+
+
+async def test_a_plain_def_handler_runs_on_a_thread_and_publishes_feedback(
+    running: RunningServer,
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/threaded", {"order": 5})
+        outcome = await handle.result()
+        assert outcome.status == "succeeded"
+        assert outcome.result.sequence == fibonacci(5)
+
+
+async def test_a_plain_def_handler_stops_when_cancelled(running: RunningServer) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/steps", {"order": 1})
+        first = await anext(handle.feedback())  # the handler is in its first step
+        assert first.sequence == [0]
+        assert await handle.cancel() is True
+        outcome = await handle.result()
+        assert outcome == GoalResult("canceled", Fibonacci.Result(sequence=[]))
+        assert_nothing_left(connection(running))
+
+
+async def test_a_plain_def_handler_is_told_to_stop_when_its_deadline_passes(
+    running: RunningServer, gate: Gate
+) -> None:
+    wire = await open_wire(running)  # no client of ours to cancel it first: the deadline does
+    params = {"order": 1, "_meta": {"timeout": scaled(0.3)}}
+    await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/steps", "params": params})
+    reply = await wire.recv()
+    while "id" not in reply:  # $/goal and $/feedback
+        reply = await wire.recv()
+    assert reply["error"]["data"]["status"] == "DEADLINE_EXCEEDED"
+    await gate.ended.wait()  # its thread returned: wait_for_cancel woke when the goal ended
+    assert_nothing_left(connection(running))
+    await wire.ws.close()
+
+
+async def test_an_aborted_goal_says_so_with_its_result(running: RunningServer) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/aborts", {"order": 3})
+        assert await handle.result() == GoalResult("aborted", Fibonacci.Result(sequence=[7]))
+        assert handle.status == "aborted"
+
+
+async def test_a_refused_goal_raises_goal_rejected_with_the_reason(
+    running: RunningServer,
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        with pytest.raises(GoalRejected) as refused:
+            await client.send_goal("/picky", {"order": 11})
+        assert str(refused.value) == "GOAL_REJECTED (-32007) [/picky]: /picky rejected the goal"
+        # The handler may refuse too, after the goal was accepted: its result() says why.
+        handle = await client.send_goal("/picky", {"order": 5})
+        with pytest.raises(GoalRejected, match="five is not a goal I take"):
+            await handle.result()
+        assert handle.status == "aborted"
+        ok = await client.send_goal("/picky", {"order": 4})
+        assert (await ok.result()).status == "succeeded"
+    assert_nothing_left_after(running)
+
+
+def assert_nothing_left_after(running: RunningServer) -> None:
+    for served in running._connections:
+        assert_nothing_left(served)
+
+
+async def test_a_cancelled_goal_returns_its_partial_result_as_canceled(
+    running: RunningServer, gate: Gate
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/waits", {"order": 2})
+        await gate.started.wait()
+        assert await handle.cancel() is True
+        outcome = await handle.result()
+        assert outcome == GoalResult("canceled", Fibonacci.Result(sequence=[0, 1]))
+        assert handle.status == "canceled"
+        assert gate.handles[0].cancel_requested
+        assert await handle.cancel() is False  # over: nothing to cancel
+        assert_nothing_left(connection(running))
+
+
+async def test_a_handler_that_ignores_cancellation_is_cancelled_after_its_grace(
+    running: RunningServer, gate: Gate
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/stubborn", {"order": 2})
+        await gate.started.wait()
+        await handle.cancel()
+        assert await handle.result() == GoalResult("canceled", Fibonacci.Result())
+        await gate.ended.wait()
+        assert_nothing_left(connection(running))
+
+
+async def test_a_result_that_arrives_as_the_client_cancels_is_delivered(
+    running: RunningServer, gate: Gate
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        # order 1: the handler declares success whatever happens once released, so which of
+        # the result and the cancellation reaches the other side first does not matter.
+        handle = await client.send_goal("/waits", {"order": 1})
+        await gate.started.wait()
+        gate.release.set()
+        await handle.cancel()
+        assert await handle.result() == GoalResult("succeeded", Fibonacci.Result(sequence=[0, 1]))
+        assert handle.status == "succeeded"
+
+
+async def test_a_cancel_after_the_result_arrived_changes_nothing(
+    running: RunningServer, gate: Gate
+) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/waits", {"order": 2})
+        await gate.started.wait()
+        gate.release.set()
+        await asyncio.wait({handle.reply})  # the outcome is here, not read yet
+        assert await handle.cancel() is False
+        assert await handle.result() == GoalResult("succeeded", Fibonacci.Result(sequence=[0, 1]))
+
+
+async def test_the_deadline_ends_a_goal_on_both_sides(running: RunningServer, gate: Gate) -> None:
+    async with connect(running.url, transport=running.transport, timeout=scaled(5)) as client:
+        handle = await client.send_goal("/stubborn", {"order": 2}, timeout=scaled(0.2))
+        with pytest.raises(DeadlineExceeded):
+            await handle.result()
+        assert handle.status == "aborted"
+        await gate.ended.wait()  # the server cancelled the handler too
+        served = connection(running)
+        assert_nothing_left(served)
+        assert not client._link.goals and not client._link.session.pending  # type: ignore[union-attr]
+
+
+async def test_a_lost_connection_ends_the_goal_on_both_sides(
+    running: RunningServer, gate: Gate
+) -> None:
+    client = await connect(running.url, transport=running.transport, timeout=scaled(5))
+    handle = await client.send_goal("/stubborn", {"order": 2})
+    await gate.started.wait()
+    served = connection(running)
+    await served.conn.close(1001, "going away")
+    with pytest.raises(ConnectionLost):
+        await handle.result()
+    assert handle.status == "aborted"
+    await gate.ended.wait()
+    await asyncio.wait({served.reading})
+    assert_nothing_left(served)
+    await client.close()
+
+
+async def test_actions_obey_scopes(transport: Transport) -> None:
+    server = Server(auth=TokenAuth({"op": Identity("operator", {"robot:move"}), "guest": "guest"}))
+    server.add_action("/move", Fibonacci, lambda goal, handle: None, scopes={"robot:move"})
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, token="guest") as client:
+            assert "/move" not in client.services
+            with pytest.raises(PermissionDenied):
+                await client.send_goal("/move", {"order": 1}, action_type=Fibonacci)
+        async with connect(running.url, transport=transport, token="op") as client:
+            outcome = await (await client.send_goal("/move", {"order": 1})).result()
+            assert outcome == GoalResult("succeeded", Fibonacci.Result())
+
+
+async def test_an_action_type_the_client_does_not_have_comes_from_the_description(
+    transport: Transport,
+) -> None:
+    text = "int32 steps\n---\nbool done\n---\nfloat32 progress\n"
+    Spin = build_action(parse_action(text, "srvwire_action_tests", "Spin"))
+    server = Server()
+
+    @server.action("/spin", Spin)
+    async def spin(goal: Any, handle: GoalHandle) -> Any:
+        await handle.feedback(Spin.Feedback(progress=0.5))
+        return {"done": True}
+
+    async with (
+        serve(server, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        (described,) = [m for m in await client._discover(None) if m["name"] == "/spin"]
+        assert described["x-srvwire-kind"] == "action"
+        assert described["x-srvwire-definitions"] == {"srvwire_action_tests/action/Spin": text}
+        assert described["x-srvwire-feedback-schema"]["properties"]["progress"]["type"] == (
+            "number"
+        )
+        handle = await client.send_goal("/spin", {"steps": 2})
+        outcome = await handle.result()
+        assert outcome.status == "succeeded" and outcome.result.done is True
+
+
+# --- the wire ---------------------------------------------------------------------------------
+
+
+async def test_on_the_wire_a_goal_is_one_call_with_notifications_between(
+    running: RunningServer, gate: Gate
+) -> None:
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": 9, "method": "/waits", "params": {"order": 2}})
+    accepted = await wire.recv()
+    assert accepted["method"] == "$/goal"
+    goal_id = accepted["params"]["goal_id"]
+    assert accepted["params"] == {"call": 9, "goal_id": goal_id, "status": "accepted"}
+    assert len(goal_id) == 36  # a UUID
+    executing = await wire.recv()
+    assert executing["params"] == {"call": 9, "goal_id": goal_id, "status": "executing"}
+    feedback = await wire.recv()
+    assert feedback == {
+        "jsonrpc": "2.0",
+        "method": "$/feedback",
+        "params": {"call": 9, "seq": 1, "feedback": {"sequence": [0]}},
+    }
+    gate.release.set()
+    assert await wire.recv() == {
+        "jsonrpc": "2.0",
+        "id": 9,
+        "result": {"status": "succeeded", "result": {"sequence": [0, 1]}},
+    }
+    await wire.ws.close()
+
+
+async def test_feedback_faster_than_the_connection_is_kept_latest(
+    running: RunningServer, gate: Gate
+) -> None:
+    # The handler gives 30 feedback messages in one step: only the last one goes out.
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/burst", "params": {"order": 30}})
+    assert [(await wire.recv())["params"]["status"] for _ in range(2)] == [
+        "accepted",
+        "executing",
+    ]
+    feedback = await wire.recv()
+    assert feedback["params"] == {"call": 1, "seq": 30, "feedback": {"sequence": [30]}}
+    served = connection(running)
+    assert served.writer.feedback.replaced == 29 and len(served.writer.feedback) == 0
+    gate.release.set()
+    assert (await wire.recv())["result"] == {"status": "succeeded", "result": {"sequence": [30]}}
+    assert_nothing_left(served)
+    await wire.ws.close()
+
+
+@pytest.mark.parametrize("transport", ["memory"], indirect=True)
+async def test_a_client_that_does_not_read_costs_one_feedback_message(
+    transport: Transport,
+) -> None:
+    # On the memory transport the budget is all the buffer there is (a real socket adds the
+    # kernel's, which srvwire does not count): what reaches the client is what fit in it.
+    server = Server(max_queued_bytes=4_000, grace_period=0)
+    published = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    count, size = 2_000, 200
+
+    @server.action("/flood", Fibonacci)
+    def flood(goal: Any, handle: GoalHandle) -> Any:
+        for n in range(count):
+            handle.publish_feedback({"sequence": [n] * size})
+        loop.call_soon_threadsafe(published.set)
+        assert handle.wait_for_cancel()  # until the client has seen the flood
+        return {"sequence": [count]}
+
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
+        await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/flood", "params": {}})
+        await published.wait()  # every feedback was given, and the client read none
+        served = connection(running)
+        assert len(served.writer.feedback) <= 1  # at most the latest waits, whatever was given
+        await wire.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}})
+        messages = []
+        while not messages or messages[-1].get("id") != 1:
+            messages.append(await wire.recv())
+        seqs = [m["params"]["seq"] for m in messages if m.get("method") == "$/feedback"]
+        assert seqs == sorted(seqs) and len(seqs) < 4_000 / size + 3  # what fit, and no more
+        assert served.writer.feedback.replaced >= count - len(seqs) - 1
+        assert messages[-1]["result"]["status"] == "canceled"
+        assert_nothing_left(served)
+        await wire.ws.close()
+
+
+def test_the_writer_sends_control_first_then_topic_data_and_feedback_in_turn() -> None:
+    loop = asyncio.new_event_loop()
+    try:
+        writer = Writer(None, loop)  # type: ignore[arg-type]  # nothing is sent here
+        writer.outbox = Outbox()  # no wake: the writer's task is not started
+        topic: Topic[None] = Topic("/t", None, QoS(depth=5))
+        writer.outbox.subscribe(7, topic, QoS(depth=5))
+        control = writer.outbox.next()  # $/subscribed
+        assert control is not None and b"$/subscribed" in control
+        writer.feedback.put(1, b"f1")
+        writer.feedback.put(2, b"f2")
+        topic.publish(b"{}")
+        topic.publish(b"{}")
+        writer.outbox.push(b"reply")
+        order = []
+        while (taken := writer.next()) is not None:
+            data, goal = taken
+            order.append(goal if goal is not None else data[:12])
+        message = b'{"jsonrpc":"'  # a topic's $/message
+        assert order == [b"reply", 1, message, 2, message]  # data in turn, behind control
+    finally:
+        loop.close()
+
+
+async def test_a_cancel_on_the_wire_asks_the_goal_to_stop(
+    running: RunningServer, gate: Gate
+) -> None:
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": "g", "method": "/waits", "params": {"order": 2}})
+    await gate.started.wait()
+    await wire.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": "g"}})
+    received = []
+    while not received or received[-1].get("id") != "g":
+        received.append(await wire.recv())
+    states = [m["params"]["status"] for m in received if m.get("method") == "$/goal"]
+    assert states == ["accepted", "executing", "canceling"]
+    assert received[-1]["result"] == {"status": "canceled", "result": {"sequence": [0, 1]}}
+    await wire.ws.close()
+
+
+async def test_a_refused_goal_on_the_wire_is_an_error_reply(running: RunningServer) -> None:
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": 3, "method": "/picky", "params": {"order": 99}})
+    reply = await wire.recv()
+    assert reply["error"]["code"] == -32007
+    assert reply["error"]["message"] == "/picky rejected the goal"
+    assert reply["error"]["data"]["status"] == "GOAL_REJECTED"
+    await wire.ws.close()
+
+
+# --- the rules, without I/O -------------------------------------------------------------------
+
+
+def test_the_outbox_keeps_the_latest_feedback_per_goal_round_robin() -> None:
+    outbox = FeedbackOutbox()
+    assert outbox.put(1, b"a1") is True
+    assert outbox.put(2, b"b1") is False
+    assert outbox.put(1, b"a2") is False  # replaces a1, keeps goal 1's turn
+    assert outbox.replaced == 1 and len(outbox) == 2
+    assert 1 in outbox and 3 not in outbox
+    assert outbox.take() == (1, b"a2")
+    outbox.put(1, b"a3")  # goal 1 had its turn: behind goal 2 now
+    assert outbox.take() == (2, b"b1")
+    outbox.discard(1)
+    assert outbox.take() is None and len(outbox) == 0
+
+
+def test_a_goal_state_never_steps_back() -> None:
+    assert advance("pending", "accepted") == "accepted"
+    assert advance("canceling", "executing") == "canceling"
+    assert advance("executing", "canceling") == "canceling"
+    assert advance("canceling", "succeeded") == "succeeded"
+    assert advance("succeeded", "executing") == "succeeded"
+    assert advance("executing", "sleeping") == "executing"
+
+
+async def test_a_slow_reader_of_feedback_sees_the_latest_never_a_queue() -> None:
+    loop = asyncio.get_running_loop()
+
+    class Link:
+        def __init__(self) -> None:
+            self.loop = loop
+
+    service = goal_service(Fibonacci)
+    goal: ClientGoal[Any] = ClientGoal(
+        Link(),  # type: ignore[arg-type]
+        "/fibonacci",
+        Fibonacci,
+        ModelDecoder(service.Response),
+        loop.time() + 5,
+        5,
+    )
+    for n in range(1, 51):
+        goal.news(GoalNews(1, seq=n, feedback={"sequence": list(range(n))}))
+    reader = goal.feedback()
+    first = await anext(reader)
+    assert first.sequence == list(range(50))
+    goal.reply.set_result(None)  # ended: the iteration stops
+    with pytest.raises(StopAsyncIteration):
+        await anext(reader)
+
+
+def test_goal_news_is_read_or_refused() -> None:
+    assert goal_news("$/goal", {"call": 4, "goal_id": "g", "status": "executing"}) == GoalNews(
+        4, status="executing", goal_id="g"
+    )
+    assert goal_news("$/feedback", {"call": 4, "seq": 2, "feedback": {"a": 1}}) == GoalNews(
+        4, seq=2, feedback={"a": 1}
+    )
+    for method, params in [
+        ("$/goal", {"call": "4", "goal_id": "g", "status": "executing"}),  # not our id
+        ("$/goal", {"call": 4, "status": "executing"}),
+        ("$/feedback", {"call": 4, "seq": True, "feedback": {}}),
+        ("$/feedback", {"call": 4, "seq": 1}),
+        ("$/feedback", [4, 1, {}]),
+    ]:
+        assert goal_news(method, params) is None, params
+
+
+async def test_a_goal_sent_as_a_notification_is_refused_and_logged(
+    running: RunningServer, gate: Gate, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("INFO", logger="srvwire.server")
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "method": "/waits", "params": {"order": 2}})
+    await wire.send({"jsonrpc": "2.0", "id": 2, "method": "/aborts", "params": {"order": 1}})
+    assert (await wire.recv())["params"]["status"] == "accepted"  # the request's, id 2
+    assert not gate.handles  # the notification's handler never ran
+    assert any(
+        "a goal for the action /waits must be a request with an id" in m for m in caplog.messages
+    )
+    await wire.ws.close()
+
+
+def test_feedback_is_written_around_the_message_bytes() -> None:
+    assert feedback_notification(7, 3, b'{"x":1}') == (
+        b'{"jsonrpc":"2.0","method":"$/feedback","params":{"call":7,"seq":3,"feedback":{"x":1}}}'
+    )
+
+
+def test_the_startup_line_counts_services_and_actions_apart() -> None:
+    server = Server()
+    assert server.summary() == "0 services"
+    server.add_action("/a", Fibonacci, lambda goal, handle: None)
+    assert server.summary() == "0 services and 1 action"
+    server.add_service("/s", load_service("std_srvs/srv/Trigger"), lambda request: None)
+    server.add_action("/b", Fibonacci, lambda goal, handle: None)
+    assert server.summary() == "1 service and 2 actions"
+
+
+def test_an_action_type_is_not_a_service_type() -> None:
+    server = Server()
+    with pytest.raises(RegistrationError, match=r"is an action type; serve it with server\.action"):
+        server.add_service("/fibonacci", Fibonacci, lambda request: None)  # type: ignore[arg-type]
+    service = load_action("example_interfaces/action/Fibonacci")
+    with pytest.raises(RegistrationError, match="must be an action type"):
+        server.add_action("/x", service.Goal, lambda goal, handle: None)  # type: ignore[arg-type]
