@@ -463,3 +463,184 @@ def test_a_goal_with_feedback_result_and_cancel() -> None:
         assert long.cancel() is True
         outcome = long.result()
         assert outcome.status == "canceled" and len(outcome.result.sequence) == 12
+
+
+# --- topics -----------------------------------------------------------------------------------
+
+JointState = srvwire.load_message("sensor_msgs/msg/JointState")
+
+
+class Robot:
+    """A server with a topic, kept for late subscribers, and services that act on it from
+    the server's loop: what the blocking client's topic tests talk to."""
+
+    def __init__(self) -> None:
+        self.server = Server(grace_period=0)
+        self.received: list[Any] = []  # what clients published, in order
+        self.notified = threading.Event()
+        self.joints = self.server.topic(
+            "/joint_states", JointState, qos={"durability": "transient_local"}
+        )
+        self.server.subscription("/joint_states", JointState)(self.received.append)
+        self.server.add_service(ADD, AddTwoInts, self.add)
+        self.server.add_service("/publish_three", Trigger, self.publish_three)
+        self.server.add_service("/remove_topic", Trigger, self.remove_topic)
+
+    async def add(self, request: Any) -> Any:
+        self.notified.set()
+        return {"sum": request.a + request.b}
+
+    async def publish_three(self, request: Any) -> Any:
+        for n in range(3):
+            self.joints.publish(JointState(name=["elbow"], position=[float(n)]))
+        return {"success": True}
+
+    async def remove_topic(self, request: Any) -> Any:
+        self.server.remove_topic("/joint_states")
+        return {"success": True}
+
+
+@pytest.fixture
+def robot() -> Iterator[tuple[Robot, srvwire.sync.Client]]:
+    robot = Robot()
+    with (
+        served_in_a_thread(robot.server) as running,
+        srvwire.sync.connect(running.url, timeout=scaled(5)) as client,
+    ):
+        yield robot, client
+
+
+def settled(client: srvwire.sync.Client) -> None:
+    """Return once the server read what the client sent before: a call after it is answered."""
+    assert client.call(ADD, {"a": 1, "b": 1}).sum == 2
+
+
+def test_a_subscription_is_a_plain_iterator_that_ends_when_the_loop_is_left(
+    robot: tuple[Robot, srvwire.sync.Client],
+) -> None:
+    server, client = robot
+    info = client.wait_for_topic("/joint_states")
+    assert (info.name, info.type, info.publish) == (
+        "/joint_states",
+        "sensor_msgs/msg/JointState",
+        True,
+    )
+    assert client.topics == {"/joint_states": "sensor_msgs/msg/JointState"}
+    assert [t.name for t in client.list_topics()] == ["/joint_states"]
+    client.call("/publish_three")  # kept for late subscribers (transient_local)
+    positions = []
+    for msg in client.subscribe("/joint_states", JointState):
+        assert type(msg) is JointState  # typed, and so for a type checker
+        positions.append(msg.position)
+        if len(positions) == 3:
+            assert server.joints.subscription_count == 1
+            break
+    assert positions == [[0.0], [1.0], [2.0]]
+    settled(client)
+    assert server.joints.subscription_count == 0  # leaving the loop ended it on the server
+
+
+def test_a_subscription_as_a_context_manager_with_a_timeout_per_message(
+    robot: tuple[Robot, srvwire.sync.Client],
+) -> None:
+    server, client = robot
+    with client.subscribe("joint_states") as sub:  # typed by the server's announcement
+        assert sub.active and server.joints.subscription_count == 1
+        with pytest.raises(DeadlineExceeded) as caught:
+            sub.get(timeout=scaled(0.1))  # nothing published yet: give up, and go on
+        assert isinstance(caught.value, TimeoutError) and caught.value.service == "/joint_states"
+        client.call("/publish_three")
+        first = next(sub)
+        assert type(first).__name__ == "JointState" and first.position == [0.0]
+        for msg in sub:  # leaving this loop keeps the subscription: the block holds it
+            assert msg.position == [1.0]
+            break
+        assert sub.active
+        assert sub.get(timeout=scaled(5)).position == [2.0] and sub.seq == 3
+    assert not sub.active
+    with pytest.raises(StopIteration):
+        next(sub)
+    settled(client)
+    assert server.joints.subscription_count == 0
+    quiet = client.subscribe("/joint_states", message_timeout=scaled(0.1)).start()
+    assert [next(quiet).position for _ in range(3)] == [[0.0], [1.0], [2.0]]  # the stored ones
+    with pytest.raises(DeadlineExceeded):
+        next(quiet)  # the subscription's own timeout per message
+    client.call("/remove_topic")
+    with pytest.raises(ServiceNotFound) as removed:  # the error that ended it, as async
+        next(quiet)
+    assert removed.value.message == "the topic /joint_states was removed"
+
+
+def test_a_subscription_iterated_in_another_thread_and_closed_from_this_one(
+    robot: tuple[Robot, srvwire.sync.Client],
+) -> None:
+    server, client = robot
+    with client.subscribe("/joint_states", JointState) as sub:
+        three = threading.Event()
+
+        def read() -> list[list[float]]:
+            seen = []
+            for msg in sub:  # ends when the subscription is closed
+                seen.append(msg.position)
+                if len(seen) == 3:
+                    three.set()
+            return seen
+
+        with concurrent.futures.ThreadPoolExecutor(1) as pool:
+            reading = pool.submit(read)
+            client.call("/publish_three")
+            assert three.wait(scaled(5))  # the reader waits for a fourth now
+            sub.close()  # from this thread: the reader's loop ends
+            assert reading.result(scaled(5)) == [[0.0], [1.0], [2.0]]
+    settled(client)
+    assert server.joints.subscription_count == 0
+
+
+def test_publish_with_and_without_an_ack_and_notify(
+    robot: tuple[Robot, srvwire.sync.Client],
+) -> None:
+    server, client = robot
+    client.publish("/joint_states", {"name": ["wrist"], "position": [0.5]}, ack=True)
+    assert [m.name for m in server.received] == [["wrist"]]  # taken once it returns
+    client.publish("/joint_states", JointState(name=["elbow"], position=[1.5]))
+    settled(client)
+    assert [m.name for m in server.received] == [["wrist"], ["elbow"]]
+    with pytest.raises(InvalidParams) as caught:  # refused here, before sending
+        client.publish("/joint_states", {"position": ["high"]}, ack=True)
+    assert caught.value.data["errors"][0]["path"] == "message.position[0]"
+    with pytest.raises(ServiceNotFound):  # refused by the server
+        client.publish("/no_such_topic", {"name": ["x"]}, msg_type=JointState, ack=True)
+    assert len(server.received) == 2
+    server.notified.clear()
+    assert client.notify(ADD, {"a": 1, "b": 2}) is None  # nothing comes back
+    assert server.notified.wait(scaled(5))  # yet the handler ran
+    with pytest.raises(InvalidParams):  # typed and validated as a call is
+        client.notify(ADD, {"a": "one"})
+
+
+def test_a_goals_result_waited_for_a_while_then_cancelled() -> None:
+    fibonacci = srvwire.load_action("example_interfaces/action/Fibonacci")
+    server = Server(grace_period=0)
+
+    @server.action("/fibonacci", fibonacci)
+    async def run(goal: Any, handle: srvwire.GoalHandle) -> Any:
+        await handle.feedback({"sequence": [0, 1]})
+        await handle.cancelled()  # only a cancel ends it
+        return {"sequence": [0, 1]}
+
+    with (
+        served_in_a_thread(server) as running,
+        srvwire.sync.connect(running.url, timeout=scaled(5)) as client,
+    ):
+        goal = client.send_goal("/fibonacci", {"order": 3})
+        assert next(goal.feedback()).sequence == [0, 1]
+        with pytest.raises(DeadlineExceeded) as caught:
+            goal.result(timeout=scaled(0.1))
+        assert caught.value.service == "/fibonacci"
+        assert goal.status == "executing" and not goal.done  # it goes on
+        assert goal.cancel() is True
+        assert goal.result(timeout=scaled(5)) == srvwire.GoalResult(
+            "canceled", fibonacci.Result(sequence=[0, 1])
+        )
+        assert goal.done and goal.cancel() is False

@@ -31,8 +31,10 @@ The same exception classes as the async client's are raised, with the same meani
 
 An action's goal is a :class:`Goal`, whose methods block: :meth:`Client.send_goal` returns
 once the server accepted it, :meth:`Goal.feedback` is a plain iterator whose ``next`` waits
-on the loop, :meth:`Goal.result` waits for the outcome. Topics are not part of srvwire's
-client yet; when they are, a subscription comes here in the same way, as a plain iterator.
+on the loop, :meth:`Goal.result` waits for the outcome. A topic's subscription is a
+:class:`Subscription` in the same way: a plain iterator of typed messages, and a context
+manager; it stands on the async :class:`~srvwire.client.Subscription`, whose queue stays on
+the loop, so a wait given up (a ``timeout`` per message) loses no message.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ import concurrent.futures
 import functools
 import threading
 import weakref
-from collections.abc import AsyncIterator, Callable, Coroutine, Iterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine, Iterator, Mapping
 from types import TracebackType
 from typing import Any, Generic, ParamSpec, TypeVar, overload
 
@@ -51,6 +53,7 @@ from pydantic import BaseModel
 from srvwire import client as aio
 from srvwire.actions import ClientGoal, GoalResult
 from srvwire.calls import ServiceInfo, SrvType, check_timeout
+from srvwire.client import TopicInfo
 from srvwire.errors import ConnectionLost, DeadlineExceeded
 from srvwire.models import Action, Message, ServiceRequest, TypedService
 
@@ -62,6 +65,7 @@ __all__ = [
     "LoopThread",
     "LoopTimeout",
     "ServiceProxy",
+    "Subscription",
     "connect",
 ]
 
@@ -74,6 +78,7 @@ CLOSE_WITHIN = 10.0
 T = TypeVar("T")
 P = ParamSpec("P")
 R = TypeVar("R", bound=Message)
+M = TypeVar("M", bound=BaseModel)
 
 
 class LoopTimeout(TimeoutError):
@@ -119,13 +124,14 @@ class LoopThread:
             finally:
                 loop.close()
 
-    def run(self, coro: Coroutine[Any, Any, T], within: float) -> T:
+    def run(self, coro: Coroutine[Any, Any, T], within: float | None) -> T:
         """Run ``coro`` on the loop and return its result, or raise its exception.
 
         Raise :class:`LoopTimeout` (and cancel it) if it has not finished after ``within``
-        seconds, :class:`LoopEnded` if the loop ended first, and ``RuntimeError`` when called
-        from the loop's own thread, which would wait for itself. An exception that interrupts
-        the wait (``KeyboardInterrupt``) cancels the coroutine.
+        seconds (``None``: wait as long as it runs), :class:`LoopEnded` if the loop ended
+        first, and ``RuntimeError`` when called from the loop's own thread, which would wait
+        for itself. An exception that interrupts the wait (``KeyboardInterrupt``) cancels the
+        coroutine.
         """
         if threading.current_thread() is self.thread:
             coro.close()
@@ -263,10 +269,13 @@ class Client:
         """The services the server advertised: canonical name -> type; a read-only snapshot."""
         return self._client.services
 
-    def _run(self, coro: Coroutine[Any, Any, T], budget: float, service: str | None = None) -> T:
-        """Run ``coro`` on the client's loop; ``budget`` is its own deadline, in seconds."""
+    def _run(
+        self, coro: Coroutine[Any, Any, T], budget: float | None, service: str | None = None
+    ) -> T:
+        """Run ``coro`` on the client's loop; ``budget`` is its own deadline, in seconds
+        (``None``: it has none, as a subscription waiting for its next message)."""
         try:
-            return self._loop.run(coro, budget + BACKSTOP)
+            return self._loop.run(coro, None if budget is None else budget + BACKSTOP)
         except LoopTimeout as exc:
             raise DeadlineExceeded(
                 f"no answer within {budget:g} s: the client's event loop did not finish the call",
@@ -420,7 +429,106 @@ class Client:
         )
         return Goal(self, handle, budget)
 
-    # --- topics: their blocking forms come here once the async client has them --------------
+    # --- topics ---------------------------------------------------------------------------
+
+    @property
+    def topics(self) -> Mapping[str, str]:
+        """The topics the server announced: canonical name -> message type; a snapshot."""
+        return self._client.topics
+
+    @overload
+    def subscribe(
+        self,
+        name: str,
+        msg_type: type[M],
+        *,
+        qos: Mapping[str, Any] | None = None,
+        timeout: float | None = None,
+        message_timeout: float | None = None,
+    ) -> Subscription[M]: ...
+
+    @overload
+    def subscribe(
+        self,
+        name: str,
+        msg_type: str | None = None,
+        *,
+        qos: Mapping[str, Any] | None = None,
+        timeout: float | None = None,
+        message_timeout: float | None = None,
+    ) -> Subscription[Any]: ...
+
+    def subscribe(
+        self,
+        name: str,
+        msg_type: type[BaseModel] | str | None = None,
+        *,
+        qos: Mapping[str, Any] | None = None,
+        timeout: float | None = None,
+        message_timeout: float | None = None,
+    ) -> Subscription[Any]:
+        """Subscribe to the topic ``name``: ``for msg in client.subscribe(name):``.
+
+        As :meth:`srvwire.Client.subscribe` (``msg_type``, ``qos``, and ``timeout`` that bounds
+        the subscribing), blocking: leaving a ``for`` loop over it ends the subscription;
+        ``with client.subscribe(name) as sub:`` holds it for the block, where ``next(sub)`` or
+        ``sub.get(timeout=...)`` take one message. ``message_timeout`` bounds each wait for a
+        message (default: none); when it passes, :class:`~srvwire.errors.DeadlineExceeded`
+        (a ``TimeoutError``) is raised and the subscription goes on. With a message class as
+        ``msg_type``, a type checker knows the messages are of that class.
+        """
+        if message_timeout is not None:
+            check_timeout(message_timeout)
+        subscription = self._client.subscribe(name, msg_type, qos=qos, timeout=timeout)
+        return Subscription(self, subscription, message_timeout)
+
+    def publish(
+        self,
+        name: str,
+        message: BaseModel | Mapping[str, Any],
+        /,
+        *,
+        msg_type: type[BaseModel] | str | None = None,
+        ack: bool = False,
+        timeout: float | None = None,
+    ) -> None:
+        """Publish ``message`` on the topic ``name``; see :meth:`srvwire.Client.publish`.
+
+        Validated here first (``InvalidParams`` with the fields' paths); with ``ack=True``
+        it returns once the server took it, and raises what the server refused it with.
+        """
+        budget = self._budget(timeout)
+        self._run(
+            self._client.publish(name, message, msg_type=msg_type, ack=ack, timeout=timeout),
+            budget,
+            name,
+        )
+
+    def notify(
+        self,
+        name: str,
+        request: BaseModel | Mapping[str, Any] | None = None,
+        /,
+        *,
+        srv_type: SrvType | None = None,
+    ) -> None:
+        """Call the service ``name`` without waiting for an answer; see
+        :meth:`srvwire.Client.notify`."""
+        self._run(self._client.notify(name, request, srv_type=srv_type), self.timeout, name)
+
+    def wait_for_topic(self, name: str, *, timeout: float | None = None) -> TopicInfo:
+        """Wait until the server announces the topic ``name``; return what it says of it.
+
+        As :meth:`srvwire.Client.wait_for_topic`: ``ServiceUnavailable`` when ``timeout``
+        passes first.
+        """
+        budget = self._budget(timeout)
+        return self._run(self._client.wait_for_topic(name, timeout=timeout), budget, name)
+
+    def list_topics(self, *, timeout: float | None = None) -> list[TopicInfo]:
+        """Ask the server for every topic it offers, sorted by name."""
+        budget = self._budget(timeout)
+        return self._run(self._client.list_topics(timeout=timeout), budget)
 
     # --- closing ----------------------------------------------------------------------------
 
@@ -481,6 +589,11 @@ class Goal:
         """The server's id for the goal."""
         return self._handle.goal_id
 
+    @property
+    def done(self) -> bool:
+        """Whether the goal's outcome arrived (or the connection ended)."""
+        return self._handle.done
+
     def feedback(self) -> Iterator[Any]:
         """Yield the goal's feedback (typed, the latest each time) until it ends."""
         feedback = self._handle.feedback()
@@ -490,9 +603,22 @@ class Goal:
                 return
             yield step
 
-    def result(self) -> GoalResult[Any]:
-        """Wait for the outcome: the final status and the typed result."""
-        return self.client._run(self._handle.result(), self._budget, self.name)
+    def result(self, *, timeout: float | None = None) -> GoalResult[Any]:
+        """Wait for the outcome: the final status and the typed result.
+
+        Without ``timeout``, wait as long as the goal's deadline allows (the async client
+        ends the goal with ``DeadlineExceeded`` then). With it, raise
+        :class:`~srvwire.errors.DeadlineExceeded` after ``timeout`` seconds while the goal
+        goes on: ask again, or :meth:`cancel` it.
+        """
+        if timeout is None:
+            return self.client._run(self._handle.result(), self._budget, self.name)
+        wait = check_timeout(timeout)
+        return self.client._run(
+            _within(self._handle.result(), wait, self.name, "the goal had no outcome"),
+            min(wait, self._budget),
+            self.name,
+        )
 
     def cancel(self) -> bool:
         """Ask the server to cancel the goal; see :meth:`srvwire.ClientGoal.cancel`."""
@@ -502,10 +628,29 @@ class Goal:
 _END = object()
 
 
+async def _within(awaitable: Awaitable[T], seconds: float, name: str, what: str) -> T:
+    """Await ``awaitable`` for at most ``seconds``; then raise ``DeadlineExceeded``."""
+    try:
+        async with asyncio.timeout(seconds):
+            return await awaitable
+    except TimeoutError:
+        raise DeadlineExceeded(
+            f"{what} within {seconds:g} s", {"timeout": seconds}, service=name
+        ) from None
+
+
 async def _next(iterator: AsyncIterator[Any]) -> Any:
     """The next item of ``iterator`` on its loop, or ``_END``."""
     try:
         return await anext(iterator)
+    except StopAsyncIteration:
+        return _END
+
+
+async def _receive(subscription: aio.Subscription) -> Any:
+    """The subscription's next message, or ``_END`` once it was closed."""
+    try:
+        return await subscription.receive()
     except StopAsyncIteration:
         return _END
 
@@ -534,3 +679,129 @@ class ServiceProxy(Generic[R]):
 
     def __repr__(self) -> str:
         return f"srvwire.sync.ServiceProxy({self.name!r}, {self._proxy.srv_type!r})"
+
+
+class Subscription(Generic[M]):
+    """A subscription of the blocking client: what :meth:`Client.subscribe` returns.
+
+    A plain iterable of typed messages, and a context manager; started on entry, or on the
+    first message asked for. ``for msg in sub:`` outside a ``with`` block ends the
+    subscription when the loop is left (``break``, an exception, or the end), as ``async for``
+    does on the async client; inside ``with client.subscribe(name) as sub:`` the loop may be
+    left and taken up again, and the subscription ends with the block. :meth:`close` ends it
+    from any thread.
+
+    Every wait runs on the client's loop; the messages queue there, so a wait that ran out
+    of time, or was interrupted, loses none. One thread at a time takes messages from a
+    subscription; any thread may be that one. Its counters are the async subscription's
+    (:attr:`seq`, :attr:`missed`, :attr:`dropped`, :attr:`granted`).
+    """
+
+    def __init__(
+        self,
+        client: Client,
+        subscription: aio.Subscription,
+        message_timeout: float | None = None,
+    ) -> None:
+        self.client = client
+        self.name = subscription.name
+        self.message_timeout = message_timeout
+        self._subscription = subscription
+        self._managed = False
+
+    def __repr__(self) -> str:
+        state = "active" if self.active else "not active"
+        return f"<srvwire.sync.Subscription to {self.name}, {state}>"
+
+    @property
+    def active(self) -> bool:
+        """Whether the subscription runs (or is resuming), and has not ended."""
+        return self._subscription.active
+
+    @property
+    def seq(self) -> int | None:
+        """The sequence number of the last message returned."""
+        return self._subscription.seq
+
+    @property
+    def missed(self) -> int:
+        """How many messages the subscriber did not get just before the last one."""
+        return self._subscription.missed
+
+    @property
+    def dropped(self) -> int:
+        """How many messages this subscriber did not get, in all."""
+        return self._subscription.dropped
+
+    @property
+    def granted(self) -> Mapping[str, Any]:
+        """The QoS the server granted."""
+        return self._subscription.granted
+
+    def start(self) -> Subscription[M]:
+        """Subscribe, and return once the server started the subscription; idempotent."""
+        self.client._run(self._subscription.start(), self._subscription.budget, self.name)
+        return self
+
+    def get(self, *, timeout: float | None = None) -> M:
+        """Return the next message, waiting at most ``timeout`` seconds (default: the
+        subscription's ``message_timeout``; none: as long as it takes).
+
+        Raise :class:`~srvwire.errors.DeadlineExceeded` when ``timeout`` passes (the
+        subscription goes on), the error that ended the subscription as the async client
+        raises it (``ServiceNotFound``, ``PermissionDenied``, ``ResourceExhausted``,
+        ``ConnectionLost``), and ``StopIteration`` once it was closed.
+        """
+        wait = self.message_timeout if timeout is None else check_timeout(timeout)
+        if not self._subscription.active:
+            self.start()  # its own deadline is the subscribing's, not a message's
+        receive = _receive(self._subscription)
+        if wait is None:
+            message = self.client._run(receive, None, self.name)
+        else:
+            message = self.client._run(
+                _within(receive, wait, self.name, "no message arrived"), wait, self.name
+            )
+        if message is _END:
+            raise StopIteration
+        return message  # type: ignore[no-any-return]
+
+    def __next__(self) -> M:
+        return self.get()
+
+    def __iter__(self) -> Iterator[M]:
+        """Yield each message as it arrives; outside ``with``, leaving the loop ends it."""
+        try:
+            while True:
+                try:
+                    message = self.get()
+                except StopIteration:
+                    return
+                yield message
+        finally:
+            if not self._managed:
+                self.close()
+
+    def close(self) -> None:
+        """End the subscription on the server (``$/cancel``); idempotent, from any thread."""
+        client = self.client
+        if threading.current_thread() is client._loop.thread:
+            # Reached from the loop's own thread (a generator collected there): hand it over.
+            client._loop.loop.create_task(self._subscription.close())
+            return
+        try:
+            client._run(self._subscription.close(), client.timeout, self.name)
+        except ConnectionLost:
+            pass  # the client closed: the subscription ended with its connection
+
+    def __enter__(self) -> Subscription[M]:
+        self._managed = True
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
