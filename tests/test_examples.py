@@ -328,6 +328,19 @@ def test_the_blocking_client_script(robot_server: RunningServer) -> None:
     assert "command 'move'" in robot_server.log()
 
 
+def test_the_blocking_topics_and_action_script(
+    robot_server: RunningServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    load_example("sync_topics").run(robot_server.url, scaled(5), duration=0.5)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "joint states: [0.1, 0.2, 0.3, 0.4, 0.5]"  # published, read back
+    assert lines[-1] == "succeeded: Robot calibrated"
+    every = [f"calibrating joint_{i} ({i * 20}%)" for i in range(5)]
+    feedback = lines[1:-1]  # the latest each time: a slow reader may skip some, in order
+    assert feedback and feedback == [line for line in every if line in feedback]
+    assert "calibrate -> Robot calibrated" in robot_server.log()
+
+
 def test_the_blocking_client_script_without_a_server() -> None:
     with socket.socket() as unused:
         unused.bind(("127.0.0.1", 0))
