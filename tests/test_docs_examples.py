@@ -38,6 +38,7 @@ RUN_ELSEWHERE = {
     "testing_with_the_plugin.py": "a pytest file: test_the_testing_page_passes_under_pytest",
     "conftest.py": "the srvwire_server of testing_with_the_plugin.py, run with it",
     "sync_client.py": "needs the robot server: tests/test_examples.py",
+    "sync_topics.py": "needs the robot server: tests/test_examples.py",
     "notebook.py": "a notebook's cells (top-level await): tests/test_notebook.py runs them",
 }
 

@@ -644,3 +644,21 @@ def test_a_goals_result_waited_for_a_while_then_cancelled() -> None:
             "canceled", fibonacci.Result(sequence=[0, 1])
         )
         assert goal.done and goal.cancel() is False
+
+
+def test_a_subscription_left_on_the_clients_own_loop_thread_still_ends(
+    robot: tuple[Robot, srvwire.sync.Client],
+) -> None:
+    server, client = robot
+    client.call("/publish_three")
+    messages = iter(client.subscribe("/joint_states"))
+    assert next(messages).position == [0.0]
+    assert server.joints.subscription_count == 1
+
+    async def collected_there() -> None:
+        messages.close()  # as when the loop thread collects it: it cannot wait for itself
+        await asyncio.gather(*client._client._background)  # the close it handed over
+
+    client._loop.run(collected_there(), scaled(5))
+    settled(client)
+    assert server.joints.subscription_count == 0

@@ -211,8 +211,10 @@ class Client:
     """A blocking connection to one srvwire server, usable from several threads at once.
 
     Made by :func:`connect`. Its methods are the async :class:`srvwire.Client`'s, blocking:
-    :meth:`call`, :meth:`proxy`, :meth:`wait_for_service`, :meth:`list_services`,
-    :meth:`close`; they take the same arguments and raise the same errors.
+    :meth:`call`, :meth:`proxy`, :meth:`wait_for_service`, :meth:`list_services`, the
+    topics' :meth:`subscribe`, :meth:`publish`, :meth:`notify`, :meth:`wait_for_topic`,
+    :meth:`list_topics`, the actions' :meth:`send_goal`, and :meth:`close`; they take the
+    same arguments and raise the same errors.
     """
 
     def __init__(self, options: aio.connect, *, loop: LoopThread | None = None) -> None:
@@ -787,7 +789,7 @@ class Subscription(Generic[M]):
         client = self.client
         if threading.current_thread() is client._loop.thread:
             # Reached from the loop's own thread (a generator collected there): hand it over.
-            client._loop.loop.create_task(self._subscription.close())
+            client._client.spawn(self._subscription.close())  # kept until it is done
             return
         try:
             client._run(self._subscription.close(), client.timeout, self.name)
