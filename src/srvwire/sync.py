@@ -17,7 +17,9 @@ Invariants:
   ``timeout``, or the call's own); the blocking wait only backs it up, waiting at most
   :data:`BACKSTOP` seconds past it, so it ends even if the loop thread is stuck. A call
   pending when the loop ends (the client closed from another thread, or the thread dying)
-  fails at once with :class:`~srvwire.errors.ConnectionLost`.
+  fails at once with :class:`~srvwire.errors.ConnectionLost`. The one wait without a
+  deadline is a subscription's for its next message, unless given a ``timeout``; it too
+  ends at once when the loop ends.
 * **Nothing waits for itself.** A blocking call from the client's own loop thread (a type
   resolver, a log handler) raises ``RuntimeError`` instead of waiting forever.
 * **An unclosed client never keeps the process alive.** Its thread is a daemon thread; when
