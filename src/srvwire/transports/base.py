@@ -65,6 +65,7 @@ __all__ = [
     "TransportClosed",
     "TransportError",
     "WriteTimedOut",
+    "opening_failed",
     "write_timeout_reason",
 ]
 
@@ -339,3 +340,37 @@ class Transport(abc.ABC):
     @abc.abstractmethod
     def check_url(self, url: str) -> None:
         """Raise ``ValueError`` saying why when ``url`` is not an address of this transport."""
+
+
+def opening_failed(
+    url: str,
+    exc: BaseException,
+    *,
+    refused: tuple[int, str] | None = None,
+    closed_early: bool = False,
+) -> TransportError:
+    """Say why opening a connection to ``url`` failed, as a person can act on it.
+
+    ``refused`` is the HTTP status and body of an upgrade the server answered with something
+    else; ``closed_early`` says the server closed the connection during the opening handshake
+    (what a TLS server does to a plain client). Every transport words its failures here.
+    """
+    tls = url.lower().startswith("wss:")
+    if refused is not None:
+        status, body = refused
+        return TransportError(
+            f"the server refused the connection: HTTP {status}" + (f": {body}" if body else "")
+        )
+    if isinstance(exc, _ssl.SSLCertVerificationError):
+        return TransportError(f"the server's TLS certificate is not trusted: {exc.verify_message}")
+    if tls and isinstance(exc, _ssl.SSLError | ConnectionResetError | EOFError):
+        detail = str(exc) or type(exc).__name__
+        return TransportError(
+            f"the TLS handshake failed; the server may not speak TLS (try ws://): {detail}"
+        )
+    if not tls and closed_early:
+        return TransportError(
+            "the server closed the connection during the opening handshake; "
+            f"it may speak TLS (try wss://): {exc}"
+        )
+    return TransportError(str(exc) or type(exc).__name__)

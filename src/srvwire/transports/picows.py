@@ -86,6 +86,7 @@ from srvwire.transports.base import (
     TransportClosed,
     TransportError,
     WriteTimedOut,
+    opening_failed,
 )
 
 __all__ = ["PicowsConnection", "PicowsListener", "PicowsTransport"]
@@ -712,24 +713,9 @@ def _handshake(protocol: WSProtocol, request: WSUpgradeRequest) -> Handshake:
 
 
 def _refusal(exc: Exception, url: str) -> TransportError:
-    """Say why opening a connection to ``url`` failed, as a person can act on it."""
-    tls = url.lower().startswith("wss:")
+    """Say why opening a connection to ``url`` failed (see :func:`opening_failed`)."""
+    refused = None
     if isinstance(exc, WSHandshakeError) and exc.response is not None:
         body = (exc.raw_body or b"").decode("utf-8", "replace").strip()
-        status = _code(exc.response.status)
-        return TransportError(
-            f"the server refused the connection: HTTP {status}" + (f": {body}" if body else "")
-        )
-    if isinstance(exc, _ssl.SSLCertVerificationError):
-        return TransportError(f"the server's TLS certificate is not trusted: {exc.verify_message}")
-    if tls and isinstance(exc, _ssl.SSLError | ConnectionResetError | EOFError):
-        detail = str(exc) or type(exc).__name__
-        return TransportError(
-            f"the TLS handshake failed; the server may not speak TLS (try ws://): {detail}"
-        )
-    if not tls and isinstance(exc, WSError):
-        return TransportError(
-            "the server closed the connection during the opening handshake; "
-            f"it may speak TLS (try wss://): {exc}"
-        )
-    return TransportError(str(exc) or type(exc).__name__)
+        refused = (_code(exc.response.status), body)
+    return opening_failed(url, exc, refused=refused, closed_early=isinstance(exc, WSError))

@@ -99,6 +99,7 @@ from srvwire.transports.base import (
     TransportClosed,
     TransportError,
     WriteTimedOut,
+    opening_failed,
     write_timeout_reason,
 )
 
@@ -233,27 +234,12 @@ class _Redacting(logging.LoggerAdapter[logging.Logger]):
 
 
 def _refusal(exc: Exception, url: str) -> TransportError:
-    """Say why opening a connection to ``url`` failed, as a person can act on it."""
-    tls = url.lower().startswith("wss:")
+    """Say why opening a connection to ``url`` failed (see :func:`opening_failed`)."""
+    refused = None
     if isinstance(exc, InvalidStatus):
         body = exc.response.body.decode("utf-8", "replace").strip()
-        status = exc.response.status_code
-        return TransportError(
-            f"the server refused the connection: HTTP {status}" + (f": {body}" if body else "")
-        )
-    if isinstance(exc, _ssl.SSLCertVerificationError):
-        return TransportError(f"the server's TLS certificate is not trusted: {exc.verify_message}")
-    if tls and isinstance(exc, _ssl.SSLError | ConnectionResetError | EOFError):
-        detail = str(exc) or type(exc).__name__
-        return TransportError(
-            f"the TLS handshake failed; the server may not speak TLS (try ws://): {detail}"
-        )
-    if not tls and isinstance(exc, InvalidMessage):
-        return TransportError(
-            "the server closed the connection during the opening handshake; "
-            f"it may speak TLS (try wss://): {exc}"
-        )
-    return TransportError(str(exc) or type(exc).__name__)
+        refused = (exc.response.status_code, body)
+    return opening_failed(url, exc, refused=refused, closed_early=isinstance(exc, InvalidMessage))
 
 
 _WILDCARDS = ("", "0.0.0.0", "::")
