@@ -469,6 +469,10 @@ class Client:
         service's. Then ``async for fb in handle.feedback()``, ``await handle.result()``,
         ``await handle.cancel()``, ``handle.status``.
 
+        Before the first goal of the action on a connection, the action class is compared with
+        the server's by the fingerprint ``$/services`` announced, as :meth:`call` compares a
+        service's (:class:`~srvwire.errors.InterfaceConflictError` when they differ).
+
         Raise :class:`~srvwire.errors.GoalRejected` with the server's reason when it refused
         the goal, and the errors :meth:`call` raises.
         """
@@ -485,6 +489,8 @@ class Client:
         action = await self._action_of(link, method, named, deadline, budget)
         service = goal_service(action)
         codec = ServiceCodec(service, self.options.inf_nan)
+        if method not in link.verified:
+            await self._verify(link, method, codec, self._services.get(method), deadline, budget)
         params = encode_request(method, codec, goal)
         remaining = deadline - loop.time()
         handle: ClientGoal[Any] = ClientGoal(
