@@ -13,8 +13,14 @@ from conftest import open_wire
 from srvwire import GoalHandle, GoalRejected, load_action, load_service
 from srvwire.actions import ClientGoal, GoalResult, goal_service
 from srvwire.auth import Identity, TokenAuth
-from srvwire.client import connect
-from srvwire.errors import ConnectionLost, DeadlineExceeded, PermissionDenied, RegistrationError
+from srvwire.client import Client, connect
+from srvwire.errors import (
+    ConnectionLost,
+    DeadlineExceeded,
+    InterfaceConflictError,
+    PermissionDenied,
+    RegistrationError,
+)
 from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notification, goal_news
 from srvwire.models import ModelDecoder, build_action
 from srvwire.parser import parse_action
@@ -22,6 +28,7 @@ from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection, Writer
 from srvwire.topics import Outbox, QoS, Topic
 from srvwire.transports.base import Transport
+from srvwire.typeregistry import fingerprint, full_definition
 from support import scaled
 
 Fibonacci = load_action("example_interfaces/action/Fibonacci")
@@ -357,6 +364,53 @@ async def test_an_action_type_the_client_does_not_have_comes_from_the_descriptio
         handle = await client.send_goal("/spin", {"steps": 2})
         outcome = await handle.result()
         assert outcome.status == "succeeded" and outcome.result.done is True
+
+
+async def test_a_local_action_type_is_checked_against_the_servers_fingerprint(
+    transport: Transport, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    text = "int32 turns\n---\nbool done\n---\nfloat32 progress\n"
+    Turn = build_action(parse_action(text, "srvwire_fp_actions", "Turn"))
+    # The same definition in other words (comments); and another one.
+    Same = build_action(parse_action("# How many.\n" + text, "srvwire_fp_actions", "Turn"))
+    Other = build_action(parse_action(text.replace("int32", "int64"), "srvwire_fp_actions", "Turn"))
+    server = Server()
+
+    @server.action("/turn", Turn)
+    async def turn(goal: Any, handle: GoalHandle) -> Any:
+        return {"done": True}
+
+    asked: list[str] = []
+    methods = Client._methods
+
+    async def counted(self: Client, *args: Any) -> Any:
+        asked.append(self.url)
+        return await methods(self, *args)
+
+    monkeypatch.setattr(Client, "_methods", counted)
+    async with (
+        serve(server, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        assert client._link is not None
+        assert client._link.fingerprints == {"/turn": fingerprint(full_definition(Turn) or {})}
+        handle = await client.send_goal("/turn", {"turns": 1}, action_type=Same)
+        assert (await handle.result()).status == "succeeded"
+        assert asked == [] and client._link.verified == {"/turn"}  # no description asked for
+    async with (
+        serve(server, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        with pytest.raises(InterfaceConflictError) as caught:
+            await client.send_goal("/turn", {"turns": 1}, action_type=Other)
+        assert asked == [running.url]  # the description, asked for only to say what differs
+        assert server.registry.get("/turn") is not None
+        assert not connection(running).session.calls  # nothing was sent
+    assert str(caught.value) == (
+        "two different definitions of srvwire_fp_actions/action/Turn: the local class and "
+        f"server {running.url} (declaration 1: 'int64 turns' against 'int32 turns'); "
+        "a type name has one definition per process"
+    )
 
 
 # --- the wire ---------------------------------------------------------------------------------

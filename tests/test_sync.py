@@ -572,6 +572,23 @@ def test_a_subscription_as_a_context_manager_with_a_timeout_per_message(
     assert removed.value.message == "the topic /joint_states was removed"
 
 
+def test_a_subscription_with_a_duration_ends_with_deadline_exceeded(
+    robot: tuple[Robot, srvwire.sync.Client],
+) -> None:
+    server, client = robot
+    with client.subscribe("/joint_states", JointState, duration=0.25) as sub:
+        assert server.joints.subscription_count == 1
+        with pytest.raises(DeadlineExceeded) as caught:
+            for _ in sub:  # whatever is stored, then the end the server sent
+                pass
+        assert caught.value.message == (
+            "the subscription to /joint_states reached its deadline (0.25 s)"
+        )
+        assert not sub.active
+    settled(client)
+    assert server.joints.subscription_count == 0
+
+
 def test_a_subscription_iterated_in_another_thread_and_closed_from_this_one(
     robot: tuple[Robot, srvwire.sync.Client],
 ) -> None:

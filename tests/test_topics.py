@@ -17,6 +17,7 @@ import pytest
 from conftest import Subtract, Wire, open_wire, subtract
 from srvwire import (
     ConnectionLost,
+    DeadlineExceeded,
     Identity,
     InvalidParams,
     PermissionDenied,
@@ -281,6 +282,58 @@ async def test_cancel_disconnect_and_removal_end_subscriptions(
     assert writer is not None
     await asyncio.wait({writer})
     assert pub.subscription_count == 0 and not served.writer.outbox.subscriptions
+
+
+async def test_a_deadline_ends_a_subscription(robot: Server, running: RunningServer) -> None:
+    pub = robot.topic("/joint_states", JointState)
+    async with client_of(running) as client:
+        await client.wait_for_topic("/joint_states")
+        (served,) = running._connections
+        outbox = served.writer.outbox
+        async with client.subscribe("/joint_states", duration=0.25) as sub:
+            pub.publish(joints(1))
+            assert (await sub.receive()).position == [1.0]
+            with pytest.raises(DeadlineExceeded) as caught:
+                await sub.receive()
+        assert caught.value.message == (
+            "the subscription to /joint_states reached its deadline (0.25 s)"
+        )
+        assert caught.value.data == {"timeout": 0.25} and caught.value.service == "/joint_states"
+        assert not sub.active and not client._subscriptions
+        assert pub.subscription_count == 0 and not outbox.subscriptions and outbox.queued == 0
+        # Ended earlier ($/cancel here), its deadline's timer is cancelled with it.
+        async with client.subscribe("/joint_states", duration=scaled(60)):
+            (running_sub,) = outbox.subscriptions.values()
+            assert running_sub.timer is not None
+        await client.call("/subtract", {"minuend": 1, "subtrahend": 1})
+        assert running_sub.timer is None and pub.subscription_count == 0
+        with pytest.raises(ValueError, match="duration must be a finite number of seconds > 0"):
+            client.subscribe("/joint_states", duration=0)
+    # On the wire: the deadline is the request's _meta.timeout, answered DEADLINE_EXCEEDED.
+    wire = await open_wire(running)
+    try:
+        await wire.send(
+            {
+                "jsonrpc": "2.0",
+                "id": 5,
+                "method": "$/subscribe",
+                "params": {"topic": "/joint_states", "_meta": {"timeout": 0.1}},
+            }
+        )
+        assert (await recv_topic(wire))["method"] == "$/subscribed"
+        reply = await recv_topic(wire)
+        assert reply == {
+            "jsonrpc": "2.0",
+            "id": 5,
+            "error": {
+                "code": -32001,
+                "message": "the subscription to /joint_states reached its deadline (0.1 s)",
+                "data": {"status": "DEADLINE_EXCEEDED", "timeout": 0.1},
+            },
+        }
+        assert pub.subscription_count == 0
+    finally:
+        await wire.close()
 
 
 async def test_a_reliable_subscriber_that_does_not_keep_up_is_ended(

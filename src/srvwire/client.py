@@ -469,6 +469,10 @@ class Client:
         service's. Then ``async for fb in handle.feedback()``, ``await handle.result()``,
         ``await handle.cancel()``, ``handle.status``.
 
+        Before the first goal of the action on a connection, the action class is compared with
+        the server's by the fingerprint ``$/services`` announced, as :meth:`call` compares a
+        service's (:class:`~srvwire.errors.InterfaceConflictError` when they differ).
+
         Raise :class:`~srvwire.errors.GoalRejected` with the server's reason when it refused
         the goal, and the errors :meth:`call` raises.
         """
@@ -485,6 +489,8 @@ class Client:
         action = await self._action_of(link, method, named, deadline, budget)
         service = goal_service(action)
         codec = ServiceCodec(service, self.options.inf_nan)
+        if method not in link.verified:
+            await self._verify(link, method, codec, self._services.get(method), deadline, budget)
         params = encode_request(method, codec, goal)
         remaining = deadline - loop.time()
         handle: ClientGoal[Any] = ClientGoal(
@@ -813,13 +819,17 @@ class Client:
         *,
         qos: Mapping[str, Any] | None = None,
         timeout: float | None = None,
+        duration: float | None = None,
     ) -> Subscription:
         """Subscribe to the topic ``name``: ``async for msg in client.subscribe(name):``.
 
         Messages are typed: ``msg_type`` (a class, or a type name), else the type the server
         announced, found as :func:`connect` says for calls (local first, then the server's
         description). ``qos`` asks for ``depth``, ``reliability`` and ``durability`` (default:
-        the topic's); ``timeout`` bounds the subscribing (default: the client's timeout).
+        the topic's); ``timeout`` bounds the subscribing (default: the client's timeout);
+        ``duration`` is the subscription's deadline, sent as ``_meta.timeout``: when it passes,
+        the server ends the subscription and iterating raises ``DeadlineExceeded`` (default:
+        none, it runs until it is closed).
 
         Used with ``async for`` alone, leaving the loop ends the subscription; ``async with
         client.subscribe(name) as sub:`` holds it until the block ends, and ``async for msg in
@@ -827,10 +837,12 @@ class Client:
         resumes after the connection comes back, and counts the messages it missed
         (:attr:`Subscription.dropped`). Iterating raises the error that ended it:
         ``ServiceNotFound`` (no such topic, or it was removed), ``PermissionDenied``,
-        ``ResourceExhausted`` (a reliable subscriber that did not keep up), ``ConnectionLost``.
+        ``ResourceExhausted`` (a reliable subscriber that did not keep up), ``DeadlineExceeded``
+        (its ``duration`` passed), ``ConnectionLost``.
         """
         budget = self.timeout if timeout is None else check_timeout(timeout)
-        return Subscription(self, canonical_name(name), msg_type, qos, budget)
+        lifetime = None if duration is None else check_timeout(duration, "duration")
+        return Subscription(self, canonical_name(name), msg_type, qos, budget, lifetime)
 
     async def publish(
         self,
@@ -1102,12 +1114,15 @@ class Subscription:
         msg_type: type[BaseModel] | str | None,
         qos: Mapping[str, Any] | None,
         budget: float,
+        duration: float | None = None,
     ) -> None:
         self.client = client
         self.name = name
         self.msg_type = msg_type
         self.qos = None if qos is None else dict(qos)
         self.budget = budget
+        self.duration = duration
+        self._until: float | None = None  # when the duration ends, on the loop's clock
         self.granted: dict[str, Any] = {}
         self.gaps = Gaps()
         self.seq: int | None = None
@@ -1235,8 +1250,14 @@ class Subscription:
         params: dict[str, Any] = {"topic": self.name}
         if self.qos is not None:
             params["qos"] = self.qos
+        left = self.duration
+        if left is not None:  # after a reconnect, only what is left of it
+            if self._until is None:
+                self._until = loop.time() + left
+            else:
+                left = max(0.0, self._until - loop.time())
         future: asyncio.Future[Arrived] = loop.create_future()
-        id, data = link.session.request(SUBSCRIBE_METHOD, encode_json(params), None, future)
+        id, data = link.session.request(SUBSCRIBE_METHOD, encode_json(params), left, future)
         self._link, self._id, self._future = link, id, future
         started = self._started = loop.create_future()
         link.streams[id] = self

@@ -53,7 +53,15 @@ from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError,
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
 from srvwire.protocol import Request
-from srvwire.session import Call, CancelCall, Dropped, NotificationCall, Publish, ServerSession
+from srvwire.session import (
+    Call,
+    CancelCall,
+    Dropped,
+    NotificationCall,
+    Publish,
+    ServerSession,
+    SubscriptionDeadline,
+)
 from srvwire.topics import Outbox, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
 
@@ -811,6 +819,14 @@ class ServedConnection:
                         await self.send(canceling)
                 elif kind is Publish:
                     await self.publish(event)
+                elif kind is SubscriptionDeadline:
+                    subscription = event.subscription
+                    subscription.timer = self.loop.call_later(
+                        event.timeout,
+                        self.writer.outbox.expire,
+                        subscription,
+                        event.timeout,
+                    )
                 else:
                     assert kind is Dropped
                     self.dropped(event)

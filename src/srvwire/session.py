@@ -39,7 +39,8 @@ Server invariants:
   credential checks as calls: ``$/subscribe`` starts a subscription in the connection's outbox,
   whose reply is written when it ends; ``$/publish`` becomes a :class:`Publish` for the shell to
   validate. Neither is read in a batch, and a subscription's id is in use, for calls too, until
-  it ends; ``$/cancel`` of it ends it with ``CANCELLED``.
+  it ends; ``$/cancel`` of it ends it with ``CANCELLED``. One with ``_meta.timeout`` is also a
+  :class:`SubscriptionDeadline` for the shell to arm (``DEADLINE_EXCEEDED`` when it passes).
 """
 
 from __future__ import annotations
@@ -106,6 +107,7 @@ __all__ = [
     "ServicesChanged",
     "Stray",
     "Subscribed",
+    "SubscriptionDeadline",
     "TopicMessage",
     "Topics",
     "TopicsChanged",
@@ -177,6 +179,15 @@ class Publish:
     topic: Any
     id: Id
     message: Any
+
+
+@dataclass(frozen=True, slots=True)
+class SubscriptionDeadline:
+    """A subscription started with ``_meta.timeout``: end it after ``timeout`` seconds
+    (the asyncio shell arms a timer and calls the outbox's ``expire``)."""
+
+    subscription: Any
+    timeout: float
 
 
 class _Batch:
@@ -299,7 +310,8 @@ class ServerSession(Generic[E]):
         """Read one message; return what to do about it, in order.
 
         Each event is ``bytes`` to send, a :class:`Call` to start, a
-        :class:`NotificationCall` to run, a :class:`CancelCall` to carry out, or a
+        :class:`NotificationCall` to run, a :class:`CancelCall` to carry out, a
+        :class:`Publish` to hand on, a :class:`SubscriptionDeadline` to arm, or a
         :class:`Dropped` notification to log. Never raises on what a peer sent.
         """
         incoming = parse_incoming(data)
@@ -431,7 +443,11 @@ class ServerSession(Generic[E]):
             return self._refuse(request, duplicate)
         if request.method == SUBSCRIBE_METHOD:
             subscribed = self.topics.subscribe(self.outbox, id, request.params, self.scopes)
-            return subscribed if type(subscribed) is bytes else None
+            if type(subscribed) is bytes:
+                return subscribed
+            if request.timeout is not None:
+                events.append(SubscriptionDeadline(subscribed, request.timeout))
+            return None
         publish = self._publish(request.params, id)
         if type(publish) is bytes:
             return publish

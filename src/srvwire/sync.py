@@ -449,6 +449,7 @@ class Client:
         qos: Mapping[str, Any] | None = None,
         timeout: float | None = None,
         message_timeout: float | None = None,
+        duration: float | None = None,
     ) -> Subscription[M]: ...
 
     @overload
@@ -460,6 +461,7 @@ class Client:
         qos: Mapping[str, Any] | None = None,
         timeout: float | None = None,
         message_timeout: float | None = None,
+        duration: float | None = None,
     ) -> Subscription[Any]: ...
 
     def subscribe(
@@ -470,6 +472,7 @@ class Client:
         qos: Mapping[str, Any] | None = None,
         timeout: float | None = None,
         message_timeout: float | None = None,
+        duration: float | None = None,
     ) -> Subscription[Any]:
         """Subscribe to the topic ``name``: ``for msg in client.subscribe(name):``.
 
@@ -479,11 +482,15 @@ class Client:
         ``sub.get(timeout=...)`` take one message. ``message_timeout`` bounds each wait for a
         message (default: none); when it passes, :class:`~srvwire.errors.DeadlineExceeded`
         (a ``TimeoutError``) is raised and the subscription goes on. With a message class as
-        ``msg_type``, a type checker knows the messages are of that class.
+        ``msg_type``, a type checker knows the messages are of that class. ``duration`` is the
+        subscription's deadline on the server, as for :meth:`srvwire.Client.subscribe`: when it
+        passes, the subscription ends with :class:`~srvwire.errors.DeadlineExceeded`.
         """
         if message_timeout is not None:
             check_timeout(message_timeout)
-        subscription = self._client.subscribe(name, msg_type, qos=qos, timeout=timeout)
+        subscription = self._client.subscribe(
+            name, msg_type, qos=qos, timeout=timeout, duration=duration
+        )
         return Subscription(self, subscription, message_timeout)
 
     def publish(

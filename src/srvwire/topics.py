@@ -28,7 +28,9 @@ Invariants:
   a best-effort subscription.
 * **Every subscription ends once, with a reply**: ``$/cancel`` (``CANCELLED``), the topic
   removed (``SERVICE_NOT_FOUND``), a reliable subscriber that cannot keep up
-  (``RESOURCE_EXHAUSTED``); or silently with its connection. Its queue is dropped then.
+  (``RESOURCE_EXHAUSTED``), its ``_meta.timeout`` passed (``DEADLINE_EXCEEDED``, armed by the
+  asyncio shell, which calls :meth:`Outbox.expire`); or silently with its connection. Its
+  queue is dropped then, and its deadline's timer cancelled.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from typing import Any, Generic, TypeVar
 
 from srvwire.errors import (
     Cancelled,
+    DeadlineExceeded,
     InvalidParams,
     PermissionDenied,
     ResourceExhausted,
@@ -207,7 +210,7 @@ class Topic(Generic[T]):
 class Subscription:
     """One subscription: its id (the ``$/subscribe`` request's), its topic, its queue."""
 
-    __slots__ = ("dropped", "id", "outbox", "prefix", "qos", "queue", "ready", "topic")
+    __slots__ = ("dropped", "id", "outbox", "prefix", "qos", "queue", "ready", "timer", "topic")
 
     def __init__(self, id: Id, topic: Topic[Any], qos: QoS, outbox: Outbox) -> None:
         self.id = id
@@ -217,6 +220,7 @@ class Subscription:
         self.queue: deque[tuple[int, bytes]] = deque()
         self.dropped = 0  # dropped since the last message taken out
         self.ready = False  # in the outbox's round-robin
+        self.timer: Any = None  # its deadline's timer (has cancel()), set by the asyncio shell
         self.prefix = (
             b'{"jsonrpc":"2.0","method":"$/message","params":{"subscription":'
             + encode_json(id).encode()
@@ -342,6 +346,9 @@ class Outbox:
             return False
         del self.subscriptions[subscription.id]
         subscription.topic.subscriptions.discard(subscription)
+        if subscription.timer is not None:
+            subscription.timer.cancel()
+            subscription.timer = None
         for _, data in subscription.queue:
             self.queued -= len(data)
         subscription.queue.clear()
@@ -358,6 +365,20 @@ class Outbox:
         if subscription is None:
             return False
         return self.end(subscription, Cancelled("the subscriber cancelled the subscription"))
+
+    def expire(self, subscription: Subscription, timeout: float) -> bool:
+        """The subscription's ``_meta.timeout`` (``timeout`` seconds) passed: end it with
+        ``DEADLINE_EXCEEDED``; say if it ran."""
+        subscription.timer = None
+        return self.end(
+            subscription,
+            DeadlineExceeded(
+                f"the subscription to {subscription.topic.name} reached its deadline "
+                f"({timeout:g} s)",
+                {"timeout": timeout},
+                service=subscription.topic.name,
+            ),
+        )
 
     def close(self) -> None:
         """The connection is gone: end every subscription silently and drop what is queued."""

@@ -87,9 +87,13 @@ def full_definition(cls: Any) -> dict[str, tuple[str, ...]] | None:
     ``cls`` is a message, service or action class carrying its ``spec``; the nested messages
     are found through its (and its parts') fields. None when ``cls`` has no spec (a class
     written by hand): it has no definition to compare. A nested class without a spec is left
-    out.
+    out. An action's goal service (no spec of its own, its ``action`` has one) stands for its
+    action, so that a served action has its action's fingerprint.
     """
     spec = getattr(cls, "spec", None)
+    if spec is None and isinstance(getattr(getattr(cls, "action", None), "spec", None), ActionSpec):
+        cls = cls.action
+        spec = cls.spec
     if not isinstance(spec, MessageSpec | ServiceSpec | ActionSpec):
         return None
     found: dict[str, tuple[str, ...]] = {spec.type_name: definition_lines(spec)}
