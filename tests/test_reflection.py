@@ -93,7 +93,12 @@ def robot_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
 
 def serving(tmp_path: Path, interfaces: Path) -> Iterator[str]:
-    app = write(tmp_path, "robot_app.py", APP.format(folder=str(interfaces)))
+    yield from serving_app(write(tmp_path, "robot_app.py", APP.format(folder=str(interfaces))))
+
+
+def serving_app(app: Path) -> Iterator[str]:
+    """``srvwire serve`` the server of ``app`` in a subprocess, with no interface path variable;
+    yield its URL."""
     env = {k: v for k, v in os.environ.items() if k != ENV_VAR}
     with subprocess.Popen(
         [sys.executable, "-m", "srvwire", "serve", f"{app}:server", "--port", "0"],
@@ -398,21 +403,7 @@ def serving_speed(tmp_path: Path, package: str, limits: str, older: str = "") ->
         "speed_app.py",
         SPEED_APP.format(folder=str(interfaces), package=package, older=older),
     )
-    env = {k: v for k, v in os.environ.items() if k != ENV_VAR}
-    with subprocess.Popen(
-        [sys.executable, "-m", "srvwire", "serve", f"{app}:server", "--port", "0"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    ) as process:
-        try:
-            assert process.stdout is not None and process.stderr is not None
-            first = process.stdout.readline()
-            assert first.startswith("serving 1 service on ws://"), first + process.stderr.read()
-            yield first.split(" on ")[1].strip()
-        finally:
-            process.kill()
+    yield from serving_app(app)
 
 
 def counting_descriptions(monkeypatch: pytest.MonkeyPatch) -> list[str]:
