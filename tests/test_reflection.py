@@ -225,10 +225,8 @@ def limits_server() -> tuple[srvwire.Server, type[srvwire.Service]]:
     return server, SetLimits
 
 
-async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
-    monkeypatch: pytest.MonkeyPatch, no_path_variable: None
-) -> None:
-    server, SetLimits = limits_server()
+def serving_descriptions(monkeypatch: pytest.MonkeyPatch) -> list[object]:
+    """Record each rpc.discover document a server in this process writes."""
     described: list[object] = []
     discover_json = ServiceRegistry.discover_json
 
@@ -237,6 +235,14 @@ async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
         return discover_json(registry, scopes)
 
     monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
+    return described
+
+
+async def test_a_client_in_the_servers_process_gets_the_servers_own_classes(
+    monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    server, SetLimits = limits_server()
+    described = serving_descriptions(monkeypatch)
     transport = srvwire.MemoryTransport()
     async with (
         srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running,
@@ -261,14 +267,7 @@ async def test_the_description_is_asked_again_after_the_services_change(
     monkeypatch: pytest.MonkeyPatch, no_path_variable: None
 ) -> None:
     server, _ = limits_server()
-    described: list[object] = []
-    discover_json = ServiceRegistry.discover_json
-
-    def counted(registry: ServiceRegistry, scopes: frozenset[str] | None = None) -> str:
-        described.append(registry)
-        return discover_json(registry, scopes)
-
-    monkeypatch.setattr(ServiceRegistry, "discover_json", counted)
+    described = serving_descriptions(monkeypatch)
     Reset = build_service(parse_service("---\nbool done\n", "inproc_robot", "Reset"))
     transport = srvwire.MemoryTransport()
     async with (
