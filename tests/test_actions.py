@@ -11,7 +11,7 @@ import pytest
 
 from conftest import open_wire
 from srvwire import GoalHandle, GoalRejected, load_action, load_service
-from srvwire.actions import ClientGoal, GoalResult, goal_service
+from srvwire.actions import ClientGoal, GoalResult, GoalRunner, goal_service
 from srvwire.auth import Identity, TokenAuth
 from srvwire.client import Client, connect
 from srvwire.errors import (
@@ -20,12 +20,14 @@ from srvwire.errors import (
     InterfaceConflictError,
     PermissionDenied,
     RegistrationError,
+    ServiceUnavailable,
 )
 from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notification, goal_news
 from srvwire.models import ModelDecoder, build_action
 from srvwire.parser import parse_action
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection, Writer
+from srvwire.threads import ConcurrencyLimit, HandlerThreads
 from srvwire.topics import Outbox, QoS, Topic
 from srvwire.transports.base import Transport
 from srvwire.typeregistry import fingerprint, full_definition
@@ -657,3 +659,409 @@ def test_an_action_type_is_not_a_service_type() -> None:
     service = load_action("example_interfaces/action/Fibonacci")
     with pytest.raises(RegistrationError, match="must be an action type"):
         server.add_action("/x", service.Goal, lambda goal, handle: None)  # type: ignore[arg-type]
+
+
+# --- max_concurrency: goals wait for a slot, as a service's calls do ----------------------------
+
+Trigger = load_service("std_srvs/srv/Trigger")
+
+
+def add_ping(server: Server) -> None:
+    """A service to make a round trip with: its reply comes after every message sent before."""
+    server.add_service("/ping", Trigger, lambda request: {"success": True})
+
+
+async def round_trip(client: Client) -> None:
+    """Once it returns, the server has read every goal sent before, and run each up to its
+    first wait (a goal runs on the reader until it has to wait)."""
+    assert (await client.call("/ping", {})).success
+
+
+def limit_of(server: Server, name: str) -> ConcurrencyLimit:
+    entry = server.registry.get(name)
+    assert entry is not None and isinstance(entry.handler, GoalRunner)
+    assert entry.handler.limit is not None
+    return entry.handler.limit
+
+
+async def test_an_async_actions_max_concurrency_bounds_its_handlers_over_all_connections(
+    transport: Transport,
+) -> None:
+    server = Server()
+    add_ping(server)
+    release = asyncio.Event()
+    both_run = asyncio.Event()
+    running_now: list[int] = []
+    peak = 0
+
+    @server.action("/limited", Fibonacci, max_concurrency=2)
+    async def limited(goal: Any, handle: GoalHandle) -> Any:
+        nonlocal peak
+        running_now.append(goal.order)
+        peak = max(peak, len(running_now))
+        if len(running_now) == 2:
+            both_run.set()
+        try:
+            await release.wait()
+        finally:
+            running_now.remove(goal.order)
+        return {"sequence": [goal.order]}
+
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        url, how = running.url, running.transport
+        async with (
+            connect(url, transport=how, timeout=scaled(10)) as one,
+            connect(url, transport=how, timeout=scaled(10)) as two,
+        ):
+            first = [await one.send_goal("/limited", {"order": n}) for n in (1, 2)]
+            await both_run.wait()
+            later = [
+                await two.send_goal("/limited", {"order": 3}),
+                await one.send_goal("/limited", {"order": 4}),
+            ]
+            await round_trip(one)
+            await round_trip(two)
+            limit = limit_of(server, "/limited")
+            assert (limit.running, limit.waiting) == (2, 2)
+            assert [h.status for h in later] == ["accepted", "accepted"]  # not executing yet
+            assert running_now == [1, 2]
+            release.set()
+            outcomes = [await h.result() for h in (*first, *later)]
+            assert outcomes == [
+                GoalResult("succeeded", Fibonacci.Result(sequence=[n])) for n in (1, 2, 3, 4)
+            ]
+            assert peak == 2
+            assert (limit.running, limit.waiting) == (0, 0)
+            assert_nothing_left_after(running)
+
+
+async def test_a_goal_waiting_for_a_slot_ends_on_cancel_and_deadline_without_running(
+    transport: Transport,
+) -> None:
+    server = Server()
+    add_ping(server)
+    release = asyncio.Event()
+    started: list[int] = []
+
+    # A long cancel_grace: a goal cancelled as it waits must end at once, not be cut later.
+    @server.action("/one_at_a_time", Fibonacci, max_concurrency=1, cancel_grace=scaled(60))
+    async def one_at_a_time(goal: Any, handle: GoalHandle) -> Any:
+        started.append(goal.order)
+        await release.wait()
+        return {"sequence": [goal.order]}
+
+    async with (
+        serve(server, "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=running.transport, timeout=scaled(10)) as client,
+    ):
+        busy = await client.send_goal("/one_at_a_time", {"order": 1})
+        cancelled = await client.send_goal("/one_at_a_time", {"order": 2})
+        await round_trip(client)
+        assert cancelled.status == "accepted"
+        assert await cancelled.cancel() is True
+        # Canceled before it ran: the outcome is the result's defaults, sent by the server.
+        assert await cancelled.result() == GoalResult("canceled", Fibonacci.Result())
+        # The server's deadline, with no client of ours to give up first.
+        wire = await open_wire(running)
+        params = {"order": 3, "_meta": {"timeout": scaled(0.3)}}
+        await wire.send(
+            {"jsonrpc": "2.0", "id": "late", "method": "/one_at_a_time", "params": params}
+        )
+        received = [await wire.recv()]
+        while received[-1].get("id") != "late":
+            received.append(await wire.recv())
+        states = [m["params"]["status"] for m in received if m.get("method") == "$/goal"]
+        assert states == ["accepted"]
+        assert received[-1]["error"]["data"]["status"] == "DEADLINE_EXCEEDED"
+        limit = limit_of(server, "/one_at_a_time")
+        assert (limit.running, limit.waiting) == (1, 0)
+        release.set()
+        assert (await busy.result()).status == "succeeded"
+        assert started == [1]
+        assert (limit.running, limit.waiting) == (0, 0)
+        assert_nothing_left_after(running)
+        await wire.ws.close()
+
+
+async def test_a_plain_def_actions_slot_is_held_until_its_thread_returns(
+    transport: Transport,
+) -> None:
+    server = Server()
+    add_ping(server)
+    loop = asyncio.get_running_loop()
+    unblock = threading.Event()
+    lock = threading.Lock()
+    started: list[int] = []
+    first_started = asyncio.Event()
+    now = peak = 0
+
+    @server.action("/device", Fibonacci, max_concurrency=1, cancel_grace=scaled(0.05))
+    def device(goal: Any, handle: GoalHandle) -> Any:
+        """Ignores its cancellation: only ``unblock`` ends it."""
+        nonlocal now, peak
+        with lock:
+            now += 1
+            peak = max(peak, now)
+            started.append(goal.order)
+        loop.call_soon_threadsafe(first_started.set)
+        try:
+            unblock.wait(scaled(30))
+        finally:
+            with lock:
+                now -= 1
+        return {"sequence": [goal.order]}
+
+    try:
+        async with (
+            serve(server, "127.0.0.1", 0, transport=transport) as running,
+            connect(running.url, transport=running.transport, timeout=scaled(10)) as client,
+        ):
+            first = await client.send_goal("/device", {"order": 1})
+            await first_started.wait()
+            second = await client.send_goal("/device", {"order": 2})
+            await first.cancel()
+            # Cut off after its grace period: the client hears CANCELLED, reported as canceled.
+            assert await first.result() == GoalResult("canceled", Fibonacci.Result())
+            await round_trip(client)
+            # Its thread still runs, and still holds the one slot: the second goal waits.
+            limit = limit_of(server, "/device")
+            assert (limit.running, limit.waiting) == (1, 1)
+            assert second.status == "accepted"
+            assert started == [1]
+            assert isinstance(server.executor, HandlerThreads)
+            assert server.executor.busy() == [device.__qualname__]
+            unblock.set()
+            assert await second.result() == GoalResult("succeeded", Fibonacci.Result(sequence=[2]))
+            assert started == [1, 2]
+            assert peak == 1
+            assert (limit.running, limit.waiting) == (0, 0)
+            assert_nothing_left_after(running)
+    finally:
+        unblock.set()
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, "2"])
+def test_an_actions_max_concurrency_is_a_whole_number_at_least_one(bad: Any) -> None:
+    server = Server()
+    with pytest.raises(RegistrationError) as refused:
+        server.add_action("/a", Fibonacci, lambda goal, handle: None, max_concurrency=bad)
+    assert str(refused.value) == (
+        f"max_concurrency for /a must be a whole number at least 1, not {bad!r}"
+    )
+
+
+# --- shutdown: running goals are asked to stop, then cut after the grace period ----------------
+
+
+class Shutdown:
+    """A server whose actions meet a shutdown: two that honour the request to stop (``async``
+    and plain ``def``), two that ignore it, and one that takes a goal at a time."""
+
+    def __init__(self, grace_period: float) -> None:
+        self.server = server = Server(grace_period=grace_period)
+        add_ping(server)
+        loop = asyncio.get_running_loop()
+        self.started: dict[str, asyncio.Event] = {}
+        self.ended: dict[str, asyncio.Event] = {}
+        self.handles: dict[str, GoalHandle] = {}
+        self.unblock = threading.Event()  # what ends the deaf thread
+        for name in ("/polite", "/polite_thread", "/deaf", "/deaf_thread", "/single"):
+            self.started[name] = asyncio.Event()
+            self.ended[name] = asyncio.Event()
+        orders: list[int] = []
+        self.orders = orders
+
+        def begin(name: str, handle: GoalHandle) -> None:
+            self.handles[name] = handle
+            loop.call_soon_threadsafe(self.started[name].set)
+
+        def end(name: str) -> None:
+            loop.call_soon_threadsafe(self.ended[name].set)
+
+        @server.action("/polite", Fibonacci, cancel_grace=scaled(60))
+        async def polite(goal: Any, handle: GoalHandle) -> Any:
+            """Works until asked to stop, then says where it got to, and returns that."""
+            begin("/polite", handle)
+            try:
+                await handle.feedback({"sequence": [0]})
+                await handle.cancelled()
+                await handle.feedback({"sequence": [0, 1]})  # a last word
+                return {"sequence": [0, 1]}
+            finally:
+                end("/polite")
+
+        @server.action("/polite_thread", Fibonacci, cancel_grace=scaled(60))
+        def polite_thread(goal: Any, handle: GoalHandle) -> Any:
+            begin("/polite_thread", handle)
+            try:
+                steps = [0]
+                handle.publish_feedback({"sequence": steps})
+                while not handle.wait_for_cancel(scaled(30)):
+                    steps.append(len(steps))  # never reached: the backstop of a hang
+                handle.publish_feedback({"sequence": [*steps, 1]})
+                return {"sequence": [*steps, 1]}
+            finally:
+                end("/polite_thread")
+
+        @server.action("/deaf", Fibonacci, cancel_grace=scaled(60))
+        async def deaf(goal: Any, handle: GoalHandle) -> Any:
+            begin("/deaf", handle)
+            try:
+                await asyncio.Event().wait()  # only being cancelled ends it
+            finally:
+                end("/deaf")
+
+        @server.action("/deaf_thread", Fibonacci, cancel_grace=scaled(60))
+        def deaf_thread(goal: Any, handle: GoalHandle) -> Any:
+            begin("/deaf_thread", handle)
+            try:
+                self.unblock.wait(scaled(30))
+                return {"sequence": [1]}
+            finally:
+                end("/deaf_thread")
+
+        @server.action("/single", Fibonacci, max_concurrency=1, cancel_grace=scaled(60))
+        async def single(goal: Any, handle: GoalHandle) -> Any:
+            orders.append(goal.order)
+            begin("/single", handle)
+            await handle.cancelled()
+            return {"sequence": [goal.order]}
+
+
+async def test_shutdown_asks_a_goal_to_stop_and_its_result_reaches_the_client(
+    transport: Transport,
+) -> None:
+    shutdown = Shutdown(grace_period=scaled(20))  # a goal that did not stop would take it all
+    running = await serve(shutdown.server, "127.0.0.1", 0, transport=transport)
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": "g", "method": "/polite", "params": {"order": 2}})
+    await shutdown.started["/polite"].wait()
+    served = connection(running)
+    closing = asyncio.create_task(running.close())
+    received = [await wire.recv()]
+    while received[-1].get("id") != "g":
+        received.append(await wire.recv())
+    said = [
+        m["params"].get("status") or m["params"]["feedback"] if "method" in m else m["result"]
+        for m in received
+    ]
+    assert said == [
+        "accepted",
+        "executing",
+        {"sequence": [0]},
+        "canceling",  # asked as a client's cancellation asks, before the handler woke
+        {"sequence": [0, 1]},  # its last word
+        {"status": "canceled", "result": {"sequence": [0, 1]}},
+    ]
+    assert shutdown.handles["/polite"].cancel_requested
+    await closing
+    assert_nothing_left(served)
+
+
+async def test_shutdown_asks_a_plain_def_goal_and_the_client_gets_its_result(
+    transport: Transport,
+) -> None:
+    shutdown = Shutdown(grace_period=scaled(20))
+    running = await serve(shutdown.server, "127.0.0.1", 0, transport=transport)
+    client = await connect(running.url, transport=running.transport, timeout=scaled(10))
+    handle = await client.send_goal("/polite_thread", {"order": 2})
+    await shutdown.started["/polite_thread"].wait()
+    served = connection(running)
+    closing = asyncio.create_task(running.close())
+    outcome = await handle.result()
+    assert outcome == GoalResult("canceled", Fibonacci.Result(sequence=[0, 1]))
+    assert handle.status == "canceled"
+    await closing
+    await shutdown.ended["/polite_thread"].wait()
+    assert_nothing_left(served)
+    await client.close()
+
+
+async def test_goals_that_ignore_shutdown_are_cut_after_the_grace_period(
+    transport: Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("WARNING", logger="srvwire.server")
+    shutdown = Shutdown(grace_period=scaled(0.2))
+    running = await serve(shutdown.server, "127.0.0.1", 0, transport=transport)
+    client = await connect(running.url, transport=running.transport, timeout=scaled(10))
+    try:
+        deaf = await client.send_goal("/deaf", {"order": 1})
+        deaf_thread = await client.send_goal("/deaf_thread", {"order": 1})
+        await shutdown.started["/deaf"].wait()
+        await shutdown.started["/deaf_thread"].wait()
+        served = connection(running)
+        closing = asyncio.create_task(running.close())
+        for handle in (deaf, deaf_thread):
+            with pytest.raises(ServiceUnavailable) as cut:
+                await handle.result()
+            assert "the server shut down before the call finished" in str(cut.value)
+            assert handle.status == "aborted"
+        # Both were asked first, as a client's cancellation asks.
+        assert shutdown.handles["/deaf"].cancel_requested
+        assert shutdown.handles["/deaf_thread"].cancel_requested
+        await closing
+        await shutdown.ended["/deaf"].wait()  # the async handler was cancelled
+        assert_nothing_left(served)
+        assert "cancelling 2 calls still running after the" in caplog.text
+        assert "leaving 1 blocking handler running in its thread: " in caplog.text
+    finally:
+        shutdown.unblock.set()
+        await client.close()
+    await shutdown.ended["/deaf_thread"].wait()
+
+
+async def test_shutdown_ends_a_goal_waiting_for_a_slot_without_running_it(
+    transport: Transport,
+) -> None:
+    shutdown = Shutdown(grace_period=scaled(20))
+    running = await serve(shutdown.server, "127.0.0.1", 0, transport=transport)
+    client = await connect(running.url, transport=running.transport, timeout=scaled(10))
+    first = await client.send_goal("/single", {"order": 1})
+    await shutdown.started["/single"].wait()
+    second = await client.send_goal("/single", {"order": 2})
+    await round_trip(client)
+    assert second.status == "accepted"
+    served = connection(running)
+    closing = asyncio.create_task(running.close())
+    assert await first.result() == GoalResult("canceled", Fibonacci.Result(sequence=[1]))
+    assert await second.result() == GoalResult("canceled", Fibonacci.Result())
+    await closing
+    assert shutdown.orders == [1]
+    limit = limit_of(shutdown.server, "/single")
+    assert (limit.running, limit.waiting) == (0, 0)
+    assert_nothing_left(served)
+    await client.close()
+
+
+async def test_a_goal_accepted_as_shutdown_begins_is_asked_to_stop_at_once(
+    transport: Transport,
+) -> None:
+    server = Server(grace_period=scaled(20))
+    accepting = asyncio.Event()
+    admit = asyncio.Event()
+    seen: list[bool] = []
+
+    async def accept(goal: Any) -> bool:
+        accepting.set()
+        await admit.wait()
+        return True
+
+    @server.action("/late", Fibonacci, accept=accept)
+    async def late(goal: Any, handle: GoalHandle) -> Any:
+        seen.append(handle.cancel_requested)
+        return {"sequence": [1]}
+
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": 1, "method": "/late", "params": {"order": 1}})
+    await accepting.wait()
+    closing = asyncio.create_task(running.close())
+    admit.set()  # the goal goes on after the shutdown's first step: tasks run in order
+    received = [await wire.recv()]
+    while received[-1].get("id") != 1:
+        received.append(await wire.recv())
+    states = [m["params"]["status"] for m in received if m.get("method") == "$/goal"]
+    assert states == ["accepted", "canceling"]
+    assert received[-1]["result"] == {"status": "canceled", "result": {"sequence": [1]}}
+    assert seen == [True]
+    await closing

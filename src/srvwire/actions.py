@@ -12,6 +12,17 @@ Server invariants:
   :class:`~srvwire.errors.GoalRejected` (or by returning False), and the refusal is the
   call's error reply; otherwise ``$/goal accepted`` then ``$/goal executing`` are sent, in
   that order, before the handler starts.
+* **``max_concurrency`` counts handlers, as a service's does.** An accepted goal waits for a
+  slot of its action, in order, in the state ``accepted``; ``executing`` is sent when it has
+  one. Its deadline still ends the wait, and a cancellation asked for meanwhile ends the goal
+  ``canceled`` with the result's defaults, its handler never run. A plain ``def`` handler's
+  thread holds its slot until the handler returns, even after the goal was answered; one
+  whose goal ended before a thread took it never runs.
+* **Shutdown asks before it cuts.** When the server shuts down, each running goal is asked
+  to stop exactly as a client's cancellation asks (``$/goal canceling``,
+  :attr:`GoalHandle.cancel_requested`), but has the server's ``grace_period`` instead of the
+  action's ``cancel_grace``; one still running when that passes is cancelled with the other
+  calls, and answers ``UNAVAILABLE``.
 * **The outcome's status is the handler's word, else the cancellation's**: a handler that
   called :meth:`GoalHandle.abort`, :meth:`GoalHandle.succeed` or :meth:`GoalHandle.canceled`
   gets that status; otherwise a goal whose cancellation was requested ends ``canceled`` and
@@ -63,6 +74,7 @@ from srvwire.models import (
     summarize_errors,
     validate_python,
 )
+from srvwire.threads import ConcurrencyLimit
 
 __all__ = [
     "ClientGoal",
@@ -130,6 +142,11 @@ class GoalChannel(Protocol):
 
     @property
     def executor(self) -> Executor | None: ...
+
+    @property
+    def closing(self) -> bool:
+        """Whether the server is shutting down: a goal accepted now is asked to stop at once."""
+        ...
 
     async def send(self, data: bytes) -> None:
         """Send a control message (a ``$/goal``), ahead of any feedback."""
@@ -274,10 +291,11 @@ class GoalHandle:
         """End the goal ``canceled`` when the handler returns."""
         self._final = "canceled"
 
-    def request_cancel(self, stop: Callable[[], None]) -> bytes | None:
-        """The client asked to cancel (server use, on the loop): mark it, wake the handler,
-        and arm ``stop`` after the grace period. Return the ``$/goal canceling`` to send, or
-        None when a cancellation was asked for already."""
+    def request_cancel(self, stop: Callable[[], None] | None) -> bytes | None:
+        """The client (or the server's shutdown) asked to cancel (server use, on the loop):
+        mark it, wake the handler, and arm ``stop`` after the action's grace period (without
+        ``stop``, whoever asked keeps time). Return the ``$/goal canceling`` to send, or None
+        when a cancellation was asked for already or the goal is over."""
         if self.cancel_requested or self._closed:
             return None
         self.cancel_requested = True
@@ -286,7 +304,8 @@ class GoalHandle:
         for waiter in self._cancel_waiters:
             if not waiter.done():
                 waiter.set_result(None)
-        self._grace = self.channel.loop.call_later(self.cancel_grace, stop)
+        if stop is not None:
+            self._grace = self.channel.loop.call_later(self.cancel_grace, stop)
         return goal_notification(self.call, self.goal_id, "canceling")
 
     def outcome_status(self) -> str:
@@ -318,8 +337,9 @@ Accept = Callable[[Any], Any]
 
 
 class GoalRunner:
-    """The handler an action is registered with: accepts the goal, runs the user's handler
-    with a :class:`GoalHandle`, and returns the outcome (see the module's invariants)."""
+    """The handler an action is registered with: accepts the goal, waits for a slot when the
+    action has a ``limit``, runs the user's handler with a :class:`GoalHandle`, and returns
+    the outcome (see the module's invariants)."""
 
     def __init__(
         self,
@@ -329,6 +349,7 @@ class GoalRunner:
         *,
         accept: Accept | None = None,
         cancel_grace: float = DEFAULT_CANCEL_GRACE,
+        limit: ConcurrencyLimit | None = None,
     ) -> None:
         if not callable(handler):
             raise TypeError(f"the handler for {name} must be callable")
@@ -337,6 +358,8 @@ class GoalRunner:
         self.handler = handler
         self.accept = accept
         self.cancel_grace = cancel_grace
+        self.limit = limit
+        """How many of its handlers may run at once (``max_concurrency``); None for no limit."""
         self.is_async = inspect.iscoroutinefunction(handler) or inspect.iscoroutinefunction(
             getattr(handler, "__call__", None)  # noqa: B004 - an object with an async __call__
         )
@@ -358,8 +381,18 @@ class GoalRunner:
             self.name, goal, context, channel, self.action.Feedback, self.cancel_grace
         )
         context.goal = handle
+        limit = self.limit
+        holds_slot = False  # until the handler returns, or a blocking handler's job takes it
         try:
             await channel.send(goal_notification(handle.call, handle.goal_id, "accepted"))
+            if channel.closing:  # the server began to shut down as the goal was accepted
+                canceling = handle.request_cancel(None)
+                if canceling is not None:
+                    await channel.send(canceling)
+            if limit is not None:
+                if not await _take_slot(limit, handle):
+                    return {"status": "canceled", "result": self.action.Result()}
+                holds_slot = True
             if not handle.cancel_requested:
                 handle.status = "executing"
                 await channel.send(goal_notification(handle.call, handle.goal_id, "executing"))
@@ -367,12 +400,93 @@ class GoalRunner:
                 result = await self.handler(goal, handle)
             else:
                 run = functools.partial(self.handler, goal, handle)
-                result = await channel.loop.run_in_executor(channel.executor, run)
+                job = _BlockingGoal(run, handle, limit if holds_slot else None)
+                holds_slot = False
+                try:
+                    result = await channel.loop.run_in_executor(channel.executor, job)
+                except BaseException:
+                    job.leave()
+                    raise
         finally:
+            if holds_slot:
+                assert limit is not None
+                limit.release()
             handle.close()
         if result is None:
             result = self.action.Result()
         return {"status": handle.outcome_status(), "result": result}
+
+
+async def _take_slot(limit: ConcurrencyLimit, handle: GoalHandle) -> bool:
+    """Wait for a slot of ``limit``, in order; return whether the goal holds one. It holds
+    none when its cancellation was asked for first, nor when the wait itself is cancelled
+    (its deadline passed)."""
+    if handle.cancel_requested:
+        return False
+    if limit.running < limit.limit and not limit.waiting:
+        await limit.acquire()  # a free slot: taken without waiting
+        return True
+    loop = handle.channel.loop
+    taking = loop.create_task(limit.acquire())
+    asked = loop.create_task(handle.cancelled())
+    taken = False
+    try:
+        await asyncio.wait((taking, asked), return_when=asyncio.FIRST_COMPLETED)
+        taken = taking.done() and not taking.cancelled() and not handle.cancel_requested
+    finally:
+        asked.cancel()
+        if not taking.done():
+            taking.cancel()  # a slot handed to it meanwhile is passed on (ConcurrencyLimit)
+        elif not taken and not taking.cancelled() and taking.exception() is None:
+            limit.release()  # taken, but the goal will not run
+    return taken
+
+
+class _BlockingGoal:
+    """A plain ``def`` handler's goal, as its thread runs it.
+
+    It holds the action's slot (if it has a limit) until the handler returns, or, if its goal
+    ends before a thread takes it, until then: such a job never runs its handler.
+    """
+
+    __slots__ = ("call", "handle", "limit", "lock", "state")
+
+    def __init__(
+        self, call: Callable[[], Any], handle: GoalHandle, limit: ConcurrencyLimit | None
+    ) -> None:
+        self.call = call
+        self.handle = handle
+        self.limit = limit
+        self.state = "queued"  # then "running", or "left" (its goal ended first)
+        self.lock = threading.Lock()
+
+    @property
+    def func(self) -> Callable[[], Any]:
+        """What it runs, for :class:`~srvwire.threads.HandlerThreads` to name it."""
+        return self.call
+
+    def __call__(self) -> Any:
+        with self.lock:
+            if self.state == "left":
+                return None  # its goal ended meanwhile: the slot was given back then
+            self.state = "running"
+        try:
+            if self.handle._closed:
+                return None  # nobody waits for it any more
+            return self.call()
+        finally:
+            if self.limit is not None:
+                self.limit.release()
+
+    def leave(self) -> None:
+        """Its goal ended (cancelled, deadline, shutdown): give the slot back if no thread
+        took it."""
+        with self.lock:
+            if self.state != "queued":
+                return
+            self.state = "left"
+        if self.limit is not None:
+            self.limit.release()
 
 
 # --- the client's side ---------------------------------------------------------------------------

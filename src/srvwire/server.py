@@ -12,9 +12,10 @@ Invariants:
   connection's calls and nothing more.
 * **Shutdown is graceful and bounded.** :meth:`RunningServer.close` at once refuses new
   connections (HTTP 503; ``/healthz`` says ``draining``) and answers new calls
-  ``UNAVAILABLE``; then it waits up to ``grace_period`` for calls in flight, cancels the rest
-  (they answer ``UNAVAILABLE``), stops listening, and closes every connection with 1001
-  (going away).
+  ``UNAVAILABLE``; asks every running goal to stop (``$/goal canceling``, as a client's
+  cancellation asks); then it waits up to ``grace_period`` for calls in flight, goals
+  included, cancels the rest (they answer ``UNAVAILABLE``), stops listening, and closes every
+  connection with 1001 (going away).
 * **Who may connect is decided before the connection opens**, by the server's
   :class:`~srvwire.handshake.EdgePolicy` (origins, Host, ``max_connections``, ``auth``),
   which the transport asks about each opening request.
@@ -47,7 +48,7 @@ from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
 from srvwire.models import INF_NAN_MODES, Action, InfNan, Service
 from srvwire.pubsub import Publisher, TopicEntry, check_handler, qos_of
 from srvwire.serving import ServedConnection
-from srvwire.threads import HandlerThreads
+from srvwire.threads import ConcurrencyLimit, HandlerThreads
 from srvwire.topics import QoS, Topic
 from srvwire.transports import get_transport
 from srvwire.transports.base import (
@@ -297,6 +298,7 @@ class Server:
         scopes: Iterable[str] = (),
         accept: Accept | None = None,
         cancel_grace: float = DEFAULT_CANCEL_GRACE,
+        max_concurrency: int | None = None,
     ) -> None:
         """Serve the action ``action_type`` under ``name`` with ``handler(goal, handle)``.
 
@@ -306,8 +308,13 @@ class Server:
         its fields, or None for the default). ``accept(goal)`` may refuse a goal before it
         starts: return False or raise :class:`~srvwire.errors.GoalRejected` with the reason.
         After the client asks to cancel, the handler has ``cancel_grace`` seconds to return
-        before it is cancelled. ``scopes`` as for :meth:`add_service`, and listed with the
-        services (``$/services``, ``rpc.discover``).
+        before it is cancelled; when the server shuts down, it is asked the same way and has
+        the server's ``grace_period``. ``scopes`` as for :meth:`add_service`, and listed with
+        the services (``$/services``, ``rpc.discover``). ``max_concurrency`` bounds how many
+        goals of this action run their handler at once, over all connections, as for
+        :meth:`add_service`: the others are accepted and wait for a slot, in order, within
+        their deadline (a cancellation meanwhile ends one ``canceled``, its handler never run);
+        a plain ``def`` handler holds its slot until it returns.
         """
         canonical = normalize_name(name)
         if not (isinstance(action_type, type) and hasattr(action_type, "Goal")):
@@ -325,8 +332,20 @@ class Server:
             raise RegistrationError(
                 f"the cancel_grace of {canonical} must be a number of seconds, not {cancel_grace!r}"
             )
+        if max_concurrency is not None and (
+            type(max_concurrency) is not int or max_concurrency < 1
+        ):
+            raise RegistrationError(
+                f"max_concurrency for {canonical} must be a whole number at least 1, "
+                f"not {max_concurrency!r}"
+            )
         runner = GoalRunner(
-            canonical, action_type, handler, accept=accept, cancel_grace=cancel_grace
+            canonical,
+            action_type,
+            handler,
+            accept=accept,
+            cancel_grace=cancel_grace,
+            limit=None if max_concurrency is None else ConcurrencyLimit(max_concurrency),
         )
         self.add_service(canonical, goal_service(action_type), runner, scopes=scopes)
 
@@ -338,6 +357,7 @@ class Server:
         scopes: Iterable[str] = (),
         accept: Accept | None = None,
         cancel_grace: float = DEFAULT_CANCEL_GRACE,
+        max_concurrency: int | None = None,
     ) -> Callable[[H], H]:
         """Decorate ``handler(goal, handle)`` to serve it as an action under ``name`` (see
         :meth:`add_action`); the handler is returned unchanged."""
@@ -350,6 +370,7 @@ class Server:
                 scopes=scopes,
                 accept=accept,
                 cancel_grace=cancel_grace,
+                max_concurrency=max_concurrency,
             )
             return handler
 
@@ -783,6 +804,7 @@ class RunningServer:
     async def _close(self) -> None:
         assert self._listener is not None
         options = self.server
+        await self._ask_goals_to_stop()
         tasks = {task for conn in self._connections for task in (*conn.tasks, *conn.counted)}
         if tasks:
             _, pending = await asyncio.wait(tasks, timeout=options.grace_period)
@@ -817,6 +839,18 @@ class RunningServer:
                 ", ".join(stuck),
             )
         await self._listener.wait_closed()
+
+    async def _ask_goals_to_stop(self) -> None:
+        """Ask every running goal to stop, as a client's ``$/cancel`` asks: each is sent
+        ``$/goal canceling`` before its handler wakes, and has the grace period to return."""
+        for conn in list(self._connections):
+            for call in list(conn.session.calls.values()):
+                goal = None if call.context is None else call.context.goal
+                if goal is None:
+                    continue  # a service's call, or a goal not accepted yet (it asks itself)
+                canceling = goal.request_cancel(None)
+                if canceling is not None:
+                    await conn.send(canceling)
 
     def _announce(self) -> None:
         """Send every connection its ``$/services``; callable from any thread."""

@@ -652,6 +652,11 @@ class ServedConnection:
         """Where a plain ``def`` action handler runs."""
         return self.runner.executor
 
+    @property
+    def closing(self) -> bool:
+        """Whether the server is shutting down: a goal accepted now is asked to stop."""
+        return self.session.closing
+
     def feedback(self, call: Any, message: bytes) -> None:
         """Keep ``message`` as the goal ``call``'s latest feedback, and have it sent."""
         waiting = self.writer.feedback
