@@ -216,7 +216,8 @@ class GoalHandle:
         self.status = "accepted"
         """The goal's state: ``accepted``, ``executing``, ``canceling``."""
         self.cancel_requested = False
-        """Whether the client asked to cancel the goal: stop, and return what there is."""
+        """Whether the client asked to cancel the goal, or the server is shutting down: stop,
+        and return what there is."""
         self._cancel_waiters: list[asyncio.Future[None]] = []
         self._cancel_event = threading.Event()  # for a plain def handler's thread
         self._closed = False
@@ -259,7 +260,8 @@ class GoalHandle:
     # --- cancellation and the outcome -----------------------------------------------------------
 
     async def cancelled(self) -> None:
-        """Return once the client asked to cancel the goal (at once if it has)."""
+        """Return once the goal was asked to stop, by its client or by the server's shutdown
+        (at once if it was)."""
         if self.cancel_requested:
             return
         waiter: asyncio.Future[None] = self.channel.loop.create_future()
@@ -271,9 +273,10 @@ class GoalHandle:
                 self._cancel_waiters.remove(waiter)
 
     def wait_for_cancel(self, timeout: float | None = None) -> bool:
-        """Block a plain ``def`` handler's thread until the client asks to cancel (or the goal
-        ended without it: its deadline passed, its connection closed), or ``timeout`` seconds
-        pass; return whether it should stop. Never call it on the event loop.
+        """Block a plain ``def`` handler's thread until the goal is asked to stop (by its
+        client, or the server's shutdown) or ends without it (its deadline passed, its
+        connection closed), or ``timeout`` seconds pass; return whether it should stop. Never
+        call it on the event loop.
 
         ``if handle.wait_for_cancel(0.2): break`` is a step of work that stops at once when
         cancelled."""

@@ -658,6 +658,18 @@ class serve:
             await self._running.close()
 
 
+async def _ask_goals_to_stop(conn: ServedConnection) -> None:
+    """Ask every goal running on ``conn`` to stop, as a client's ``$/cancel`` asks: each is
+    sent ``$/goal canceling`` before its handler wakes, and has the grace period to return."""
+    for call in list(conn.session.calls.values()):
+        goal = None if call.context is None else call.context.goal
+        if goal is None:
+            continue  # a service's call, or a goal not accepted yet (it asks itself)
+        canceling = goal.request_cancel(None)
+        if canceling is not None:
+            await conn.send(canceling)
+
+
 class RunningServer:
     """A server listening on a transport: where it listens, its connections, how to stop it."""
 
@@ -804,7 +816,8 @@ class RunningServer:
     async def _close(self) -> None:
         assert self._listener is not None
         options = self.server
-        await self._ask_goals_to_stop()
+        for conn in self._connections:  # one task each: a congested one holds up no other
+            conn.spawn(_ask_goals_to_stop(conn))
         tasks = {task for conn in self._connections for task in (*conn.tasks, *conn.counted)}
         if tasks:
             _, pending = await asyncio.wait(tasks, timeout=options.grace_period)
@@ -839,18 +852,6 @@ class RunningServer:
                 ", ".join(stuck),
             )
         await self._listener.wait_closed()
-
-    async def _ask_goals_to_stop(self) -> None:
-        """Ask every running goal to stop, as a client's ``$/cancel`` asks: each is sent
-        ``$/goal canceling`` before its handler wakes, and has the grace period to return."""
-        for conn in list(self._connections):
-            for call in list(conn.session.calls.values()):
-                goal = None if call.context is None else call.context.goal
-                if goal is None:
-                    continue  # a service's call, or a goal not accepted yet (it asks itself)
-                canceling = goal.request_cancel(None)
-                if canceling is not None:
-                    await conn.send(canceling)
 
     def _announce(self) -> None:
         """Send every connection its ``$/services``; callable from any thread."""
