@@ -219,7 +219,8 @@ def build_server(node: RobotStateNode | None = None) -> Server:
     server = Server()
     server.add_service("/get_robot_state", RobotStateQuery, node.get_robot_state)
     server.add_service("/execute_robot_command", RobotCommand, node.execute_robot_command)
-    server.add_action("/calibrate", Calibrate, node.calibrate)
+    # One robot, one calibration at a time: a second goal is accepted and waits its turn.
+    server.add_action("/calibrate", Calibrate, node.calibrate, max_concurrency=1)
     # Clients publish joint states; a late subscriber (srvwire topic echo) gets the latest one.
     joint_states_qos = {"depth": 1, "durability": "transient_local"}
     server.subscription("/joint_states", JointState, qos=joint_states_qos)(node.on_joint_states)

@@ -7,6 +7,7 @@ response as it arrives — and kill the server in the middle of the sequence.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import importlib.util
 import logging
@@ -457,6 +458,38 @@ async def test_the_calibrate_action_stops_when_cancelled(node: Any) -> None:
         outcome = await handle.result()
     assert outcome.status == "canceled"
     assert outcome.result.joints_done == 0
+    assert outcome.result.message == "Calibration canceled after 0 of 5 joints"
+    assert (node.state.status, node.state.calibrated) == ("STOPPED", False)
+
+
+async def test_a_second_calibration_waits_accepted_for_the_first(node: Any) -> None:
+    transport = MemoryTransport()
+    async with (
+        serve(server_example.build_server(node), "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(10)) as client,
+    ):
+        first = await client.send_goal("/calibrate", {"duration": 60})
+        await anext(first.feedback())  # the first is calibrating
+        second = await client.send_goal("/calibrate", {"duration": scaled(0.1)})
+        await client.call("/get_robot_state", {"query_type": "status"})  # a round trip
+        assert second.status == "accepted"  # waiting its turn, not executing
+        await first.cancel()
+        assert (await first.result()).status == "canceled"
+        outcome = await second.result()
+    assert (outcome.status, outcome.result.joints_done) == ("succeeded", 5)
+    assert (node.state.status, node.state.calibrated) == ("CALIBRATED", True)
+
+
+async def test_shutting_the_robot_down_stops_a_calibration_with_its_result(node: Any) -> None:
+    transport = MemoryTransport()
+    running = await serve(server_example.build_server(node), "127.0.0.1", 0, transport=transport)
+    async with connect(running.url, transport=transport, timeout=scaled(10)) as client:
+        handle = await client.send_goal("/calibrate", {"duration": 60})
+        await anext(handle.feedback())
+        closing = asyncio.create_task(running.close())
+        outcome = await handle.result()  # asked to stop, it says how far it got
+        await closing
+    assert outcome.status == "canceled"
     assert outcome.result.message == "Calibration canceled after 0 of 5 joints"
     assert (node.state.status, node.state.calibrated) == ("STOPPED", False)
 

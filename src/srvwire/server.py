@@ -120,7 +120,8 @@ class Server:
     ``write_timeout`` how long a connection may stay past its budget before it is closed with
     code 1008 (None: forever; with keepalive on, at most ``ping_interval + ping_timeout``);
     see ``docs/limits.md`` for what they bound;
-    ``grace_period`` how long shutdown waits for calls in flight;
+    ``grace_period`` how long shutdown waits for calls in flight (running action goals are
+    asked to stop first, as a client's cancellation asks);
     ``ping_interval``/``ping_timeout`` the keepalive (None turns it off);
     ``compression="deflate"`` turns permessage-deflate on (off by default: it slows small
     calls down); ``executor`` runs sync handlers (default: the server's own
