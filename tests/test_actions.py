@@ -840,6 +840,54 @@ async def test_a_plain_def_actions_slot_is_held_until_its_thread_returns(
         unblock.set()
 
 
+async def test_a_plain_def_goal_that_ends_before_a_thread_takes_it_never_runs(
+    transport: Transport,
+) -> None:
+    # One thread, held by a blocking service whose caller waits: the goal queues for it.
+    server = Server(executor=HandlerThreads(max_workers=1))
+    loop = asyncio.get_running_loop()
+    hogging = asyncio.Event()
+    unblock = threading.Event()
+    ran: list[int] = []
+
+    def hog(request: Any) -> Any:
+        loop.call_soon_threadsafe(hogging.set)
+        unblock.wait(scaled(30))
+        return {"success": True}
+
+    server.add_service("/hog", Trigger, hog)
+
+    @server.action("/queued", Fibonacci, max_concurrency=1)
+    def queued(goal: Any, handle: GoalHandle) -> Any:
+        ran.append(goal.order)
+        return {"sequence": [goal.order]}
+
+    try:
+        async with (
+            serve(server, "127.0.0.1", 0, transport=transport) as running,
+            connect(running.url, transport=running.transport, timeout=scaled(10)) as client,
+        ):
+            hogged = asyncio.create_task(client.call("/hog", {}))
+            await hogging.wait()
+            late = await client.send_goal("/queued", {"order": 1}, timeout=scaled(0.2))
+            with pytest.raises(DeadlineExceeded):
+                await late.result()
+            # The goal left before a thread took it: it gave its slot back, so the next one
+            # gets it (were the slot lost, this goal would wait past its deadline).
+            next_goal = await client.send_goal("/queued", {"order": 2})
+            unblock.set()
+            assert (await hogged).success
+            assert await next_goal.result() == GoalResult(
+                "succeeded", Fibonacci.Result(sequence=[2])
+            )
+            assert ran == [2]  # the first goal's handler never ran
+            limit = limit_of(server, "/queued")
+            assert (limit.running, limit.waiting) == (0, 0)
+            assert_nothing_left_after(running)
+    finally:
+        unblock.set()
+
+
 @pytest.mark.parametrize("bad", [0, -1, 1.5, "2"])
 def test_an_actions_max_concurrency_is_a_whole_number_at_least_one(bad: Any) -> None:
     server = Server()
