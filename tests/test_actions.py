@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import threading
 from collections.abc import AsyncIterator
 from typing import Any
@@ -1078,6 +1079,46 @@ async def test_shutdown_ends_a_goal_waiting_for_a_slot_without_running_it(
     limit = limit_of(shutdown.server, "/single")
     assert (limit.running, limit.waiting) == (0, 0)
     assert_nothing_left(served)
+    await client.close()
+
+
+@pytest.mark.parametrize("transport", ["memory"], indirect=True)
+async def test_a_connection_that_does_not_read_holds_up_no_other_goals_request_to_stop(
+    transport: Transport,
+) -> None:
+    # On the memory transport the budget is all the buffer there is: one message past it
+    # leaves the connection congested until its client reads.
+    server = Server(max_queued_bytes=4_000, grace_period=scaled(20))
+    started = [asyncio.Event(), asyncio.Event()]
+
+    @server.action("/polite", Fibonacci)
+    async def polite(goal: Any, handle: GoalHandle) -> Any:
+        await handle.feedback({"sequence": [0]})
+        started[goal.order].set()
+        await handle.cancelled()
+        return {"sequence": [goal.order]}
+
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    wire = await open_wire(running)
+    await wire.send({"jsonrpc": "2.0", "id": "a", "method": "/polite", "params": {"order": 0}})
+    await started[0].wait()
+    stuck = connection(running)
+    filler = {"jsonrpc": "2.0", "method": "$/filler", "params": {"x": "x" * 20_000}}
+    pressing = asyncio.create_task(stuck.conn.send(json.dumps(filler)))  # read by nobody
+    client = await connect(running.url, transport=running.transport, timeout=scaled(10))
+    handle = await client.send_goal("/polite", {"order": 1})
+    await started[1].wait()
+    assert stuck.conn.congested
+    closing = asyncio.create_task(running.close())
+    # Asked at once, although the first connection's request to stop cannot be sent yet.
+    assert await handle.result() == GoalResult("canceled", Fibonacci.Result(sequence=[1]))
+    received = [await wire.recv()]
+    while received[-1].get("id") != "a":
+        received.append(await wire.recv())
+    said = [m.get("params", {}).get("status") or m.get("result") for m in received]
+    assert said[-2:] == ["canceling", {"status": "canceled", "result": {"sequence": [0]}}]
+    await pressing
+    await closing
     await client.close()
 
 
