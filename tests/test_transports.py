@@ -824,15 +824,7 @@ async def listening(
 
 async def test_messages_sent_in_one_turn_go_out_in_one_write() -> None:
     async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
-        socket = pair.server._ws.transport  # type: ignore[attr-defined]
-        writes: list[bytes] = []
-        write = socket.write
-
-        def counting(data: bytes) -> None:
-            writes.append(bytes(data))
-            write(data)
-
-        socket.write = counting
+        writes = count_writes(pair.server)
         for i in range(50):
             await pair.server.send(f"reply {i}".encode())
         assert writes == []  # held until the loop comes round
@@ -843,16 +835,68 @@ async def test_messages_sent_in_one_turn_go_out_in_one_write() -> None:
         assert len(writes) == 2
 
 
+def count_writes(connection: Connection) -> list[bytes]:
+    """The bytes of every socket write ``connection`` makes from now on, in order."""
+    socket = connection._ws.transport  # type: ignore[attr-defined]
+    writes: list[bytes] = []
+    write = socket.write
+
+    def counting(data: bytes) -> None:
+        writes.append(bytes(data))
+        write(data)
+
+    socket.write = counting
+    return writes
+
+
+async def test_what_is_held_is_written_when_it_reaches_the_cork_limit() -> None:
+    """A pipelined peer gets the first replies while later ones are still being made."""
+    from srvwire.transports.websockets import CORK_LIMIT
+
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        writes = count_writes(pair.server)
+        size = CORK_LIMIT // 4
+        for i in range(10):  # two and a half limits' worth, in one turn
+            await pair.server.send(f"{i:04d}".encode() + b"x" * (size - 4))
+        assert len(writes) == 2  # at each limit reached, before the turn ended
+        assert all(CORK_LIMIT <= len(data) < CORK_LIMIT + 64 for data in writes)
+        received = [await pair.client.recv() for _ in range(10)]
+        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(10)]
+        assert len(writes) == 3  # the rest at the end of the turn
+
+
+async def test_what_is_held_is_written_when_the_reader_is_about_to_wait() -> None:
+    """The replies to every message of one read leave together, without waiting for the loop
+    to come round."""
+    from srvwire.inline import Pending, finish, first_step
+
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        for i in range(3):
+            await pair.client.send(f"call {i}")
+        assert [await pair.server.recv() for _ in range(3)] == ["call 0", "call 1", "call 2"]
+        writes = count_writes(pair.server)
+        for i in range(3):
+            await pair.server.send(f"reply {i}")
+        assert writes == []
+        waiting = first_step(pair.server.recv())  # nothing left to read: it waits
+        assert isinstance(waiting, Pending)
+        assert len(writes) == 1  # written before it did
+        assert [await pair.client.recv() for _ in range(3)] == [f"reply {i}" for i in range(3)]
+        await pair.client.send("next")
+        assert await finish(waiting) == "next"
+        assert len(writes) == 1
+
+
 async def test_messages_past_the_cork_limit_write_through_in_order() -> None:
     from srvwire.transports.websockets import CORK_LIMIT
 
     async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
-        size = CORK_LIMIT // 4
-        for i in range(12):  # three times what a turn holds
+        sizes = [CORK_LIMIT // 4, CORK_LIMIT * 2, 10, CORK_LIMIT + 1, CORK_LIMIT // 2] * 3
+        for i, size in enumerate(sizes):  # held ones and ones that write through, mixed
             await pair.client.send(f"{i:04d}".encode() + b"x" * size)
-        received = [await pair.server.recv() for _ in range(12)]
-        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(12)]
-        assert all(len(m) == size + 4 for m in received)
+        received = [await pair.server.recv() for _ in sizes]
+        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(len(sizes))]
+        assert [len(m) for m in received] == [size + 4 for size in sizes]
 
 
 async def test_a_message_held_when_the_connection_closes_is_delivered_first() -> None:
