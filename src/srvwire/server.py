@@ -114,8 +114,9 @@ class Server:
     it is sent); ``max_batch`` the messages of one batch; ``notification_timeout`` how long a
     notification's handler may run when the notification gives no deadline (None: forever);
     ``max_message_size`` the size of one incoming message in bytes (None: no limit);
-    ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent: past it the
-    connection reads no more calls until its client has read them down to a quarter of it;
+    ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent, replies and
+    topic data together (topic data takes what replies leave): past it the connection reads no
+    more calls until its client has read them down to a quarter of it;
     ``write_timeout`` how long a connection may stay past its budget before it is closed with
     code 1008 (None: forever; with keepalive on, at most ``ping_interval + ping_timeout``);
     see ``docs/limits.md`` for what they bound;
@@ -843,6 +844,7 @@ class RunningServer:
             executor=server.executor,
             logger=server.logger,
             access_log=server.access_log,
+            max_queued_bytes=server.max_queued_bytes,
         )
         if self.closing:
             conn.session.close()

@@ -332,14 +332,15 @@ class Writer:
     """Sends what one connection's :class:`~srvwire.topics.Outbox` holds, one message at a time.
 
     The outbox decides the order (control messages first, then subscriptions round-robin) and
-    the bounds (``depth`` per subscription, bytes per connection); the writer only takes the
-    next message and sends it, and takes none while the connection is
-    :attr:`~srvwire.transports.base.Connection.congested` (past its budget of bytes waiting to
-    be sent). So what a slow reader costs is what the outbox may hold plus the connection's
-    budget, and while the writer waits, the outbox keeps deciding what to drop (best effort)
-    or end (reliable). Replies to calls do not go through it: they are sent at once, never
-    behind the data the outbox holds, and when a drain wakes a reply and the writer together,
-    the reply goes first.
+    the bounds (``depth`` per subscription; what it holds and what the transport holds share
+    the connection's ``budget``); the writer only takes the next message and sends it, and
+    takes none while the connection is :attr:`~srvwire.transports.base.Connection.congested`
+    (past its budget of bytes waiting to be sent). So what a slow reader costs is the
+    connection's budget, and while the writer waits, the outbox keeps deciding what to drop
+    (best effort) or end (reliable). Replies to calls do not go through it: they are sent at
+    once, never behind the data the outbox holds (which then gives up what no longer fits,
+    :meth:`~srvwire.topics.Outbox.fit`), and when a drain wakes a reply and the writer
+    together, the reply goes first.
 
     It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
     low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
@@ -351,10 +352,17 @@ class Writer:
 
     __slots__ = ("conn", "feedback", "feedback_sent", "loop", "outbox", "task", "turn", "waiter")
 
-    def __init__(self, conn: Connection, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(
+        self,
+        conn: Connection,
+        loop: asyncio.AbstractEventLoop,
+        budget: int = 4 * 2**20,
+        make_outbox: Callable[..., Outbox] = Outbox,
+    ) -> None:
         self.conn = conn
         self.loop = loop
-        self.outbox = Outbox(self.wake)
+        buffered = (lambda: 0) if conn is None else conn.buffered  # None: a test's, never sent
+        self.outbox = make_outbox(self.wake, budget, buffered)
         self.feedback = FeedbackOutbox()
         self.feedback_sent: Callable[[Any], object] = lambda call: None
         self.turn = False  # whether feedback goes before topic data next time both wait
@@ -548,6 +556,7 @@ class ServedConnection:
         "flushed",
         "log",
         "loop",
+        "outbox",
         "reader",
         "reading",
         "runner",
@@ -567,13 +576,15 @@ class ServedConnection:
         executor: Executor | None,
         logger: logging.Logger,
         access_log: logging.Logger | None = None,
+        max_queued_bytes: int = 4 * 2**20,
     ) -> None:
         self.conn = conn
         self.log = logger
         identity = getattr(conn, "identity", None)
         scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
         self.loop = asyncio.get_running_loop()
-        self.writer = Writer(conn, self.loop)
+        self.writer = Writer(conn, self.loop, max_queued_bytes)
+        self.outbox = self.writer.outbox
         self.session: ServerSession[ServiceEntry]
         if access_log is None:
             self.session = ServerSession(
@@ -639,11 +650,14 @@ class ServedConnection:
         return task
 
     async def send(self, data: bytes) -> None:
-        """Send one message; a connection that is gone is not an error here."""
+        """Send one message ahead of the topic data the outbox holds, which gives up what no
+        longer fits in the budget; a connection that is gone is not an error here."""
         try:
             await self.conn.send(data)
         except TransportClosed:
-            pass  # the caller left; its calls are being cancelled
+            return  # the caller left; its calls are being cancelled
+        if self.outbox.queued:
+            self.outbox.fit()
 
     # --- goals' feedback (what an action's GoalHandle needs of its connection) ----------------
 
