@@ -138,7 +138,9 @@ class Server:
 
     ``access_log=True`` writes a line per call to the ``srvwire.access`` logger (or to the
     logger given): peer, service, outcome and duration (see
-    :class:`~srvwire.serving.AccessLoggedSession`); off, it costs nothing.
+    :class:`~srvwire.serving.AccessLoggedSession`), a line per subscription as it ends, and
+    one per topic a connection published on without asking for answers, as it ends; off, it
+    costs nothing.
     """
 
     def __init__(
