@@ -370,7 +370,8 @@ class Writer:
     ) -> None:
         self.conn = conn
         self.loop = loop
-        buffered = (lambda: 0) if conn is None else conn.buffered  # None: a test's, never sent
+        # What the transport holds; a stand-in connection without it (a test's) holds nothing.
+        buffered = getattr(conn, "buffered", None) or (lambda: 0)
         self.outbox = make_outbox(self.wake, budget, buffered)
         self.feedback = FeedbackOutbox()
         self.feedback_sent: Callable[[Any], object] = lambda call: None
