@@ -659,8 +659,9 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         has its line now, an invalid one without an answer is counted."""
         topic = event.topic.name
         if event.id is None:
-            if error is not None:
-                self.published[topic][3] += 1
+            counts = self.published.get(topic)
+            if error is not None and counts is not None:
+                counts[3] += 1
             return
         admitted = self.acknowledging.pop(event.id, None)
         duration = None if admitted is None else time.perf_counter() - admitted
