@@ -310,6 +310,29 @@ async def test_publishes_without_an_answer_are_summed_up_per_topic_when_the_conn
     assert access.queue.empty()
 
 
+async def test_removing_a_topic_sums_up_what_was_published_on_it_then(
+    access: Records, transport: Transport
+) -> None:
+    server = Server(access_log=True)
+    received: list[Any] = []
+    server.subscription("/cmd", String)(received.append)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        publish = {"jsonrpc": "2.0", "method": "$/publish"}
+        for n in range(3):
+            await w.send({**publish, "params": {"topic": "/cmd", "message": {"data": str(n)}}})
+        ack = {**publish, "id": 1, "params": {"topic": "/cmd", "message": {"data": "y"}}}
+        assert (await w.call(ack))["result"] is None  # all four handled, in order
+        assert (await access.next()).getMessage().split(" ", 1)[1].startswith("$/publish /cmd OK")
+        server.remove_topic("/cmd")
+        record = await access.next()  # while the connection stays open
+        assert re.fullmatch(
+            rf"\S+ \$/publish /cmd OK {DURATION} received 3 invalid 0", record.getMessage()
+        )
+        await w.ws.close()
+    assert len(received) == 4 and access.queue.empty()  # no second summary at the close
+
+
 # --- where the server listens ---------------------------------------------------------------
 
 

@@ -139,8 +139,8 @@ class Server:
     ``access_log=True`` writes a line per call to the ``srvwire.access`` logger (or to the
     logger given): peer, service, outcome and duration (see
     :class:`~srvwire.serving.AccessLoggedSession`), a line per subscription as it ends, and
-    one per topic a connection published on without asking for answers, as it ends; off, it
-    costs nothing.
+    one per topic a connection published on without asking for answers, as the connection
+    ends (or the topic is removed); off, it costs nothing.
     """
 
     def __init__(
@@ -422,6 +422,10 @@ class Server:
         except KeyError:
             raise RegistrationError(f"no topic named {canonical} is declared") from None
         self.registry.topics_changed()
+        for running in self._running:  # the access log sums up what was published on it
+            for conn in running._connections:
+                if conn.access is not None:
+                    conn.access.summarize(canonical)
         self._services_changed()
 
     def _declare_topic(

@@ -578,7 +578,7 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
     per topic, and :meth:`summarize` writes one line per topic when the connection ends:
     ``PEER $/publish TOPIC OUTCOME DURATION received N invalid M``, where the outcome is
     ``OK``, or ``INVALID_PARAMS`` when some were invalid, and the duration runs from the first
-    message to the last.
+    message to the last (a topic removed meanwhile has its line then).
 
     A connection uses this class only when the access log is on, so a server without it does
     no work for it on any call or message.
@@ -668,15 +668,20 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         outcome = "OK" if error is None else _outcome(error)
         self.line(PUBLISH_METHOD, outcome, duration, topic=_method(topic))
 
-    def summarize(self) -> None:
-        """The connection ended: one line per topic it published on without an answer."""
-        published, self.published = self.published, {}
-        for topic, (first, last, received, invalid) in published.items():
+    def summarize(self, topic: str | None = None) -> None:
+        """The connection ended (``topic`` None), or ``topic`` was removed: one line per topic
+        it published on without an answer, and counting starts again."""
+        if topic is None:
+            published, self.published = self.published, {}
+        else:
+            counts = self.published.pop(topic, None)
+            published = {} if counts is None else {topic: counts}
+        for name, (first, last, received, invalid) in published.items():
             self.line(
                 PUBLISH_METHOD,
                 "INVALID_PARAMS" if invalid else "OK",
                 last - first,
-                topic=_method(topic),
+                topic=_method(name),
                 received=received,
                 invalid=invalid,
             )
