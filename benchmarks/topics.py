@@ -12,7 +12,9 @@ the result is messages a second *per subscriber*.
   ``$/message`` envelope srvwire sends) and ``await ws.send`` to each subscriber in turn;
   subscribers use ``websockets.asyncio.client.connect`` and ``json.loads`` each message.
 
-Run ``python benchmarks/topics.py`` (``--quick`` for a smoke run). Not part of the test suite.
+Run ``python benchmarks/topics.py`` (``--quick`` for a smoke run; ``--access-log`` turns the
+server's access log on, written to a handler that discards it, to measure what it costs). Not
+part of the test suite.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import time
 from pathlib import Path
 
 MESSAGES = 3000
+SERVER_CPU: list[float] = []  # srvwire's server: CPU seconds per message delivered, each run
 PAYLOAD = "x" * 1000
 HERE = Path(__file__).resolve()
 
@@ -34,12 +37,19 @@ HERE = Path(__file__).resolve()
 # --- the servers (child processes) ---------------------------------------------------------
 
 
-async def srvwire_server(count: int) -> None:
+async def srvwire_server(count: int, access_log: bool = False) -> None:
+    import logging
+
     from srvwire import Server, load_message, load_service, serve
 
     String = load_message("std_msgs/msg/String")
     Trigger = load_service("std_srvs/srv/Trigger")
-    server = Server()
+    if access_log:  # every line made into a record, then discarded
+        logger = logging.getLogger("srvwire.access")
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
+        logger.addHandler(logging.NullHandler())
+    server = Server(access_log=access_log)
     pub = server.topic("/bench", String, qos={"depth": count + 10})
     message = String(data=PAYLOAD)
 
@@ -93,7 +103,13 @@ async def raw_server(count: int) -> None:
 # --- the subscribers (this process) --------------------------------------------------------
 
 
-async def run_srvwire(port: int, subscribers: int, count: int) -> float:
+def cpu_seconds(pid: int) -> float:
+    """The CPU time the main thread of process ``pid`` (an event loop) has used, from
+    ``/proc`` (Linux): its scheduler's count, in nanoseconds."""
+    return int(Path(f"/proc/{pid}/schedstat").read_text().split()[0]) / 1e9
+
+
+async def run_srvwire(port: int, subscribers: int, count: int, pid: int = 0) -> float:
     from srvwire import connect
 
     clients = [await connect(f"ws://127.0.0.1:{port}", timeout=60) for _ in range(subscribers + 1)]
@@ -105,11 +121,14 @@ async def run_srvwire(port: int, subscribers: int, count: int) -> float:
                 await sub.receive()  # type: ignore[attr-defined]
 
         loop = asyncio.get_running_loop()
+        cpu = cpu_seconds(pid) if pid else 0.0
         begin = loop.time()
         receiving = [asyncio.create_task(receive(sub)) for sub in subscriptions]
         await clients[0].call("/start", {})
         await asyncio.gather(*receiving)
         elapsed = loop.time() - begin
+        if pid:
+            SERVER_CPU.append((cpu_seconds(pid) - cpu) / (count * subscribers))
         assert all(sub.dropped == 0 for sub in subscriptions)
         return count / elapsed
     finally:
@@ -143,17 +162,19 @@ async def run_raw(port: int, subscribers: int, count: int) -> float:
             await ws.close()
 
 
-def measure(side: str, subscribers: int, count: int) -> float:
+def measure(side: str, subscribers: int, count: int, access_log: bool = False) -> float:
     process = subprocess.Popen(
-        [sys.executable, str(HERE), "--serve", side, "--messages", str(count)],
+        [sys.executable, str(HERE), "--serve", side, "--messages", str(count)]
+        + (["--access-log"] if access_log else []),
         stdout=subprocess.PIPE,
         text=True,
     )
     try:
         assert process.stdout is not None
         port = int(process.stdout.readline())
-        run = run_srvwire if side == "srvwire" else run_raw
-        return asyncio.run(run(port, subscribers, count))
+        if side == "srvwire":
+            return asyncio.run(run_srvwire(port, subscribers, count, process.pid))
+        return asyncio.run(run_raw(port, subscribers, count))
     finally:
         process.kill()
         process.wait()
@@ -164,24 +185,34 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="a smoke run: 300 messages, once")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each (default: 3)")
     parser.add_argument("--messages", type=int, default=MESSAGES)
+    parser.add_argument("--access-log", action="store_true", help="the server's access log on")
     parser.add_argument("--serve", choices=("srvwire", "raw"), help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.serve is not None:
-        server = srvwire_server if args.serve == "srvwire" else raw_server
-        asyncio.run(server(args.messages))
+    if args.serve == "srvwire":
+        asyncio.run(srvwire_server(args.messages, args.access_log))
+        return 0
+    if args.serve == "raw":
+        asyncio.run(raw_server(args.messages))
         return 0
     count = 300 if args.quick else args.messages
     repeat = 1 if args.quick else args.repeat
     print(f"{count} messages of about 1 KB; median of {repeat} runs; messages/s per subscriber")
     print(f"{'subscribers':>11}  {'raw websockets':>14}  {'srvwire':>10}  {'ratio':>6}")
+    cpu = {}
     for subscribers in (1, 10):
         raw: list[float] = []
         ours: list[float] = []
+        SERVER_CPU.clear()
         for _ in range(repeat):  # interleaved, so that a change in load hits both sides alike
             raw.append(measure("raw", subscribers, count))
-            ours.append(measure("srvwire", subscribers, count))
+            ours.append(measure("srvwire", subscribers, count, args.access_log))
         r, s = statistics.median(raw), statistics.median(ours)
         print(f"{subscribers:>11}  {r:>14,.0f}  {s:>10,.0f}  {s / r:>6.2f}", flush=True)
+        cpu[subscribers] = statistics.median(SERVER_CPU) * 1e6
+    print(
+        "srvwire's server, CPU per message delivered: "
+        + ", ".join(f"{us:.1f} µs to {n}" for n, us in cpu.items())
+    )
     return 0
 
 

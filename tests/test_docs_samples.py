@@ -180,7 +180,19 @@ EXPLAINED: dict[tuple[str, str], str] = {
     ("logging.md", "INFO srvwire.access: 127.0.0.1:35658 /add_two_ints OK 0.16 ms"): (
         "the access log: tests/test_logging.py checks its lines on both transports"
     ),
-    ("limits.md", "M  ≤  C + B + (3 + W)·R + F·(c + q) + (Q + 2)·m"): (
+    (
+        "logging.md",
+        "INFO srvwire.access: 127.0.0.1:35658 $/subscribe /joint_states CANCELLED 12034.51 ms "
+        "delivered 1203 dropped 0",
+    ): (
+        "a subscription's access-log lines: tests/test_logging.py checks one of each ending, "
+        "and a refused one, on every transport"
+    ),
+    ("logging.md", "INFO srvwire.access: 127.0.0.1:35658 $/publish /cmd_vel OK 0.12 ms"): (
+        "the publishes' access-log lines: tests/test_logging.py checks an acknowledged one and "
+        "the summary of those without an answer, on every transport"
+    ),
+    ("limits.md", "M  ≤  C + B + (3 + W)·R + P + F·(c + q) + (Q + 2)·m"): (
         "the memory formula: tests/test_limits.py measures a server against it"
     ),
     ("tutorial.md", "make demo: robot_state_server.py is serving on ws://127.0.0.1:41111"): (

@@ -26,6 +26,7 @@ import srvwire
 from support import ROOT, scaled
 
 SERVER = ROOT / "tests" / "servers" / "large_reply_server.py"
+FLOODING_SERVER = ROOT / "tests" / "servers" / "flooding_server.py"
 MIB = 2**20
 KIB = 2**10
 
@@ -37,6 +38,9 @@ PER_CALL = 4 * KIB  # what a call in flight holds before its handler runs (measu
 SLACK = 2 * MIB  # the allocator's own slack, which RSS counts (measured)
 WRITE_TIMEOUT = 2.0
 CALLS = 300
+
+
+ADD_TWO_INTS = "example_interfaces/srv/AddTwoInts"
 
 
 def bound() -> int:
@@ -155,3 +159,54 @@ async def test_a_client_that_never_reads_holds_no_more_than_the_bound(
         assert growth < bound(), f"grew {growth / MIB:.1f} MiB, over {bound() / MIB:.1f} MiB"
     finally:
         stuck.close()
+
+
+# The same bound for topic data: the budget holds it too.
+TOPIC_MESSAGE = 10_000 + 100  # flooding_server.py's message, in its $/message envelope
+
+
+async def test_a_subscriber_that_never_reads_holds_no_more_than_the_budget() -> None:
+    """A server publishes 10 KB about a thousand times a second; a raw client subscribes with a
+    queue deep enough to hold 100 MB (``depth`` 10 000) and never reads. The server's peak RSS
+    growth stays under docs/limits.md's bound with no calls in flight, ``B + 3·R + P``, and the
+    slack: the topic data it holds counts against ``max_queued_bytes``."""
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        str(FLOODING_SERVER),
+        "--max-queued-bytes",
+        str(BUDGET),
+        stdout=asyncio.subprocess.PIPE,
+    )
+    try:
+        assert process.stdout is not None
+        async with asyncio.timeout(scaled(30)):
+            port = int(await process.stdout.readline())
+        server = ServerProcess(process, port)
+        async with srvwire.connect(server.url) as reader:  # warm up, and keep reading
+            async with reader.subscribe("/flood", qos={"depth": 100}) as flood:
+                for _ in range(1000):
+                    await flood.receive()
+                before = server.rss
+                subscribe = {
+                    "jsonrpc": "2.0",
+                    "id": 1,
+                    "method": "$/subscribe",
+                    "params": {"topic": "/flood", "qos": {"depth": 10_000}},
+                }
+                stuck = await open_stuck_connection(port, [json.dumps(subscribe).encode()])
+                try:
+                    for n in range(3000):  # about 3 s, 30 MB published
+                        await flood.receive()
+                        if n % 500 == 0:
+                            reply = await reader.call(
+                                "/add_two_ints", {"a": n, "b": 1}, srv_type=ADD_TWO_INTS
+                            )
+                            assert reply.sum == n + 1
+                finally:
+                    stuck.close()
+        growth = server.peak_rss - before
+        limit = BUDGET + 3 * TOPIC_MESSAGE + TOPIC_MESSAGE + SLACK  # B + 3·R + P, and the slack
+        assert growth < limit, f"grew {growth / MIB:.1f} MiB, over {limit / MIB:.1f} MiB"
+    finally:
+        process.kill()
+        await process.wait()

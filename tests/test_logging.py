@@ -20,6 +20,7 @@ import pytest
 
 from conftest import Echo, Hang, Subtract, open_wire, subtract
 from srvwire.errors import ServiceError
+from srvwire.loader import load_message
 from srvwire.server import Server, serve
 from srvwire.serving import AccessLoggedSession
 from srvwire.session import ServerSession
@@ -155,6 +156,181 @@ async def test_the_access_log_can_go_to_a_logger_of_ones_own(transport: Transpor
             await w.ws.close()
     finally:
         mine.removeHandler(records)
+
+
+# --- topics in the access log --------------------------------------------------------------
+
+String = load_message("std_msgs/msg/String")
+
+
+async def recv_data(wire: Any) -> Any:
+    """The next message that is not an announcement."""
+    while (message := await wire.recv()).get("method") in ("$/services", "$/topics"):
+        pass
+    return message
+
+
+async def subscribe(wire: Any, id: int, topic: str, **meta: Any) -> list[Any]:
+    """Subscribe; return what came before ``$/subscribed``."""
+    params: dict[str, Any] = {"topic": topic}
+    if meta:
+        params["_meta"] = meta
+    await wire.send({"jsonrpc": "2.0", "id": id, "method": "$/subscribe", "params": params})
+    before = []
+    while (message := await recv_data(wire)).get("method") != "$/subscribed":
+        before.append(message)
+    return before
+
+
+async def test_a_subscription_has_a_line_when_it_ends_saying_how(
+    access: Records, transport: Transport
+) -> None:
+    server = Server(access_log=True)
+    chatter = server.topic("/chatter", String)
+    lossy = server.topic("/lossy", String, qos={"depth": 1, "reliability": "best_effort"})
+    tight = server.topic("/tight", String, qos={"depth": 1})
+    server.topic("/gone", String)
+    subscription = rf"(\S+) \$/subscribe (\S+) (\S+) {DURATION} delivered (\d+) dropped (\d+)"
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await subscribe(w, 1, "/chatter")
+        chatter.publish({"data": "a"})
+        chatter.publish({"data": "b"})
+        assert [(await recv_data(w))["params"]["seq"] for _ in range(2)] == [1, 2]
+        await w.send({"jsonrpc": "2.0", "id": 9, "method": "$/cancel", "params": {"id": 1}})
+        came = await subscribe(w, 2, "/lossy", timeout=scaled(0.5))
+        for text in "abc":  # at once: a queue of 1 keeps the last
+            lossy.publish({"data": text})
+        came += await subscribe(w, 3, "/tight")
+        tight.publish({"data": "a"})
+        tight.publish({"data": "b"})  # at once: a reliable queue of 1 overflows
+        came += await subscribe(w, 4, "/gone")
+        server.remove_topic("/gone")
+        came += await subscribe(w, 5, "/chatter")
+        ended = {}
+        while len(ended) < 4:  # the cancel's reply, a message, and the four ends, in any order
+            message = came.pop(0) if came else await recv_data(w)
+            if "id" in message and message["id"] != 9:
+                ended[message["id"]] = message["error"]["data"]["status"]
+        assert ended == {
+            1: "CANCELLED",
+            2: "DEADLINE_EXCEEDED",
+            3: "RESOURCE_EXHAUSTED",
+            4: "SERVICE_NOT_FOUND",
+        }
+        lines = {}
+        while len(lines) < 4:
+            record = await access.next()
+            if record.service != "$/subscribe":  # type: ignore[attr-defined]
+                continue  # $/cancel's line
+            match = re.fullmatch(subscription, record.getMessage())
+            assert match is not None, record.getMessage()
+            lines[match[2]] = match.groups()[2:]
+            assert record.service == "$/subscribe"  # type: ignore[attr-defined]
+            assert record.topic == match[2]  # type: ignore[attr-defined]
+        assert lines == {
+            "/chatter": ("CANCELLED", "2", "0"),
+            "/lossy": ("DEADLINE_EXCEEDED", "1", "2"),
+            "/tight": ("RESOURCE_EXHAUSTED", "0", "0"),
+            "/gone": ("SERVICE_NOT_FOUND", "0", "0"),
+        }
+        await w.ws.close()
+        record = await access.next()  # the last, ended with its connection
+        match = re.fullmatch(subscription, record.getMessage())
+        assert match is not None and match.groups()[1:] == ("/chatter", "CLOSED", "0", "0")
+        assert (record.delivered, record.dropped) == (0, 0)  # type: ignore[attr-defined]
+        assert match[1] == record.peer  # type: ignore[attr-defined]
+
+
+async def test_a_refused_subscription_names_its_topic(
+    access: Records, transport: Transport
+) -> None:
+    server = Server(access_log=True)
+    server.topic("/chatter", String)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        for id, topic in ((1, "/nope"), (2, "bad topic\n")):
+            params = {"topic": topic}
+            await w.send({"jsonrpc": "2.0", "id": id, "method": "$/subscribe", "params": params})
+            assert (await recv_data(w))["error"]["data"]["status"] == "SERVICE_NOT_FOUND"
+        await w.send({"jsonrpc": "2.0", "id": 3, "method": "$/subscribe", "params": [1]})
+        assert (await recv_data(w))["error"]["data"]["status"] == "INVALID_PARAMS"
+        lines = await access.messages(3)
+        assert [line.split(" ", 1)[1] for line in lines] == [
+            "$/subscribe /nope SERVICE_NOT_FOUND -",
+            "$/subscribe 'bad topic\\n' SERVICE_NOT_FOUND -",
+            "$/subscribe - INVALID_PARAMS -",
+        ]
+        await w.ws.close()
+
+
+async def test_publishes_without_an_answer_are_summed_up_per_topic_when_the_connection_ends(
+    access: Records, transport: Transport
+) -> None:
+    server = Server(access_log=True)
+    received: list[Any] = []
+    server.subscription("/cmd", String)(received.append)
+    server.subscription("/quiet", String)(received.append)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        publish = {"jsonrpc": "2.0", "method": "$/publish"}
+        for n in range(200):
+            await w.send({**publish, "params": {"topic": "/cmd", "message": {"data": str(n)}}})
+        await w.send({**publish, "params": {"topic": "/cmd", "message": {"data": 1}}})
+        await w.send({**publish, "params": {"topic": "/nope", "message": {"data": "x"}}})
+        await w.send({**publish, "params": {"topic": "/quiet", "message": {"data": "x"}}})
+        # Acknowledged publishes are calls: a line each, once answered.
+        ack = {**publish, "id": 1, "params": {"topic": "/cmd", "message": {"data": "y"}}}
+        assert (await w.call(ack))["result"] is None
+        bad = {**publish, "id": 2, "params": {"topic": "/cmd", "message": {"data": []}}}
+        assert (await w.call(bad))["error"]["data"]["status"] == "INVALID_PARAMS"
+        missing = {**publish, "id": 3, "params": {"topic": "/nope", "message": {}}}
+        assert (await w.call(missing))["error"]["data"]["status"] == "SERVICE_NOT_FOUND"
+        lines = await access.messages(3)  # and none for the 203 without an answer
+        assert [line.split(" ", 1)[1].rsplit(" ", 2)[0] for line in lines[:2]] == [
+            "$/publish /cmd OK",
+            "$/publish /cmd INVALID_PARAMS",
+        ]
+        assert all(re.search(rf" {DURATION}$", line) for line in lines[:2])
+        assert lines[2].split(" ", 1)[1] == "$/publish /nope SERVICE_NOT_FOUND -"
+        assert len(received) == 202
+        await w.ws.close()
+        summary = {}
+        for _ in range(2):
+            record = await access.next()
+            summary[record.topic] = record  # type: ignore[attr-defined]
+    cmd, quiet = summary["/cmd"], summary["/quiet"]
+    assert re.fullmatch(
+        rf"\S+ \$/publish /cmd INVALID_PARAMS {DURATION} received 201 invalid 1", cmd.getMessage()
+    )
+    assert (cmd.received, cmd.invalid) == (201, 1)  # type: ignore[attr-defined]
+    assert re.fullmatch(
+        r"\S+ \$/publish /quiet OK 0\.00 ms received 1 invalid 0", quiet.getMessage()
+    )
+    assert access.queue.empty()
+
+
+async def test_removing_a_topic_sums_up_what_was_published_on_it_then(
+    access: Records, transport: Transport
+) -> None:
+    server = Server(access_log=True)
+    received: list[Any] = []
+    server.subscription("/cmd", String)(received.append)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        publish = {"jsonrpc": "2.0", "method": "$/publish"}
+        for n in range(3):
+            await w.send({**publish, "params": {"topic": "/cmd", "message": {"data": str(n)}}})
+        ack = {**publish, "id": 1, "params": {"topic": "/cmd", "message": {"data": "y"}}}
+        assert (await w.call(ack))["result"] is None  # all four handled, in order
+        assert (await access.next()).getMessage().split(" ", 1)[1].startswith("$/publish /cmd OK")
+        server.remove_topic("/cmd")
+        record = await access.next()  # while the connection stays open
+        assert re.fullmatch(
+            rf"\S+ \$/publish /cmd OK {DURATION} received 3 invalid 0", record.getMessage()
+        )
+        await w.ws.close()
+    assert len(received) == 4 and access.queue.empty()  # no second summary at the close
 
 
 # --- where the server listens ---------------------------------------------------------------

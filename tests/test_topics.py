@@ -574,32 +574,157 @@ async def test_closing_a_client_ends_its_subscriptions_quietly(
 
 
 async def test_a_reply_goes_ahead_of_topic_data_the_server_holds() -> None:
-    # The connection's budget is small and its client reads nothing at first: the server holds
-    # most of a burst in the outbox. A call sent then is answered long before the burst ends.
+    # The handler publishes a burst and answers: the burst waits in the connection's outbox for
+    # the writer's turn, and the reply, written at once, overtakes it.
     server = Server(max_queued_bytes=20_000)
+    flood = server.topic("/flood", String, qos={"depth": 200})
 
     @server.service("/subtract", Subtract)
     async def answer(request: Any) -> Any:  # async: answered on the reader, no thread
+        for n in range(3):
+            flood.publish({"data": f"{n:05d}" + "x" * 5000})
         return subtract(request)
 
-    flood = server.topic("/flood", String, qos={"depth": 200})
     transport = MemoryTransport()
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         wire = await open_wire(running)
         params = {"topic": "/flood"}
         await wire.send({"jsonrpc": "2.0", "id": 1, "method": "$/subscribe", "params": params})
         assert (await recv_topic(wire))["method"] == "$/subscribed"
-        for n in range(100):
-            flood.publish({"data": f"{n:05d}" + "x" * 5000})
         call = {"jsonrpc": "2.0", "id": 2, "method": "/subtract", "params": {"minuend": 5}}
         await wire.send(call)
         order = []
-        while len(order) < 101:
+        while len(order) < 4:
             message = await recv_topic(wire)
             order.append("reply" if message.get("id") == 2 else message["params"]["seq"])
-        assert order.index("reply") < 20, order  # behind the budget's few messages, not 100
-        assert [seq for seq in order if seq != "reply"] == list(range(1, 101))
+        assert order == ["reply", 1, 2, 3]
         await wire.ws.close()
+
+
+# --- the connection's budget bounds topic data ---------------------------------------------------
+
+KIB = 2**10
+TEN_KB = {"data": "x" * 10_000}
+FRAME = len(b'{"jsonrpc":"2.0","method":"$/message","params":{}}') + 10_100  # a message, at most
+KERNEL = 64 * KIB  # what the two sockets' buffers may hold, at most, once made small (measured)
+
+
+async def stalled_subscriber(
+    port: int, qos: dict[str, Any]
+) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """A WebSocket opened by hand with a small receive buffer, subscribed to ``/flood``; it
+    reads nothing after ``$/subscribed`` until the test reads it with :func:`read_frame`."""
+    reader, writer = await asyncio.open_connection(
+        sock=await small_buffered_socket(port), limit=4096
+    )
+    writer.write(
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    assert (await reader.readuntil(b"\r\n\r\n")).startswith(b"HTTP/1.1 101")
+    subscribe = {
+        "jsonrpc": "2.0",
+        "id": 1,
+        "method": "$/subscribe",
+        "params": {"topic": "/flood", "qos": qos},
+    }
+    writer.write(masked_text_frame(json.dumps(subscribe)))
+    while (await read_frame(reader)).get("method") != "$/subscribed":
+        pass
+    return reader, writer
+
+
+def small_send_buffer(running: RunningServer) -> Any:
+    """The server's one connection, whose socket's send buffer is made small (8 KiB), so that
+    what the kernel holds does not hide what the server holds (loopback grows it to megabytes)."""
+    (served,) = running._connections
+    sock = served.conn._ws.transport.get_extra_info("socket")
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 8 * KIB)
+    return served
+
+
+async def small_buffered_socket(port: int) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    return sock
+
+
+async def read_frame(reader: asyncio.StreamReader) -> Any:
+    """One text frame from the server (unmasked), parsed."""
+    head = await asyncio.wait_for(reader.readexactly(2), scaled(10))
+    size = head[1] & 0x7F
+    if size == 126:
+        size = int.from_bytes(await reader.readexactly(2), "big")
+    elif size == 127:
+        size = int.from_bytes(await reader.readexactly(8), "big")
+    return json.loads(await reader.readexactly(size))
+
+
+@pytest.mark.parametrize("budget", [64 * KIB, 512 * KIB])
+async def test_a_reliable_subscriber_that_never_reads_is_ended_where_the_budget_is_spent(
+    budget: int,
+) -> None:
+    server = Server(max_queued_bytes=budget)
+    flood = server.topic("/flood", String, qos={"depth": 10_000})
+    async with serve(server, "127.0.0.1", 0) as running:
+        reader, writer = await stalled_subscriber(running.port, {})
+        small_send_buffer(running)
+        try:
+            published = 0
+            while flood.subscription_count:
+                flood.publish(TEN_KB)
+                published += 1
+                await asyncio.sleep(0)  # a turn of the loop: the writer sends, the socket fills
+            # The budget was spent before the subscriber was ended, and no more than the budget
+            # (and the kernel's buffers, and the one message an empty outbox always takes).
+            assert budget <= published * FRAME <= budget + KERNEL + 2 * FRAME, published
+            while "id" not in (ended := await read_frame(reader)):
+                pass
+            assert ended["id"] == 1
+            error = ended["error"]
+            assert error["data"]["status"] == "RESOURCE_EXHAUSTED"
+            assert error["data"]["max_queued_bytes"] == budget
+            assert f"spent the connection's budget of {budget} bytes" in error["message"]
+        finally:
+            writer.close()
+
+
+@pytest.mark.parametrize("budget", [64 * KIB, 512 * KIB])
+async def test_a_best_effort_subscriber_that_never_reads_gets_the_budget_and_the_drop_count(
+    budget: int,
+) -> None:
+    server = Server(max_queued_bytes=budget)
+    flood = server.topic("/flood", String, qos={"depth": 10_000, "reliability": "best_effort"})
+    async with serve(server, "127.0.0.1", 0) as running:
+        reader, writer = await stalled_subscriber(running.port, {})
+        served = small_send_buffer(running)
+        try:
+            published = 0
+            while not served.conn.congested:  # until the transport holds the budget
+                flood.publish(TEN_KB)
+                published += 1
+                await asyncio.sleep(0)  # a turn of the loop: the writer sends, the socket fills
+            assert budget <= published * FRAME <= budget + KERNEL + 2 * FRAME, published
+            for _ in range(100):  # then well past it
+                flood.publish(TEN_KB)
+                published += 1
+                await asyncio.sleep(0)
+            assert served.outbox.queued <= FRAME  # the one, newest, message an empty outbox takes
+            seqs, dropped = [], 0
+            while not seqs or seqs[-1] < published:
+                params = (await read_frame(reader))["params"]
+                if seqs:
+                    assert params["dropped"] == params["seq"] - seqs[-1] - 1
+                seqs.append(params["seq"])
+                dropped += params["dropped"]
+        finally:
+            writer.close()
+    assert len(seqs) + dropped == published  # every message delivered, or reported dropped
+    # Past the budget the outbox keeps one message, the newest: of the last 100, 99 dropped.
+    assert dropped == 99 and seqs[-1] == published
+    assert budget <= len(seqs) * FRAME <= budget + KERNEL + 2 * FRAME
 
 
 async def test_wait_for_topic_is_woken_by_the_announcement(

@@ -185,20 +185,101 @@ def test_reliable_ends_a_subscriber_that_cannot_keep_up() -> None:
 
 def test_the_bytes_queued_on_a_connection_are_bounded() -> None:
     chatter = topic(qos=QoS(depth=100, reliability="best_effort"))
-    outbox = Outbox(max_bytes=10 * len(data(0)))
+    outbox = Outbox(budget=10 * len(data(0)))
     outbox.subscribe(1, chatter, chatter.qos)
     drain(outbox)
     for n in range(50):
         chatter.publish(data(n))
-        assert outbox.queued <= outbox.max_bytes
+        assert outbox.queued <= outbox.budget
     messages = [m["params"] for m in drain(outbox)]
     assert len(messages) == 10
     assert messages[0]["dropped"] == 40
 
 
+class Transport:
+    """What a connection's transport holds: bytes sent, not yet read by the peer."""
+
+    def __init__(self) -> None:
+        self.held = 0
+
+    def buffered(self) -> int:
+        return self.held
+
+
+def test_topic_data_takes_what_the_transport_leaves_of_the_budget() -> None:
+    size = len(data(0))
+    transport = Transport()
+    chatter = topic(qos=QoS(depth=100, reliability="best_effort"))
+    outbox = Outbox(budget=10 * size, buffered=transport.buffered)
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    transport.held = 6 * size  # replies, and data sent already, that the client has not read
+    for n in range(50):
+        chatter.publish(data(n))
+        assert outbox.queued + transport.held <= outbox.budget
+    messages = [m["params"] for m in drain(outbox)]
+    assert [(m["seq"], m["dropped"]) for m in messages] == [(47, 46), (48, 0), (49, 0), (50, 0)]
+    transport.held = 20 * size  # past the budget: one message at a time, the latest
+    for n in range(5):
+        chatter.publish(data(n))
+    assert [(m["params"]["seq"], m["params"]["dropped"]) for m in drain(outbox)] == [(55, 4)]
+
+
+def test_a_reliable_subscriber_is_ended_where_the_budget_is_spent() -> None:
+    size = len(data(0))
+    transport = Transport()
+    chatter = topic(qos=QoS(depth=100))
+    outbox = Outbox(budget=10 * size, buffered=transport.buffered)
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    transport.held = 7 * size
+    assert [chatter.publish(data(n)) for n in range(5)] == [1, 1, 1, 0, 0]
+    assert outbox.queued == 0 and not outbox.subscriptions
+    [ended] = drain(outbox)
+    assert ended["error"]["message"] == (
+        "the subscriber to /chatter did not keep up: 48 bytes of topic data queued and 112 "
+        "bytes waiting to be sent spent the connection's budget of 160 bytes "
+        "(max_queued_bytes), and the subscription is reliable"
+    )
+    assert ended["error"]["data"] == {
+        "status": "RESOURCE_EXHAUSTED",
+        "depth": 100,
+        "seq": 4,
+        "max_queued_bytes": 160,
+    }
+
+
+def test_a_reply_takes_its_room_from_topic_data_best_effort_first() -> None:
+    size = len(data(0))
+    transport = Transport()
+    lossy = topic("/lossy", QoS(depth=100, reliability="best_effort"))
+    steady = topic("/steady", QoS(depth=100))
+    outbox = Outbox(budget=10 * size, buffered=transport.buffered)
+    outbox.subscribe(1, lossy, lossy.qos)
+    outbox.subscribe(2, steady, steady.qos)
+    drain(outbox)
+    for n in range(4):
+        lossy.publish(data(n))
+        steady.publish(data(n))
+    outbox.fit()  # everything fits: nothing changes
+    assert outbox.queued == 8 * size
+    transport.held = 5 * size  # a reply was queued: 3 messages too many
+    outbox.fit()
+    assert outbox.queued == 5 * size and len(outbox.subscriptions) == 2
+    transport.held = 8 * size  # another: best effort has one left to give, then reliable ends
+    outbox.fit()
+    assert outbox.queued == 0 and list(outbox.subscriptions) == [1]
+    messages = drain(outbox)
+    assert messages[0]["id"] == 2
+    assert messages[0]["error"]["data"]["status"] == "RESOURCE_EXHAUSTED"
+    lossy.publish(data(9))
+    transport.held = 0
+    assert [(m["params"]["seq"], m["params"]["dropped"]) for m in drain(outbox)] == [(5, 4)]
+
+
 def test_a_message_larger_than_the_budget_still_passes_alone() -> None:
     chatter = topic()
-    outbox = Outbox(max_bytes=4)
+    outbox = Outbox(budget=4)
     outbox.subscribe(1, chatter, chatter.qos)
     drain(outbox)
     chatter.publish(data(1))

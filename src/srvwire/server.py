@@ -115,8 +115,9 @@ class Server:
     it is sent); ``max_batch`` the messages of one batch; ``notification_timeout`` how long a
     notification's handler may run when the notification gives no deadline (None: forever);
     ``max_message_size`` the size of one incoming message in bytes (None: no limit);
-    ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent: past it the
-    connection reads no more calls until its client has read them down to a quarter of it;
+    ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent, replies and
+    topic data together (topic data takes what replies leave): past it the connection reads no
+    more calls until its client has read them down to a quarter of it;
     ``write_timeout`` how long a connection may stay past its budget before it is closed with
     code 1008 (None: forever; with keepalive on, at most ``ping_interval + ping_timeout``);
     see ``docs/limits.md`` for what they bound;
@@ -139,7 +140,9 @@ class Server:
 
     ``access_log=True`` writes a line per call to the ``srvwire.access`` logger (or to the
     logger given): peer, service, outcome and duration (see
-    :class:`~srvwire.serving.AccessLoggedSession`); off, it costs nothing.
+    :class:`~srvwire.serving.AccessLoggedSession`), a line per subscription as it ends, and
+    one per topic a connection published on without asking for answers, as the connection
+    ends (or the topic is removed); off, it costs nothing.
     """
 
     def __init__(
@@ -441,6 +444,10 @@ class Server:
         except KeyError:
             raise RegistrationError(f"no topic named {canonical} is declared") from None
         self.registry.topics_changed()
+        for running in self._running:  # the access log sums up what was published on it
+            for conn in running._connections:
+                if conn.access is not None:
+                    conn.access.summarize(canonical)
         self._services_changed()
 
     def _declare_topic(
@@ -879,6 +886,7 @@ class RunningServer:
             executor=server.executor,
             logger=server.logger,
             access_log=server.access_log,
+            max_queued_bytes=server.max_queued_bytes,
         )
         if self.closing:
             conn.session.close()

@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
+import json
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -52,7 +54,7 @@ from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
 from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError, ServiceError
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
-from srvwire.protocol import Request
+from srvwire.protocol import PUBLISH_METHOD, SUBSCRIBE_METHOD, Id, Request
 from srvwire.session import (
     Call,
     CancelCall,
@@ -62,10 +64,17 @@ from srvwire.session import (
     ServerSession,
     SubscriptionDeadline,
 )
-from srvwire.topics import Outbox, publish_ack
+from srvwire.topics import Outbox, QoS, Subscription, Topic, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
 
-__all__ = ["AccessLoggedSession", "CallRunner", "ServedConnection", "Writer"]
+__all__ = [
+    "AccessLog",
+    "AccessLoggedOutbox",
+    "AccessLoggedSession",
+    "CallRunner",
+    "ServedConnection",
+    "Writer",
+]
 
 
 DROP_LOG_INTERVAL = 1.0
@@ -332,14 +341,15 @@ class Writer:
     """Sends what one connection's :class:`~srvwire.topics.Outbox` holds, one message at a time.
 
     The outbox decides the order (control messages first, then subscriptions round-robin) and
-    the bounds (``depth`` per subscription, bytes per connection); the writer only takes the
-    next message and sends it, and takes none while the connection is
-    :attr:`~srvwire.transports.base.Connection.congested` (past its budget of bytes waiting to
-    be sent). So what a slow reader costs is what the outbox may hold plus the connection's
-    budget, and while the writer waits, the outbox keeps deciding what to drop (best effort)
-    or end (reliable). Replies to calls do not go through it: they are sent at once, never
-    behind the data the outbox holds, and when a drain wakes a reply and the writer together,
-    the reply goes first.
+    the bounds (``depth`` per subscription; what it holds and what the transport holds share
+    the connection's ``budget``); the writer only takes the next message and sends it, and
+    takes none while the connection is :attr:`~srvwire.transports.base.Connection.congested`
+    (past its budget of bytes waiting to be sent). So what a slow reader costs is the
+    connection's budget, and while the writer waits, the outbox keeps deciding what to drop
+    (best effort) or end (reliable). Replies to calls do not go through it: they are sent at
+    once, never behind the data the outbox holds (which then gives up what no longer fits,
+    :meth:`~srvwire.topics.Outbox.fit`), and when a drain wakes a reply and the writer
+    together, the reply goes first.
 
     It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
     low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
@@ -351,10 +361,18 @@ class Writer:
 
     __slots__ = ("conn", "feedback", "feedback_sent", "loop", "outbox", "task", "turn", "waiter")
 
-    def __init__(self, conn: Connection, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(
+        self,
+        conn: Connection,
+        loop: asyncio.AbstractEventLoop,
+        budget: int = 4 * 2**20,
+        make_outbox: Callable[..., Outbox] = Outbox,
+    ) -> None:
         self.conn = conn
         self.loop = loop
-        self.outbox = Outbox(self.wake)
+        # What the transport holds; a stand-in connection without it (a test's) holds nothing.
+        buffered = getattr(conn, "buffered", None) or (lambda: 0)
+        self.outbox = make_outbox(self.wake, budget, buffered)
         self.feedback = FeedbackOutbox()
         self.feedback_sent: Callable[[Any], object] = lambda call: None
         self.turn = False  # whether feedback goes before topic data next time both wait
@@ -435,6 +453,115 @@ def _method(name: str) -> str:
     return name if name.isprintable() and " " not in name and name else repr(name)
 
 
+class AccessLog:
+    """The access log of one connection: writes its lines, at INFO, on ``log``.
+
+    A line is ``PEER SERVICE OUTCOME DURATION``; a line about a topic is ``PEER METHOD TOPIC
+    OUTCOME DURATION``, then its counts as ``name value`` pairs (see docs/logging.md). A name
+    that is not plain is quoted and cut short (:func:`_method`); nothing of the credentials is
+    ever written. The record carries every field as an attribute too.
+    """
+
+    __slots__ = ("log", "peer")
+
+    def __init__(self, log: logging.Logger, peer: Any) -> None:
+        self.log = log
+        self.peer = _peer(peer)
+
+    def line(
+        self,
+        service: str,
+        outcome: str,
+        duration: float | None = None,
+        topic: str | None = None,
+        **counts: int,
+    ) -> None:
+        log = self.log
+        if not log.isEnabledFor(logging.INFO):
+            return
+        ms = None if duration is None else round(duration * 1000, 3)
+        extra: dict[str, Any] = {
+            "peer": self.peer,
+            "service": service,
+            "outcome": outcome,
+            "duration_ms": ms,
+        }
+        text = "%s %s %s %s"
+        args: list[Any] = [self.peer, service, outcome, "-" if ms is None else f"{ms:.2f} ms"]
+        if topic is not None:
+            text = "%s %s %s %s %s"
+            args.insert(2, topic)
+            extra["topic"] = topic
+        for name, count in counts.items():
+            text += f" {name} %d"
+            args.append(count)
+            extra[name] = count
+        log.info(text, *args, extra=extra)
+
+
+class AccessLoggedOutbox(Outbox):
+    """An outbox that also writes the access log's line of each subscription as it ends.
+
+    The line is ``PEER $/subscribe TOPIC OUTCOME DURATION delivered N dropped M``: the outcome
+    is ``CLOSED`` when the connection went away, else the status of the reply that ended it
+    (``CANCELLED``, ``DEADLINE_EXCEEDED``, ``RESOURCE_EXHAUSTED``, ``SERVICE_NOT_FOUND`` for a
+    topic removed); the duration runs from ``$/subscribe`` until the end; ``delivered`` counts
+    the messages written, ``dropped`` the ones best effort dropped. Only a connection with the
+    access log on has one, so counting the messages costs nothing otherwise.
+    """
+
+    __slots__ = ("access", "counts")
+
+    def __init__(
+        self,
+        wake: Callable[[], object],
+        budget: int,
+        buffered: Callable[[], int],
+        *,
+        access: AccessLog,
+    ) -> None:
+        super().__init__(wake, budget, buffered)
+        self.access = access
+        # Each running subscription's start (on perf_counter), messages delivered and dropped.
+        self.counts: dict[Subscription, list[Any]] = {}
+
+    def subscribe(self, id: Id, topic: Topic[Any], qos: QoS) -> Subscription:
+        started = time.perf_counter()
+        subscription = super().subscribe(id, topic, qos)
+        if subscription.id in self.subscriptions:  # not ended as its history was replayed
+            self.counts.setdefault(subscription, [started, 0, 0])
+        return subscription
+
+    def next(self) -> bytes | None:
+        ready = self.ready
+        if self.control or not ready:
+            return super().next()
+        subscription = ready[0]  # the one whose message is taken
+        dropped = subscription.dropped
+        data = super().next()
+        counts = self.counts.get(subscription)
+        if counts is not None:
+            counts[1] += 1
+            counts[2] += dropped
+        return data
+
+    def end(self, subscription: Subscription, error: RPCError | None) -> bool:
+        dropped = subscription.dropped  # dropped since its last message, never said
+        ended = super().end(subscription, error)
+        if ended:
+            now = time.perf_counter()
+            started, delivered, said = self.counts.pop(subscription, (now, 0, 0))
+            self.access.line(
+                SUBSCRIBE_METHOD,
+                "CLOSED" if error is None else _outcome(error),
+                now - started,
+                _method(subscription.topic.name),
+                delivered=delivered,
+                dropped=said + dropped,
+            )
+        return ended
+
+
 class AccessLoggedSession(ServerSession[ServiceEntry]):
     """A server session that also writes the access log: one line per call, at INFO.
 
@@ -445,8 +572,16 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
     calls in flight, shutdown, discovery, ``$/cancel``) shows ``-`` for its duration; a call
     whose connection went away before its reply shows ``CLOSED``. Notifications have no line.
 
+    Topics (``$/subscribe`` and ``$/publish`` name their topic after the method): a
+    subscription has its line when it ends (:class:`AccessLoggedOutbox`); an acknowledged
+    publish is a call, with its line once answered; publishes without an answer are counted
+    per topic, and :meth:`summarize` writes one line per topic when the connection ends:
+    ``PEER $/publish TOPIC OUTCOME DURATION received N invalid M``, where the outcome is
+    ``OK``, or ``INVALID_PARAMS`` when some were invalid, and the duration runs from the first
+    message to the last (a topic removed meanwhile has its line then).
+
     A connection uses this class only when the access log is on, so a server without it does
-    no work for it on any call.
+    no work for it on any call or message.
     """
 
     def __init__(
@@ -469,11 +604,17 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
             topics=topics,
             outbox=outbox,
         )
+        self.access = (
+            outbox.access if isinstance(outbox, AccessLoggedOutbox) else AccessLog(access_log, peer)
+        )
         self.access_log = access_log
-        self.peer = _peer(peer)
+        self.peer = self.access.peer
         self.admitted: dict[Call[ServiceEntry], float] = {}  # when, on perf_counter
         self.outcomes: dict[Call[ServiceEntry], str] = {}
         self.refused: RPCError | None = None  # how the request being admitted was answered
+        self.acknowledging: dict[Id, float] = {}  # acknowledged publishes, when admitted
+        # Publishes without an answer, by topic: the first's and last's time, how many, invalid.
+        self.published: dict[str, list[Any]] = {}
 
     def _admit(
         self, request: Request, batch: Any, events: list[Any]
@@ -482,8 +623,13 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         admitted = super()._admit(request, batch, events)
         if type(admitted) is bytes:
             refused = self.refused
-            self.line(_method(request.method), "OK" if refused is None else _outcome(refused))
-        elif admitted is not None:  # None: a subscription started, answered when it ends
+            method = request.method
+            if method == SUBSCRIBE_METHOD or method == PUBLISH_METHOD:
+                # Refused by the topics, whose error replies do not pass through _refuse.
+                self.line(method, _status_of(admitted), topic=_topic_param(request.params))
+            else:
+                self.line(_method(method), "OK" if refused is None else _outcome(refused))
+        elif admitted is not None:  # None: a subscription, or a publish, answered later
             assert isinstance(admitted, Call)
             self.admitted[admitted] = time.perf_counter()
         return admitted
@@ -491,6 +637,54 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
     def _refuse(self, request: Request, error: RPCError) -> bytes:
         self.refused = error
         return super()._refuse(request, error)
+
+    def _publish(self, params: Any, id: Id) -> Publish | bytes:
+        publish = super()._publish(params, id)
+        if isinstance(publish, bytes):  # refused at once: with an id, _admit writes its line
+            return publish
+        now = time.perf_counter()
+        if id is not None:
+            self.acknowledging[id] = now
+            return publish
+        counts = self.published.get(publish.topic.name)
+        if counts is None:
+            self.published[publish.topic.name] = [now, now, 1, 0]
+        else:
+            counts[1] = now
+            counts[2] += 1
+        return publish
+
+    def publish_done(self, event: Publish, error: RPCError | None) -> None:
+        """A publish was handed on (``error`` None) or refused as invalid: an acknowledged one
+        has its line now, an invalid one without an answer is counted."""
+        topic = event.topic.name
+        if event.id is None:
+            counts = self.published.get(topic)
+            if error is not None and counts is not None:
+                counts[3] += 1
+            return
+        admitted = self.acknowledging.pop(event.id, None)
+        duration = None if admitted is None else time.perf_counter() - admitted
+        outcome = "OK" if error is None else _outcome(error)
+        self.line(PUBLISH_METHOD, outcome, duration, topic=_method(topic))
+
+    def summarize(self, topic: str | None = None) -> None:
+        """The connection ended (``topic`` None), or ``topic`` was removed: one line per topic
+        it published on without an answer, and counting starts again."""
+        if topic is None:
+            published, self.published = self.published, {}
+        else:
+            counts = self.published.pop(topic, None)
+            published = {} if counts is None else {topic: counts}
+        for name, (first, last, received, invalid) in published.items():
+            self.line(
+                PUBLISH_METHOD,
+                "INVALID_PARAMS" if invalid else "OK",
+                last - first,
+                topic=_method(name),
+                received=received,
+                invalid=invalid,
+            )
 
     def reply(self, call: Call[ServiceEntry], result: bytes) -> bytes | None:
         self.outcomes[call] = "OK"
@@ -514,19 +708,31 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         if admitted is not None:
             self.line(call.entry.name, outcome, time.perf_counter() - admitted)
 
-    def line(self, service: str, outcome: str, duration: float | None = None) -> None:
-        log = self.access_log
-        if not log.isEnabledFor(logging.INFO):
-            return
-        ms = None if duration is None else round(duration * 1000, 3)
-        log.info(
-            "%s %s %s %s",
-            self.peer,
-            service,
-            outcome,
-            "-" if ms is None else f"{ms:.2f} ms",
-            extra={"peer": self.peer, "service": service, "outcome": outcome, "duration_ms": ms},
-        )
+    def line(
+        self,
+        service: str,
+        outcome: str,
+        duration: float | None = None,
+        topic: str | None = None,
+        **counts: int,
+    ) -> None:
+        self.access.line(service, outcome, duration, topic, **counts)
+
+
+def _topic_param(params: Any) -> str:
+    """The topic a ``$/subscribe`` or ``$/publish`` named, as the access log writes it."""
+    name = params.get("topic") if type(params) is dict else None
+    return _method(name) if isinstance(name, str) else "-"
+
+
+def _status_of(reply: bytes) -> str:
+    """The outcome of a request answered at once with ``reply``: ``OK``, or its error's
+    status (every error reply srvwire writes says its status in its data)."""
+    error = json.loads(reply).get("error")
+    if error is None:
+        return "OK"
+    data = error.get("data")
+    return str(data.get("status", "INTERNAL")) if isinstance(data, dict) else "INTERNAL"
 
 
 def _outcome(error: RPCError) -> str:
@@ -539,6 +745,7 @@ class ServedConnection:
     """One client connection: its session, its reader, and the runner of its calls."""
 
     __slots__ = (
+        "access",
         "conn",
         "drops",
         "drops_level",
@@ -548,6 +755,7 @@ class ServedConnection:
         "flushed",
         "log",
         "loop",
+        "outbox",
         "reader",
         "reading",
         "runner",
@@ -567,14 +775,23 @@ class ServedConnection:
         executor: Executor | None,
         logger: logging.Logger,
         access_log: logging.Logger | None = None,
+        max_queued_bytes: int = 4 * 2**20,
     ) -> None:
         self.conn = conn
         self.log = logger
         identity = getattr(conn, "identity", None)
         scopes: frozenset[str] = getattr(identity, "scopes", frozenset())
         self.loop = asyncio.get_running_loop()
-        self.writer = Writer(conn, self.loop)
+        if access_log is None:
+            self.writer = Writer(conn, self.loop, max_queued_bytes)
+        else:
+            logged = functools.partial(
+                AccessLoggedOutbox, access=AccessLog(access_log, conn.remote_address)
+            )
+            self.writer = Writer(conn, self.loop, max_queued_bytes, logged)
+        self.outbox = self.writer.outbox
         self.session: ServerSession[ServiceEntry]
+        self.access: AccessLoggedSession | None = None  # the session, when it is logged
         if access_log is None:
             self.session = ServerSession(
                 registry,
@@ -595,6 +812,7 @@ class ServedConnection:
                 topics=registry.topics,
                 outbox=self.writer.outbox,
             )
+            self.access = self.session
         self.runner = CallRunner(
             self.session,
             self.send,
@@ -639,11 +857,14 @@ class ServedConnection:
         return task
 
     async def send(self, data: bytes) -> None:
-        """Send one message; a connection that is gone is not an error here."""
+        """Send one message ahead of the topic data the outbox holds, which gives up what no
+        longer fits in the budget; a connection that is gone is not an error here."""
         try:
             await self.conn.send(data)
         except TransportClosed:
-            pass  # the caller left; its calls are being cancelled
+            return  # the caller left; its calls are being cancelled
+        if self.outbox.queued:
+            self.outbox.fit()
 
     # --- goals' feedback (what an action's GoalHandle needs of its connection) ----------------
 
@@ -703,6 +924,8 @@ class ServedConnection:
             runner.cancel(cancel.call, cancel.error)
         if error is None:
             self.writer.stop()
+            if self.access is not None:
+                self.access.summarize()
             if self.expiry is not None:
                 self.expiry.cancel()
                 self.expiry = None
@@ -849,6 +1072,8 @@ class ServedConnection:
                 await self.send(self.session.refuse(event.id, exc))
             else:
                 self.log.info("dropped a message on %s from %s: %s", topic.name, self.peer, exc)
+            if self.access is not None:
+                self.access.publish_done(event, exc)
             return
         for handler in entry.handlers:
             try:
@@ -860,6 +1085,8 @@ class ServedConnection:
         topic.publish(entry.write(message))
         if event.id is not None:
             await self.send(publish_ack(event.id))
+            if self.access is not None:
+                self.access.publish_done(event, None)
 
     async def run_topic_handler(self, name: str, coro: Any) -> None:
         try:

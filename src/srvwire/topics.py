@@ -17,12 +17,16 @@ Invariants:
   data only when none does.
 * **Round-robin.** Subscriptions with data take turns, one message each, so a flooded topic
   cannot starve another on the same connection.
-* **Bounded.** A subscription holds at most ``depth`` messages, and an outbox at most
-  ``max_bytes`` of topic data (a message larger than that on its own is always accepted into
-  an empty outbox, so that one message can always pass). When a message does not fit,
-  ``best_effort`` drops the subscription's oldest (counted in the next ``dropped``; the
-  ``seq`` numbers show the gap); ``reliable`` ends the subscription with ``RESOURCE_EXHAUSTED``
-  and never drops silently.
+* **One budget per connection.** A subscription holds at most ``depth`` messages; the topic
+  data an outbox holds and the bytes its connection's transport holds (replies, and data
+  already sent) share the connection's ``budget`` (the server's ``max_queued_bytes``): topic
+  data may take what the transport leaves, ``budget - buffered()``, checked as each message is
+  offered (a message is always accepted into an empty outbox, so that one message can always
+  pass). When a message does not fit, ``best_effort`` drops the subscription's oldest (counted
+  in the next ``dropped``; the ``seq`` numbers show the gap); ``reliable`` ends the
+  subscription with ``RESOURCE_EXHAUSTED`` and never drops silently. A reply is never refused:
+  once it is queued, :meth:`Outbox.fit` gives up topic data until the two fit again, best
+  effort's oldest messages first, then whole reliable subscriptions, which end as above.
 * **Sequence numbers per topic.** Every publication takes the next ``seq`` (from 1); a
   subscriber sees them increasing, and ``seq - previous - 1 == dropped`` for each message of
   a best-effort subscription.
@@ -60,7 +64,6 @@ from srvwire.protocol import (
 )
 
 __all__ = [
-    "DEFAULT_MAX_QUEUED_BYTES",
     "Gaps",
     "Outbox",
     "QoS",
@@ -71,9 +74,6 @@ __all__ = [
     "topics_notification",
 ]
 
-
-DEFAULT_MAX_QUEUED_BYTES = 2**22
-"""Bytes of topic data one connection may have queued (4 MiB) beside what the transport holds."""
 
 RELIABILITIES = ("reliable", "best_effort")
 DURABILITIES = ("volatile", "transient_local")
@@ -232,27 +232,12 @@ class Subscription:
         outbox = self.outbox
         queue = self.queue
         size = len(data)
-        while len(queue) >= self.qos.depth or (
-            outbox.queued + size > outbox.max_bytes and outbox.queued
+        queued = outbox.queued
+        if len(queue) >= self.qos.depth or (
+            queued and queued + size > outbox.budget - outbox.buffered()
         ):
-            if not self.qos.best_effort:
-                outbox.end(
-                    self,
-                    ResourceExhausted(
-                        f"the subscriber to {self.topic.name} did not keep up: its queue of "
-                        f"{self.qos.depth} messages ({outbox.queued} bytes queued on the "
-                        "connection) was full, and the subscription is reliable",
-                        {"depth": self.qos.depth, "seq": seq},
-                        service=self.topic.name,
-                    ),
-                )
+            if not self.make_room(seq, size):
                 return
-            if not queue:  # the connection's budget is held by other subscriptions
-                self.dropped += 1
-                return
-            _, old = queue.popleft()
-            outbox.queued -= len(old)
-            self.dropped += 1
         queue.append((seq, data))
         outbox.queued += size
         if not self.ready:
@@ -261,6 +246,44 @@ class Subscription:
         if not outbox.woken:
             outbox.woken = True
             outbox.wake()
+
+    def make_room(self, seq: int, size: int) -> bool:
+        """Make room for the message ``seq`` of ``size`` bytes: drop the oldest (best effort)
+        or end the subscription (reliable); return whether the message may be queued."""
+        outbox = self.outbox
+        queue = self.queue
+        room = outbox.budget - outbox.buffered()
+        while len(queue) >= self.qos.depth or (outbox.queued and outbox.queued + size > room):
+            if not self.qos.best_effort:
+                full = len(queue) >= self.qos.depth
+                outbox.end(self, self.exhausted(seq, None if full else room))
+                return False
+            if not queue:  # the connection's budget is held by other subscriptions
+                self.dropped += 1
+                return False
+            _, old = queue.popleft()
+            outbox.queued -= len(old)
+            self.dropped += 1
+        return True
+
+    def exhausted(self, seq: int, room: int | None) -> ResourceExhausted:
+        """How a reliable subscription that did not keep up ends: its queue was full (``room``
+        None), or the connection's budget was spent, with ``room`` bytes left for topic data."""
+        outbox = self.outbox
+        if room is None:
+            why = f"its queue of {self.qos.depth} messages was full"
+        else:
+            why = (
+                f"{outbox.queued} bytes of topic data queued and {outbox.budget - room} bytes "
+                f"waiting to be sent spent the connection's budget of {outbox.budget} bytes "
+                "(max_queued_bytes)"
+            )
+        return ResourceExhausted(
+            f"the subscriber to {self.topic.name} did not keep up: {why}, and the subscription "
+            "is reliable",
+            {"depth": self.qos.depth, "seq": seq, "max_queued_bytes": outbox.budget},
+            service=self.topic.name,
+        )
 
     def __repr__(self) -> str:
         return f"<Subscription {self.id!r} to {self.topic.name}, {len(self.queue)} queued>"
@@ -271,16 +294,31 @@ class Outbox:
 
     ``wake`` is called when the outbox goes from empty to not empty; the writer of the
     connection then takes :meth:`next` until it returns None (which resets :attr:`woken`),
-    sending each, and waits for the next ``wake``.
+    sending each, and waits for the next ``wake``. ``budget`` is the connection's budget of
+    bytes (the server's ``max_queued_bytes``; 4 MiB, its default, when not given) and
+    ``buffered`` says how many of them its transport holds now (see the module).
     """
 
-    __slots__ = ("control", "max_bytes", "queued", "ready", "subscriptions", "wake", "woken")
+    __slots__ = (
+        "budget",
+        "buffered",
+        "control",
+        "queued",
+        "ready",
+        "subscriptions",
+        "wake",
+        "woken",
+    )
 
     def __init__(
-        self, wake: Callable[[], object] = lambda: None, max_bytes: int = DEFAULT_MAX_QUEUED_BYTES
+        self,
+        wake: Callable[[], object] = lambda: None,
+        budget: int = 4 * 2**20,
+        buffered: Callable[[], int] = lambda: 0,
     ) -> None:
         self.wake = wake
-        self.max_bytes = max_bytes
+        self.budget = budget
+        self.buffered = buffered
         self.control: deque[bytes] = deque()
         self.ready: deque[Subscription] = deque()
         self.queued = 0  # bytes of topic data in the subscriptions' queues
@@ -322,6 +360,32 @@ class Outbox:
                 b"}}",
             )
         )
+
+    def fit(self) -> None:
+        """Give up topic data until it fits in what the transport leaves of the budget (called
+        once a reply was queued): best effort's oldest messages first, in turn order, then
+        reliable subscriptions, ended with ``RESOURCE_EXHAUSTED`` (see the module)."""
+        room = self.budget - self.buffered()
+        if self.queued <= room:
+            return
+        for subscription in tuple(self.ready):
+            if not subscription.qos.best_effort:
+                continue
+            queue = subscription.queue
+            while queue and self.queued > room:
+                _, old = queue.popleft()
+                self.queued -= len(old)
+                subscription.dropped += 1
+            if not queue:
+                subscription.ready = False
+                self.ready.remove(subscription)
+            if self.queued <= room:
+                return
+        for subscription in tuple(self.ready):
+            seq = subscription.queue[-1][0]
+            self.end(subscription, subscription.exhausted(seq, room))
+            if self.queued <= room:
+                return
 
     def subscribe(self, id: Id, topic: Topic[Any], qos: QoS) -> Subscription:
         """Start a subscription: ``$/subscribed`` now, then the topic's history if it keeps

@@ -248,6 +248,11 @@ class Connection(abc.ABC):
         """Wait until the connection is not :attr:`congested`; raise :class:`TransportClosed`
         when it ended while this waited."""
 
+    def buffered(self) -> int:
+        """The bytes sent and not yet taken by the peer that count against the budget (what
+        the transport's buffer holds); 0 where the transport cannot tell."""
+        return 0
+
     @abc.abstractmethod
     async def close(self, code: int = 1000, reason: str = "") -> None:
         """Close the connection with ``code`` and ``reason`` and wait until it is closed."""

@@ -205,6 +205,9 @@ class MemoryConnection(Connection):
     def congested(self) -> bool:
         return not self._peer._writable.is_set()
 
+    def buffered(self) -> int:
+        return self._peer._unread
+
     async def writable(self) -> None:
         writable = self._peer._writable
         if writable.is_set():

@@ -307,6 +307,12 @@ class PicowsConnection(WSListener, Connection):
         """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
         return self._writable is not None
 
+    def buffered(self) -> int:
+        ws = self._ws
+        if ws is None:
+            return self._corked_size
+        return ws.underlying_transport.get_write_buffer_size() + self._corked_size
+
     async def writable(self) -> None:
         """Wait until the connection is not :attr:`congested`; raise :class:`TransportClosed`
         when it ended while this waited."""

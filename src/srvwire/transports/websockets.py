@@ -391,6 +391,9 @@ class WebSocketsConnection(Connection):
     def congested(self) -> bool:
         return self._ws.paused
 
+    def buffered(self) -> int:
+        return self._ws.transport.get_write_buffer_size() + self._held
+
     async def writable(self) -> None:
         ws = self._ws
         if not ws.paused:
