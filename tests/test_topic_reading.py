@@ -198,3 +198,31 @@ async def test_a_message_that_is_not_what_its_opening_says_fails_the_connection(
     await ws.wait_closed()
     assert ws.close_code == 1008
     assert not client.connected
+
+
+async def test_after_a_message_that_breaks_the_protocol_no_other_subscription_gets_one(
+    peer: FakePeer, client: Client
+) -> None:
+    # Both subscriptions' messages come on one connection, the broken one first: what follows
+    # it on a connection that failed is not handed to anyone, however soon it arrives.
+    ids: list[int] = []
+
+    async def reply(ws: ServerConnection, request: dict[str, Any]) -> None:
+        if request.get("method") != "$/subscribe":
+            return
+        ids.append(request["id"])
+        granted = {"subscription": request["id"], "seq": 0, "depth": 10}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "method": "$/subscribed", "params": granted}))
+        if len(ids) == 2:
+            await ws.send(message(1, after=" and more")(ids[0]))  # found by the subscription
+            await ws.send(message(1)(ids[1]))
+
+    peer.reply = reply
+    first = client.subscribe("/first", String)
+    second = client.subscribe("/second", String)
+    await first.start()
+    await second.start()
+    for sub in (first, second):
+        with pytest.raises(ConnectionLost) as caught:
+            await sub.receive()
+        assert "the server broke the protocol" in caught.value.message
