@@ -17,7 +17,7 @@ import pytest
 from websockets.asyncio.server import ServerConnection
 
 from srvwire.client import Client, Subscription, connect
-from srvwire.errors import ConnectionLost, InternalError
+from srvwire.errors import ConnectionLost, InternalError, ResourceExhausted
 from srvwire.loader import load_message
 from support import scaled
 from test_client import FakePeer, Reply, answer_add
@@ -48,8 +48,9 @@ def written_otherwise(seq: int, text: str = '{"data":"x"}', dropped: int | None 
     return write
 
 
-def serving(*writes: Write) -> Reply:
-    """Answer ``$/subscribe`` with ``$/subscribed`` and ``writes``; AddTwoInts calls as usual."""
+def serving(*writes: Write, depth: int = 10, reliability: str = "reliable") -> Reply:
+    """Answer ``$/subscribe`` with ``$/subscribed`` (granting ``depth`` and ``reliability``)
+    and ``writes``; AddTwoInts calls as usual."""
 
     async def reply(ws: ServerConnection, request: dict[str, Any]) -> None:
         if request.get("method") != "$/subscribe":
@@ -60,8 +61,8 @@ def serving(*writes: Write) -> Reply:
             "subscription": id,
             "topic": request["params"]["topic"],
             "seq": 0,
-            "depth": 10,
-            "reliability": "reliable",
+            "depth": depth,
+            "reliability": reliability,
             "durability": "volatile",
         }
         await ws.send(json.dumps({"jsonrpc": "2.0", "method": "$/subscribed", "params": granted}))
@@ -148,6 +149,46 @@ async def test_gaps_in_the_sequence_are_reported_and_repeats_skipped(
             ("e", 11, 0),
         ]
         assert sub.dropped == 6
+
+
+@pytest.mark.parametrize(
+    ("depth", "kept"),
+    [
+        (1, [("5", 5, 4)]),
+        (2, [("4", 4, 3), ("5", 5, 0)]),
+        (4, [("2", 2, 1), ("3", 3, 0), ("4", 4, 0), ("5", 5, 0)]),
+    ],
+)
+async def test_a_best_effort_subscriber_that_falls_behind_loses_the_oldest_and_is_told(
+    peer: FakePeer, client: Client, depth: int, kept: list[tuple[str, int, int]]
+) -> None:
+    writes = (message(n, f'{{"data":"{n}"}}') for n in range(1, 6))
+    peer.reply = serving(*writes, depth=depth, reliability="best_effort")
+    async with client.subscribe("/chatter", String) as sub:
+        # The reply comes after the five messages on the one connection: all are in by then.
+        assert (await client.call("/add_two_ints", {"a": 1, "b": 1})).sum == 2
+        # Each kept message says how many were missed just before it (the first: since the
+        # subscription started), as the sequence numbers show.
+        assert await received(sub, depth) == kept
+        assert sub.dropped == 5 - depth
+
+
+async def test_a_reliable_subscriber_that_falls_behind_is_ended(
+    peer: FakePeer, client: Client
+) -> None:
+    peer.reply = serving(*(message(n, f'{{"data":"{n}"}}') for n in range(1, 6)), depth=2)
+    async with client.subscribe("/chatter", String) as sub:
+        assert (await client.call("/add_two_ints", {"a": 1, "b": 1})).sum == 2
+        assert await received(sub, 2) == [("1", 1, 0), ("2", 2, 0)]  # what it had
+        with pytest.raises(ResourceExhausted) as caught:
+            await sub.receive()
+        subscribe = await peer.next("$/subscribe")
+        assert (await peer.next("$/cancel"))["params"] == {"id": subscribe["id"]}
+    assert caught.value.message == (
+        "this subscriber to /chatter did not keep up: its queue of 2 messages was full, and "
+        "the subscription is reliable"
+    )
+    assert caught.value.data == {"depth": 2, "seq": 3}
 
 
 @pytest.mark.parametrize("write", [message, written_otherwise], ids=["recognised", "parsed"])

@@ -1342,9 +1342,15 @@ class Subscription:
                     )
                 )
                 return
-            queue.popleft()
+            # The oldest goes; the message after it (the next one queued, or this one) was
+            # missed just before by what the oldest was, and the oldest itself.
+            _, lost, _ = queue.popleft()
             gaps.missed += 1
-            missed += 1
+            if queue:
+                after, before, kept = queue[0]
+                queue[0] = (after, before + lost + 1, kept)
+            else:
+                missed += lost + 1
         queue.append((seq, missed, message))
         if self._wakeup is not None:
             self._wake()
