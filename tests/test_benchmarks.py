@@ -173,6 +173,29 @@ def test_the_topic_benchmark_runs_both_sides() -> None:
     assert "other processes kept" in lines[-2], result.stdout
 
 
+@pytest.mark.parametrize(
+    ("option", "error"),
+    [
+        (["--messages", "10000"], "--messages must be from 1 to 9990"),
+        (["--messages", "0"], "--messages must be from 1 to 9990"),
+        (["--subscribers", "1,x"], "--subscribers takes positive integers, such as 1,10"),
+        (["--subscribers", "0"], "--subscribers takes positive integers, such as 1,10"),
+    ],
+)
+def test_the_topic_benchmark_refuses_what_it_cannot_run(option: list[str], error: str) -> None:
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "topics.py"), *option],
+        capture_output=True,
+        text=True,
+        timeout=scaled(60),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 2
+    assert error in result.stderr
+    assert "messages of about 1 KB" not in result.stdout  # nothing was measured
+
+
 def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Path) -> None:
     out = tmp_path / "sync.json"
     result = subprocess.run(
