@@ -152,12 +152,48 @@ def test_the_topic_benchmark_runs_both_sides() -> None:
         check=False,
     )
     assert result.returncode == 0, result.stdout + result.stderr
-    rows = [line.split() for line in result.stdout.splitlines()[2:4]]
+    lines = result.stdout.splitlines()
+    rows = [line.split() for line in lines[2:4]]
     assert [row[0] for row in rows] == ["1", "10"], result.stdout
     for row in rows:
-        raw, ours, ratio = (float(cell.replace(",", "")) for cell in row[1:])
+        raw, ours, ratio = (float(cell.replace(",", "")) for cell in row[1:4])
         assert raw > 0 and ours > 0
         assert ratio == pytest.approx(ours / raw, abs=0.01)
+        assert row[4:] == [f"({ratio:.2f})"]  # one run: the ratio of each run is the median
+    # CPU per message on each side, and the ratios that follow from it.
+    cpu = [line.split() for line in lines[7:9]]
+    assert [row[0] for row in cpu] == ["1", "10"], result.stdout
+    for row in cpu:
+        raw_client, our_client, client_ratio, raw_server, our_server, server_ratio = (
+            float(cell) for cell in row[1:]
+        )
+        assert min(raw_client, our_client, raw_server, our_server) > 0
+        assert client_ratio == pytest.approx(our_client / raw_client, abs=0.06)
+        assert server_ratio == pytest.approx(our_server / raw_server, abs=0.06)
+    assert "other processes kept" in lines[-2], result.stdout
+
+
+@pytest.mark.parametrize(
+    ("option", "error"),
+    [
+        (["--messages", "10000"], "--messages must be from 1 to 9990"),
+        (["--messages", "0"], "--messages must be from 1 to 9990"),
+        (["--subscribers", "1,x"], "--subscribers takes positive integers, such as 1,10"),
+        (["--subscribers", "0"], "--subscribers takes positive integers, such as 1,10"),
+    ],
+)
+def test_the_topic_benchmark_refuses_what_it_cannot_run(option: list[str], error: str) -> None:
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "topics.py"), *option],
+        capture_output=True,
+        text=True,
+        timeout=scaled(60),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 2
+    assert error in result.stderr
+    assert "messages of about 1 KB" not in result.stdout  # nothing was measured
 
 
 def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Path) -> None:

@@ -7,13 +7,18 @@ as the response to a call but is not that response is a :class:`ProtocolViolatio
 :class:`Response` decodes its parsed result (``ModelDecoder.from_data``); an
 :class:`ErrorResponse` raises its error.
 
+A topic's ``$/message`` is read the same way: :meth:`ClientSession.receive` recognises one as a
+srvwire server writes it by its opening and hands it over as a :class:`TopicMessage` whose
+``decode`` validates the message member in one pass, and parses the whole message when that is
+refused; one that is not the ``$/message`` its opening says is a :class:`ProtocolViolation`.
+
 For every part of every type srvwire bundles and of ROS 2's test corpus, the one pass and the
-parsed reply must give equal instances for random valid payloads, and refuse the same wrong
-documents with errors at the same places, of the same types. They disagree in one place, pinned
-below: pydantic-core reads an integer literal beyond the range of a double as infinity in a float
-field when it validates JSON text (as it reads ``1e400``), and refuses the Python int that parsing
-makes of it. A raw reply reads such a result as infinity; everything else it decodes must be
-exactly what the parsed reply gives.
+parsed reply (or ``$/message``) must give equal instances for random valid payloads, and refuse
+the same wrong documents with errors at the same places, of the same types. They disagree in one
+place, pinned below: pydantic-core reads an integer literal beyond the range of a double as
+infinity in a float field when it validates JSON text (as it reads ``1e400``), and refuses the
+Python int that parsing makes of it. A raw reply reads such a result as infinity; everything
+else it decodes must be exactly what the parsed reply gives.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import test_conformance as conformance
 from conftest import Subtract
 from srvwire.errors import InvalidRequest, ParseError, ServiceError
 from srvwire.idl import ArrayKind, MessageSpec
-from srvwire.loader import InterfaceLoader, bundled_interfaces
+from srvwire.loader import InterfaceLoader, bundled_interfaces, load_message
 from srvwire.models import Message, ModelDecoder
 from srvwire.protocol import (
     ErrorResponse,
@@ -43,6 +48,8 @@ from srvwire.protocol import (
     parse_replies,
     peek_reply,
 )
+from srvwire.session import ClientSession, Notice, TopicMessage
+from srvwire.topics import Outbox, QoS, Topic
 
 # --- recognising a response by its opening ------------------------------------------------------
 
@@ -254,6 +261,163 @@ def test_an_error_reply_raises_the_error_it_carries() -> None:
     assert caught.value.data == {"tray": 2}
 
 
+# --- a topic's $/message ------------------------------------------------------------------------
+
+String = load_message("std_msgs/msg/String")
+
+
+def published(text: str, subscription: int = 7, skipped: int = 0) -> str:
+    """``text`` as the message of a ``$/message``, written by a server's outbox (the topic's
+    message number ``skipped + 1``, the ``skipped`` before it unseen by this subscriber)."""
+    chatter = Topic("/chatter", None, QoS())
+    for _ in range(skipped):
+        chatter.publish(b"{}")
+    outbox = Outbox()
+    outbox.subscribe(subscription, chatter, QoS())
+    chatter.publish(text.encode())
+    subscribed, message = outbox.next(), outbox.next()
+    assert subscribed is not None and message is not None
+    return message.decode()
+
+
+def recognised(message: str) -> TopicMessage:
+    (event,) = ClientSession[object]().receive(message)
+    assert type(event) is TopicMessage and event.start > 0, message
+    return event
+
+
+def read_topic(message: str) -> TopicMessage:
+    """Read ``message`` as the client's session does, recognised or parsed."""
+    (event,) = ClientSession[object]().receive(message)
+    assert type(event) is TopicMessage, message
+    return event
+
+
+def test_a_message_as_srvwire_servers_write_it_is_read_up_to_its_message() -> None:
+    message = published('{"data":"x"}', subscription=12, skipped=2)
+    event = recognised(message)
+    assert (event.id, event.seq, event.dropped) == (12, 3, 0)
+    assert event.message[event.start : -2] == '{"data":"x"}'
+    decoder = Recording(String)
+    assert event.decode(decoder) == String(data="x")
+    assert decoder.calls == ["from_json"]
+    assert event.parse() == TopicMessage(12, 3, 0, {"data": "x"})
+
+
+@pytest.mark.parametrize(
+    ("message", "expected"),
+    [
+        # More members after the message: ignored, as the full parse ignores them.
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"},"note":"later"}}',
+            TopicMessage(7, 1, 0, {"data": "x"}),
+        ),
+        # The message member twice: the last one counts.
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"},"message":{"data":"y"}}}',
+            TopicMessage(7, 1, 0, {"data": "y"}),
+        ),
+        # The same seq again is the same seq.
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"},"seq":1}}',
+            TopicMessage(7, 1, 0, {"data": "x"}),
+        ),
+    ],
+)
+def test_what_follows_the_message_is_read_by_the_full_parse(
+    message: str, expected: TopicMessage
+) -> None:
+    event = recognised(message)
+    decoder = Recording(String)
+    assert event.decode(decoder) == String.model_validate(expected.message)
+    assert decoder.calls == ["from_json", "from_data"]
+    assert event.parse() == expected
+
+
+@pytest.mark.parametrize(
+    "message",
+    [
+        # Written otherwise than a srvwire server writes it: parsed by the session at once.
+        '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+        '"message":{"data":"x"}}}',
+        '{"jsonrpc": "2.0", "method": "$/message", "params": {"subscription": 7, "seq": 1, '
+        '"dropped": 0, "message": {"data": "x"}}}',
+        '{"method":"$/message","jsonrpc":"2.0","params":{"message":{"data":"x"},"seq":1,'
+        '"subscription":7}}',
+        '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+        '"dropped":0,"message":{"data":"x"}},"extra":[1]}',
+    ],
+)
+def test_a_message_written_otherwise_is_parsed_at_once(message: str) -> None:
+    event = read_topic(message)
+    assert event == TopicMessage(7, 1, 0, {"data": "x"})
+    decoder = Recording(String)
+    assert event.decode(decoder) == String(data="x")
+    assert decoder.calls == ["from_data"]
+
+
+@pytest.mark.parametrize(
+    ("message", "error"),
+    [
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"},"seq":2}}',
+            "Invalid $/message: 'subscription', 'seq' or 'dropped' given twice",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"},"subscription":8}}',
+            "Invalid $/message: 'subscription', 'seq' or 'dropped' given twice",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"}},"method":"$/other","params":{}}',
+            "Invalid $/message: 'method' given twice",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"},"seq":"1"}}',
+            "$/message needs integers 'seq' and 'dropped', and 'message'",
+        ),
+        (
+            '{"jsonrpc":"2.0","method":"$/message","params":{"subscription":7,"seq":1,'
+            '"dropped":0,"message":{"data":"x"} and more}}',
+            "Parse error: ",
+        ),
+    ],
+)
+def test_a_message_that_is_not_the_one_its_opening_says_is_refused(
+    message: str, error: str
+) -> None:
+    # Its message ({"data": "x"}) would fit, but the one pass never hides what follows it.
+    event = recognised(message)
+    for decode in (event.parse, lambda: event.decode(ModelDecoder(String))):
+        with pytest.raises(ProtocolViolation) as caught:
+            decode()
+        assert caught.value.error.message.startswith(error)
+        assert type(caught.value.error) is (ParseError if "Parse" in error else InvalidRequest)
+
+
+def test_a_message_that_does_not_fit_is_refused_as_the_parsed_one_is() -> None:
+    decoder = Recording(String)
+    with pytest.raises(ValidationError) as recognised_:
+        recognised(published('{"data":5}')).decode(decoder)
+    assert decoder.calls == ["from_json", "from_data"]
+    with pytest.raises(ValidationError) as parsed_:
+        TopicMessage(7, 1, 0, {"data": 5}).decode(decoder)
+    assert errors_of(recognised_.value) == errors_of(parsed_.value) == [(("data",), "string_type")]
+    assert str(recognised_.value) == str(parsed_.value)
+
+
+def test_a_method_that_only_begins_as_message_does_is_not_a_message() -> None:
+    session = ClientSession[object]()
+    text = '{"jsonrpc":"2.0","method":"$/messages","params":{"subscription":7,"seq":1}}'
+    assert session.receive(text) == [Notice("$/messages", {"subscription": 7, "seq": 1})]
+
+
 # --- the one pass and the parsed reply agree on every type -----------------------------------
 
 loader = conformance.loader  # the corpus, as the package test_msgs, in a temporary folder
@@ -299,6 +463,12 @@ def read(decoder: ModelDecoder[Message], text: str) -> Outcome:
     return outcome(lambda: reply.decode(decoder))
 
 
+def read_message(decoder: ModelDecoder[Message], text: str) -> Outcome:
+    """What the client makes of ``text`` as a topic's message, published by a srvwire server."""
+    event = recognised(published(text))
+    return outcome(lambda: event.decode(decoder))
+
+
 def same_outcome(a: Outcome, b: Outcome) -> bool:
     if isinstance(a, list) or isinstance(b, list):
         return a == b
@@ -334,6 +504,9 @@ def test_random_valid_instances_decode_alike_in_one_pass_and_parsed(
         recording = Recording(cls)
         assert same_outcome(read(recording, text), expected)
         assert recording.calls == ["from_json"]  # in one pass, never parsed
+        recording = Recording(cls)
+        assert same_outcome(read_message(recording, text), expected)
+        assert recording.calls == ["from_json"]
 
     decode()
 
@@ -463,6 +636,10 @@ def test_wrong_documents_are_refused_alike_in_one_pass_and_parsed(
         recording = Recording(cls)
         assert same_outcome(read(recording, document), expected), document
         ways = ["from_json", "from_data"] if isinstance(expected, list) else ["from_json"]
+        assert recording.calls == ways, document
+        # So does a topic's message.
+        recording = Recording(cls)
+        assert same_outcome(read_message(recording, document), expected), document
         assert recording.calls == ways, document
     assert refused > 0
 

@@ -57,8 +57,8 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness: minutes long; tests/test_benchmarks.py runs it in --quick mode"
     ),
-    r"\.venv/bin/python benchmarks/topics\.py": (
-        "the topic benchmark: a minute long; tests/test_benchmarks.py runs its --quick mode"
+    r"\.venv/bin/python benchmarks/topics\.py( .*)?": (
+        "the topic benchmark: minutes long; tests/test_benchmarks.py runs its --quick mode"
     ),
     r"MALLOC_TOP_PAD_=\d+ \.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness with the heap kept: minutes long; tests/test_benchmarks.py runs it"

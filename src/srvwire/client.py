@@ -1304,21 +1304,31 @@ class Subscription:
 
     def deliver(self, event: TopicMessage) -> None:
         """One ``$/message`` for this subscription."""
-        missed = self.gaps.accept(event.seq, event.dropped)
-        if missed is None:
-            return  # replayed after a reconnection, and seen already
+        seq = event.seq
+        gaps = self.gaps
+        last = gaps.last
+        if last is not None and seq == last + 1:  # Gaps.accept's usual case, inline: none missed
+            gaps.last = seq
+            missed = 0
+        else:
+            accepted = gaps.accept(seq, event.dropped)
+            if accepted is None:
+                return  # replayed after a reconnection, and seen already
+            missed = accepted
         decoder = self._decoder
         assert decoder is not None
         try:
-            message = (
-                decoder.from_json(event.message) if event.raw else decoder.from_data(event.message)
-            )
+            message = event.decode(decoder)
         except ValueError as exc:
             self._abandon(
                 InternalError(
                     f"a message on {self.name} does not match its type: {exc}", service=self.name
                 )
             )
+            return
+        except ProtocolViolation as exc:  # as the reader does with what is not JSON-RPC
+            if self._link is not None:
+                self._link.violation(exc)
             return
         queue = self._queue
         if len(queue) >= self._limit:
@@ -1327,16 +1337,23 @@ class Subscription:
                     ResourceExhausted(
                         f"this subscriber to {self.name} did not keep up: its queue of "
                         f"{self._limit} messages was full, and the subscription is reliable",
-                        {"depth": self._limit, "seq": event.seq},
+                        {"depth": self._limit, "seq": seq},
                         service=self.name,
                     )
                 )
                 return
-            queue.popleft()
-            self.gaps.missed += 1
-            missed += 1
-        queue.append((event.seq, missed, message))
-        self._wake()
+            # The oldest goes; the message after it (the next one queued, or this one) was
+            # missed just before by what the oldest was, and the oldest itself.
+            _, lost, _ = queue.popleft()
+            gaps.missed += 1
+            if queue:
+                after, before, kept = queue[0]
+                queue[0] = (after, before + lost + 1, kept)
+            else:
+                missed += lost + 1
+        queue.append((seq, missed, message))
+        if self._wakeup is not None:
+            self._wake()
 
     def _ended(self, id: int, future: asyncio.Future[Arrived]) -> None:
         """The subscription's request got its reply (or the connection ended)."""

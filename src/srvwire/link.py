@@ -10,8 +10,9 @@ Invariants:
 
 * **Every pending call ends** with its reply, its deadline, its caller's cancellation, or
   ``ConnectionLost`` when the connection ends; the session forgets its id in every case.
-* **Something that is not JSON-RPC fails the connection** (close 1008), found by the reader
-  or by a caller decoding a reply the reader left unparsed.
+* **Something that is not JSON-RPC fails the connection** (close 1008), found by the reader,
+  by a caller decoding a reply the reader left unparsed, or by a subscription decoding its
+  ``$/message``; nothing the reader takes in after that reaches a subscription.
 * **A reader is cancelled only when its event loop ends** (``asyncio.run`` returning): the
   connection is closed with 1001, and a client used from another loop says so.
 * **A call given up on is cancelled on the server** by a ``$/cancel`` sent in the
@@ -343,9 +344,11 @@ class Link:
         """End this connection from this side: fail every pending call, close with 1008.
 
         The calls fail first and the close runs in the background, since it may wait for the
-        peer. Return the error the pending calls got.
+        peer; what the reader still takes in meanwhile reaches no subscription. Return the error
+        the pending calls got.
         """
         self.lost(failure, None)
+        self.streams.clear()
         self.owner.spawn(self.conn.close(CLOSE_PROTOCOL_VIOLATION, "invalid JSON-RPC"))
         return ConnectionLost(
             failure, {"close_code": CLOSE_PROTOCOL_VIOLATION, "url": self.owner.url}

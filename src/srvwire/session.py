@@ -72,6 +72,7 @@ from srvwire.protocol import (
     SUBSCRIBE_METHOD,
     SUBSCRIBED_METHOD,
     TOPICS_METHOD,
+    Decoder,
     ErrorResponse,
     Id,
     Notification,
@@ -129,6 +130,7 @@ class Entry(Protocol):
 E = TypeVar("E", bound=Entry)
 E_co = TypeVar("E_co", bound=Entry, covariant=True)
 W = TypeVar("W")
+T = TypeVar("T")
 
 
 class Services(Protocol[E_co]):
@@ -658,14 +660,62 @@ class Subscribed:
 
 @dataclass(slots=True)
 class TopicMessage:
-    """One ``$/message`` of the subscription ``id``; ``message`` is JSON text when ``raw``
-    (read without parsing the rest), else parsed data."""
+    """One ``$/message`` of the subscription ``id``, with its ``seq`` and ``dropped``.
+
+    Recognised by its opening alone (``start`` > 0, as a srvwire server writes it),
+    ``message`` is the whole text, not parsed past the opening, and the message member begins
+    at ``start``; else (``start`` 0) ``message`` is the parsed message data. Either way
+    :meth:`decode` makes the typed message.
+    """
 
     id: int
     seq: int
     dropped: int
     message: Any
-    raw: bool
+    start: int = 0
+
+    def decode(self, decoder: Decoder[T]) -> T:
+        """Return the message, typed: validated in one pass when it can be, else parsed in full.
+
+        A recognised message validates the text of its message member straight into its type;
+        when that is refused, only the full parse can tell a message that does not fit
+        (``decoder``'s ``ValueError``, from the parsed data) from one that is not the
+        ``$/message`` its opening says (:class:`~srvwire.protocol.ProtocolViolation`).
+        """
+        start = self.start
+        if start:
+            try:
+                return decoder.from_json(self.message[start:-2])
+            except ValueError:
+                pass
+            return decoder.from_data(self.parse().message)
+        return decoder.from_data(self.message)
+
+    def parse(self) -> TopicMessage:
+        """Parse the whole text of a recognised message, as :meth:`ClientSession.receive`
+        parses any other; return it parsed.
+
+        Raise :class:`~srvwire.protocol.ProtocolViolation` when it is not JSON-RPC, not a
+        well-formed ``$/message``, or not the one its opening says: a later member may name
+        another ``method``, ``subscription``, ``seq`` or ``dropped``.
+        """
+        try:
+            (notification,) = parse_replies(self.message)  # it opens with "{": not a batch
+        except (ParseError, InvalidRequest) as exc:
+            raise ProtocolViolation(exc) from None
+        if not isinstance(notification, Notification) or notification.method != MESSAGE_METHOD:
+            raise ProtocolViolation(
+                InvalidRequest(f"Invalid {MESSAGE_METHOD}: 'method' given twice")
+            )
+        parsed = _topic_news(notification)
+        assert isinstance(parsed, TopicMessage)  # the method is $/message
+        if (parsed.id, parsed.seq, parsed.dropped) != (self.id, self.seq, self.dropped):
+            raise ProtocolViolation(
+                InvalidRequest(
+                    f"Invalid {MESSAGE_METHOD}: 'subscription', 'seq' or 'dropped' given twice"
+                )
+            )
+        return parsed
 
 
 _MESSAGE_OPENING = re.compile(
@@ -733,17 +783,18 @@ class ClientSession(Generic[W]):
         (:class:`ServicesChanged`, :class:`Notice`, :class:`Stray`).
 
         A response a call waits for, written as a srvwire server writes it, is handed over
-        unparsed (a :class:`~srvwire.protocol.RawReply`, decoded by its caller); anything else
-        is parsed here. Raise :class:`~srvwire.protocol.ProtocolViolation` when it is not
-        JSON-RPC: the connection cannot be trusted to route other replies either.
+        unparsed (a :class:`~srvwire.protocol.RawReply`, decoded by its caller), and so is a
+        ``$/message`` (a :class:`TopicMessage` read up to its message member, decoded by its
+        subscription); anything else is parsed here. Raise
+        :class:`~srvwire.protocol.ProtocolViolation` when it is not JSON-RPC: the connection
+        cannot be trusted to route other replies either.
         """
         if type(data) is str:
             if data.startswith('{"jsonrpc":"2.0","method":"$/message"') and data.endswith("}}"):
                 opening = _MESSAGE_OPENING.match(data)
                 if opening is not None:  # as a srvwire server writes it: the message unparsed
                     id, seq, dropped = opening.groups()
-                    text = data[opening.end() : -2]
-                    return [TopicMessage(int(id), int(seq), int(dropped), text, True)]
+                    return [TopicMessage(int(id), int(seq), int(dropped), data, opening.end())]
             raw = peek_reply(data)
             if raw is not None:
                 waiter = self.pending.pop(raw.id, None)
@@ -820,7 +871,7 @@ def _topic_news(message: Notification) -> TopicMessage | Subscribed | TopicsChan
         raise ProtocolViolation(
             InvalidRequest(f"{MESSAGE_METHOD} needs integers 'seq' and 'dropped', and 'message'")
         )
-    return TopicMessage(id, seq, dropped, params["message"], False)
+    return TopicMessage(id, seq, dropped, params["message"])
 
 
 def parse_services(message: Notification) -> dict[str, str]:
