@@ -50,9 +50,10 @@ test: lint typecheck docs pytest
 
 # Not part of `make test`: several minutes of srvwire against a raw-websockets baseline,
 # asyncio then uvloop (benchmarks/README.md). BENCH_ARGS=--quick for a smoke run.
-# Each transport against its own raw floor, and the native one against raw websockets too.
+# Each transport against its own raw floor, and the native one against raw websockets too;
+# srvwire against the JSON-RPC peer (aiohttp-json-rpc + jsonrpc-websocket).
 BENCH_COMPARE ?= --compare baseline,srvwire --compare picows,srvwire-picows \
-	--compare baseline,srvwire-picows
+	--compare baseline,srvwire-picows --compare peer,srvwire
 bench: $(INSTALLED)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	$(BIN)/python benchmarks/run.py --loop asyncio,uvloop $(BENCH_COMPARE) $(BENCH_ARGS)

@@ -9,7 +9,8 @@ Usage::
 ``--compare A,B`` picks two implementations of :data:`IMPLEMENTATIONS` to compare:
 ``baseline`` (raw ``websockets``, nothing typed), ``floor`` (the least a typed JSON-RPC
 framework must do per call), ``srvwire``, and on the native transport ``picows`` (raw
-``picows``, nothing typed: that transport's own floor) and ``srvwire-picows``. Given several
+``picows``, nothing typed: that transport's own floor) and ``srvwire-picows``; and ``peer``, a
+JSON-RPC peer (an ``aiohttp-json-rpc`` server and a ``jsonrpc-websocket`` client). Given several
 times, every implementation named is measured once per repeat, in the same alternation, and
 one table is printed per pair.
 
@@ -61,6 +62,7 @@ IMPLEMENTATIONS: dict[str, tuple[Path, Path, tuple[str, ...]]] = {
         HERE / "srvwire_client.py",
         ("--transport", "picows"),
     ),
+    "peer": (HERE / "peer_server.py", HERE / "peer_client.py", ()),
 }
 """Each implementation's server script, client script, and the options both take."""
 NETWORK_WORKLOADS = ["W1", "W2", "W3", "W4", "MEM"]
@@ -453,6 +455,7 @@ def machine() -> dict[str, Any]:
     versions: dict[str, str | None] = {}
     for package in (
         *("srvwire", "websockets", "picows", "pydantic", "pydantic-core", "orjson", "uvloop"),
+        *("aiohttp", "aiohttp-json-rpc", "jsonrpc-websocket"),
     ):
         try:
             versions[package] = importlib.metadata.version(package)

@@ -96,15 +96,22 @@ def test_medians_and_ratios_follow_from_the_runs(quick_run: tuple[dict[str, Any]
     assert f"{rate['ratio']:.2f}" in table
 
 
-def test_the_floor_runs_every_workload_like_srvwire(tmp_path: Path) -> None:
+def test_the_floor_and_the_json_rpc_peer_run_every_workload_like_srvwire(tmp_path: Path) -> None:
+    # The peer (aiohttp-json-rpc serving, jsonrpc-websocket calling) makes the same calls and
+    # gets the same replies as srvwire, so a full run's ratios against it compare like with like.
+    # One pass for both pairs: srvwire is measured once, and both tables read that run.
     out = tmp_path / "report.json"
     done = harness(
         "--quick", "--repeat", "1", "--workloads", "W1,W4", "--loop", "asyncio",
-        "--compare", "floor,srvwire", "--no-pin", "--max-other-load", "64", "--json", str(out),
+        "--compare", "floor,srvwire", "--compare", "peer,srvwire",
+        "--no-pin", "--max-other-load", "64", "--json", str(out),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    check_quick_runs(json.loads(out.read_text())["asyncio"]["runs"], ["floor", "srvwire"])
+    report = json.loads(out.read_text())["asyncio"]
+    check_quick_runs(report["runs"], ["floor", "peer", "srvwire"])
+    assert list(report["summaries"]) == ["floor,srvwire", "peer,srvwire"]
     assert "ratio = srvwire / floor" in done.stdout
+    assert "ratio = srvwire / peer" in done.stdout
 
 
 def test_the_picows_pairs_run_every_workload_alike_from_the_same_runs(tmp_path: Path) -> None:
@@ -135,7 +142,10 @@ def test_the_picows_pairs_run_every_workload_alike_from_the_same_runs(tmp_path: 
 def test_a_bad_choice_is_refused_before_anything_runs() -> None:
     done = harness("--compare", "baseline,nothing")
     assert done.returncode == 2
-    assert "--compare takes two of: baseline, floor, srvwire, picows, srvwire-picows" in done.stderr
+    assert (
+        "--compare takes two of: baseline, floor, srvwire, picows, srvwire-picows, peer"
+        in done.stderr
+    )
     done = harness("--workloads", "W9")
     assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
 

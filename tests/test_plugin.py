@@ -23,8 +23,9 @@ pytest_plugins = ["pytester"]
 INI = {
     "asyncio_mode": "auto",
     "asyncio_default_fixture_loop_scope": "function",
-    # Without hypothesis's plugin, which imports hypothesis to end each run: a second a run.
-    "addopts": "--strict-markers -p no:cacheprovider -p no:hypothesispytest",
+    # Without hypothesis's plugin, which imports hypothesis to end each run: a second a run;
+    # nor aiohttp-json-rpc's (a benchmark's dependency), which pytest 9 refuses to load.
+    "addopts": "--strict-markers -p no:cacheprovider -p no:hypothesispytest -p no:aiohttp-json-rpc",
     "filterwarnings": "error",
 }
 
