@@ -78,6 +78,7 @@ from srvwire.errors import (
 )
 from srvwire.models import (
     INF_NAN_MODES,
+    CallReader,
     InfNan,
     Message,
     Service,
@@ -88,7 +89,7 @@ from srvwire.models import (
     validate_python,
     validation_errors,
 )
-from srvwire.protocol import Id, canonical_name, encode_json
+from srvwire.protocol import Id, Request, canonical_name, encode_json, read_meta
 from srvwire.threads import ConcurrencyLimit
 from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
@@ -320,8 +321,15 @@ class ServiceEntry:
         """The service type's name, such as ``example_interfaces/srv/AddTwoInts``."""
         return str(getattr(self.srv_type, "type_name", self.srv_type.__name__))
 
-    def validate(self, params: dict[str, Any] | list[Any] | None) -> BaseModel:
-        """Build the request from ``params``, or raise :class:`~srvwire.errors.InvalidParams`."""
+    def validate(self, params: dict[str, Any] | list[Any] | BaseModel | None) -> BaseModel:
+        """Build the request from ``params``, or raise :class:`~srvwire.errors.InvalidParams`.
+
+        A request already read in one pass (:meth:`ServiceRegistry.read_call`) is returned as
+        it is.
+        """
+        if type(params) is self.request_model:
+            assert isinstance(params, BaseModel)
+            return params
         if params is None:
             params = {}
         elif type(params) is list:
@@ -513,6 +521,7 @@ class ServiceRegistry:
         self.topics: TopicBoard[Any] = TopicBoard()
         """The server's topics (their entries are :class:`srvwire.pubsub.TopicEntry`)."""
         self.types = process_types() if types is None else types
+        self._reader: CallReader | None = None  # built when first asked, again after a change
 
     def add(
         self,
@@ -590,6 +599,7 @@ class ServiceRegistry:
         if definition is not None:
             self._fingerprints[canonical] = fingerprint(definition)
         self._discovery.clear()
+        self._reader = None
         return entry
 
     def remove(self, name: str) -> ServiceEntry:
@@ -600,6 +610,7 @@ class ServiceRegistry:
             raise RegistrationError(f"no service named {canonical} is registered")
         self._fingerprints.pop(canonical, None)
         self._discovery.clear()
+        self._reader = None
         return entry
 
     def get(self, name: str) -> ServiceEntry | None:
@@ -615,6 +626,33 @@ class ServiceRegistry:
         if entry is not None:
             return entry
         raise service_not_found(name, self._entries)
+
+    def read_call(self, data: str | bytes) -> Request | None:
+        """Read a request to one of these services in one pass; None: parse it in full.
+
+        The request's ``params`` is then its service's ``Request``, already validated, with
+        ``_meta`` taken out of it and read into :attr:`~srvwire.protocol.Request.timeout`. Only
+        a request that the full parse would read the same way, and whose params would validate
+        to an equal instance, is read so; anything else (notifications, batches, protocol
+        methods, an invalid message or ``_meta``, params that do not validate, a service whose
+        ``Request`` is not one of srvwire's classes) is None, for the full parse to answer it
+        (see :class:`~srvwire.models.CallReader`).
+        """
+        reader = self._reader
+        if reader is None:
+            requests = {entry.name: entry.request_model for entry in self._entries.values()}
+            reader = self._reader = CallReader(requests)
+        read = reader.read(data)
+        if read is None:
+            return None
+        id, method, request, meta = read
+        timeout = None
+        if meta is not CallReader.NO_META:
+            timeout, bad_meta = read_meta(meta)
+            if bad_meta is not None:
+                return None
+        validated: Any = request  # the params of a request read in one pass
+        return Request(id, method, validated, timeout)
 
     def __contains__(self, name: object) -> bool:
         return isinstance(name, str) and self.get(name) is not None

@@ -303,6 +303,8 @@ class ServerSession(Generic[E]):
         """Calls in flight with ``"id": null``."""
         self.in_flight = 0
         self.closing = False
+        # A registry that reads a call in one pass (ServiceRegistry.read_call), else None.
+        self._read_call = getattr(services, "read_call", None)
 
     # --- what the client sent -----------------------------------------------------------------
 
@@ -313,13 +315,26 @@ class ServerSession(Generic[E]):
         :class:`NotificationCall` to run, a :class:`CancelCall` to carry out, a
         :class:`Publish` to hand on, a :class:`SubscriptionDeadline` to arm, or a
         :class:`Dropped` notification to log. Never raises on what a peer sent.
+
+        A single request to a service is first offered to the registry's ``read_call``, when
+        it has one, which reads it and validates its params in one pass; what that refuses is
+        parsed in full, so every answer is the one the full parse gives.
         """
+        read_call = self._read_call
+        if read_call is not None:
+            request = read_call(data)
+            if request is not None:
+                events: list[Any] = []
+                admitted = self._admit(request, None, events)
+                if admitted is not None:  # always: it is a call to a service
+                    events.append(admitted)
+                return events
         incoming = parse_incoming(data)
         items = incoming.items
         if not incoming.is_batch:
             item = items[0]
             if type(item) is Request:
-                events: list[Any] = []
+                events = []
                 admitted = self._admit(item, None, events)
                 if admitted is not None:  # None: a subscription, which answers later
                     events.append(admitted)
