@@ -62,7 +62,7 @@ def in_full(cls: type[Message], text: str) -> Message | list[tuple[Any, ...]] | 
 
 def read(reader: CallReader, text: str) -> Message | None:
     result = reader.read(text)
-    return None if result is None else result[2]
+    return None if result is None else result.params  # type: ignore[no-any-return]
 
 
 # --- the one pass and the full parse agree on every type ---------------------------------------
@@ -91,9 +91,8 @@ def test_random_valid_requests_read_alike_in_one_pass_and_in_full(
         if result is None:
             return
         in_one_pass += 1
-        id, method, request, got_meta = result
-        assert (id, method) == (7, "/s")
-        assert got_meta == ({"timeout": 2.5} if meta else CallReader.NO_META)
+        request = result.params
+        assert (result.id, result.method, result.timeout) == (7, "/s", 2.5 if meta else None)
         assert type(request) is cls and conformance.same(request, expected)
         assert request.model_fields_set == expected.model_fields_set
         assert request.__pydantic_extra__ is expected.__pydantic_extra__ is None
@@ -273,22 +272,22 @@ async def answers(running: Any) -> list[list[Any]]:
 async def test_every_message_is_answered_alike_with_and_without_the_one_pass(
     transport: Transport, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    read_call = ServiceRegistry.read_call
+    read_call = CallReader.read
     taken: list[str | bytes] = []
 
-    def recording(self: ServiceRegistry, data: str | bytes) -> Request | None:
+    def recording(self: CallReader, data: str | bytes) -> Request | None:
         request = read_call(self, data)
         if request is not None and not str(request.id).startswith("marker"):
             taken.append(data if isinstance(data, str) else bytes(data).decode())
         return request
 
-    monkeypatch.setattr(ServiceRegistry, "read_call", recording)
+    monkeypatch.setattr(CallReader, "read", recording)
     async with serve(look_server(), "127.0.0.1", 0, transport=transport) as running:
         with_one_pass = await answers(running)
     sent_as_text = [m if isinstance(m, str) else m.decode() for m in MESSAGES[:ONE_PASS]]
     assert taken == sent_as_text
 
-    monkeypatch.setattr(ServiceRegistry, "read_call", lambda self, data: None)
+    monkeypatch.setattr(CallReader, "read", lambda self, data: None)
     async with serve(look_server(), "127.0.0.1", 0, transport=transport) as running:
         in_full_only = await answers(running)
     assert with_one_pass == in_full_only

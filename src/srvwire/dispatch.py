@@ -89,7 +89,7 @@ from srvwire.models import (
     validate_python,
     validation_errors,
 )
-from srvwire.protocol import Id, Request, canonical_name, encode_json, read_meta
+from srvwire.protocol import Id, Request, canonical_name, encode_json
 from srvwire.threads import ConcurrencyLimit
 from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
@@ -103,6 +103,7 @@ __all__ = [
     "definitions",
     "dispatch",
     "normalize_name",
+    "run_handler",
     "service_not_found",
 ]
 
@@ -235,6 +236,10 @@ class Context:
             f"peer={self.peer!r}, time_remaining={self.time_remaining()!r}, "
             f"cancelled={self._cancelled!r})"
         )
+
+
+ContextOf = Callable[[Any], Context]
+"""Returns the :class:`Context` of a call, making it the first time (see :func:`run_handler`)."""
 
 
 def _is_context_annotation(annotation: Any) -> bool:
@@ -521,7 +526,18 @@ class ServiceRegistry:
         self.topics: TopicBoard[Any] = TopicBoard()
         """The server's topics (their entries are :class:`srvwire.pubsub.TopicEntry`)."""
         self.types = process_types() if types is None else types
-        self._reader: CallReader | None = None  # built when first asked, again after a change
+        self.read_call: Callable[[str | bytes], Request | None] = self._read_call
+        """Read a request to one of these services in one pass; None: parse it in full.
+
+        The request's ``params`` is then its service's ``Request``, already validated, with
+        ``_meta`` taken out of it and read into :attr:`~srvwire.protocol.Request.timeout`.
+        Only a request that the full parse would read the same way, and whose params would
+        validate to an equal instance, is read so; anything else (notifications, batches,
+        protocol methods, an invalid message or ``_meta``, params that do not validate, a
+        service whose ``Request`` is not one of srvwire's classes) is None, for the full parse
+        to answer it (see :class:`~srvwire.models.CallReader`). Its reader is built at the
+        first call after the services changed.
+        """
 
     def add(
         self,
@@ -599,7 +615,7 @@ class ServiceRegistry:
         if definition is not None:
             self._fingerprints[canonical] = fingerprint(definition)
         self._discovery.clear()
-        self._reader = None
+        self.read_call = self._read_call
         return entry
 
     def remove(self, name: str) -> ServiceEntry:
@@ -610,7 +626,7 @@ class ServiceRegistry:
             raise RegistrationError(f"no service named {canonical} is registered")
         self._fingerprints.pop(canonical, None)
         self._discovery.clear()
-        self._reader = None
+        self.read_call = self._read_call
         return entry
 
     def get(self, name: str) -> ServiceEntry | None:
@@ -627,32 +643,11 @@ class ServiceRegistry:
             return entry
         raise service_not_found(name, self._entries)
 
-    def read_call(self, data: str | bytes) -> Request | None:
-        """Read a request to one of these services in one pass; None: parse it in full.
-
-        The request's ``params`` is then its service's ``Request``, already validated, with
-        ``_meta`` taken out of it and read into :attr:`~srvwire.protocol.Request.timeout`. Only
-        a request that the full parse would read the same way, and whose params would validate
-        to an equal instance, is read so; anything else (notifications, batches, protocol
-        methods, an invalid message or ``_meta``, params that do not validate, a service whose
-        ``Request`` is not one of srvwire's classes) is None, for the full parse to answer it
-        (see :class:`~srvwire.models.CallReader`).
-        """
-        reader = self._reader
-        if reader is None:
-            requests = {entry.name: entry.request_model for entry in self._entries.values()}
-            reader = self._reader = CallReader(requests)
-        read = reader.read(data)
-        if read is None:
-            return None
-        id, method, request, meta = read
-        timeout = None
-        if meta is not CallReader.NO_META:
-            timeout, bad_meta = read_meta(meta)
-            if bad_meta is not None:
-                return None
-        validated: Any = request  # the params of a request read in one pass
-        return Request(id, method, validated, timeout)
+    def _read_call(self, data: str | bytes) -> Request | None:
+        """:attr:`read_call` before its reader is built: build it, then read."""
+        requests = {entry.name: entry.request_model for entry in self._entries.values()}
+        self.read_call = CallReader(requests).read
+        return self.read_call(data)
 
     def __contains__(self, name: object) -> bool:
         return isinstance(name, str) and self.get(name) is not None
@@ -757,14 +752,16 @@ def _reasons(errors: list[dict[str, str]]) -> str:
 def _invoke(
     entry: ServiceEntry,
     request: BaseModel,
-    context: Context,
+    context_of: ContextOf,
+    work: Any,
     executor: Executor | None,
     logger: logging.Logger | None = None,
 ) -> tuple[Coroutine[Any, Any, Any], BaseModel | None]:
     """Start calling the handler the way it was registered to be called.
 
     Return the coroutine that runs it (the handler's own, for an async handler) and the
-    response built for a handler of the ROS shape ``(request, response)``.
+    response built for a handler of the ROS shape ``(request, response)``. The call's context
+    is made (``context_of(work)``) only for a handler that takes it or runs in a thread.
     """
     args: tuple[Any, ...]
     prebuilt: BaseModel | None = None
@@ -773,12 +770,16 @@ def _invoke(
         args = (request, prebuilt)
     else:
         args = (request,)
-    kwargs = {entry.context_param: context} if entry.context_param else {}
     if entry.is_async:
-        awaitable = entry.handler(*args, **kwargs)
+        if entry.context_param:
+            awaitable = entry.handler(*args, **{entry.context_param: context_of(work)})
+        else:
+            awaitable = entry.handler(*args)
         if type(awaitable) is not CoroutineType:  # a function marked as a coroutine function
             awaitable = _await(awaitable)
         return awaitable, prebuilt
+    context = context_of(work)
+    kwargs = {entry.context_param: context} if entry.context_param else {}
     job = _Blocking(entry, functools.partial(entry.handler, *args, **kwargs), context, logger)
     return _run_in_executor(job, executor), prebuilt
 
@@ -898,6 +899,29 @@ async def dispatch(
     handler and marks ``context`` cancelled; a deadline that passes later is enforced that
     way, by whoever runs the call.
     """
+    return await run_handler(entry, params, context.deadline, _given, context, executor, logger)
+
+
+def _given(context: Context) -> Context:
+    return context
+
+
+async def run_handler(
+    entry: ServiceEntry,
+    params: dict[str, Any] | list[Any] | BaseModel | None,
+    deadline: float | None,
+    context_of: ContextOf,
+    work: Any,
+    executor: Executor | None,
+    logger: logging.Logger | None,
+) -> bytes:
+    """:func:`dispatch`, with the call's :class:`Context` made only if something needs it.
+
+    ``context_of(work)`` returns the context of the call ``work`` (making it the first time),
+    and ``deadline`` is its deadline: a handler that takes no context, runs on the loop, and
+    is neither cancelled nor late never has one made (the server's call runner, which keeps
+    the context on the call, passes its own ``context_of``).
+    """
     try:
         request = entry.validate(params)
     except InvalidParams:
@@ -905,30 +929,32 @@ async def dispatch(
     except (Exception, asyncio.CancelledError) as exc:
         # A validator in the model raised something pydantic does not wrap. Validation never
         # awaits, so not even a CancelledError from it can be this task's own cancellation.
+        context = context_of(work)
         raise _handler_raised(entry, context, exc, logger, "validating the request") from None
-    deadline = context.deadline
     limit = entry.limit
     try:
         if deadline is not None and deadline <= time.monotonic():
-            raise _deadline_exceeded(entry, context)
+            raise _deadline_exceeded(entry, context_of(work))
         if limit is None:
-            handler, prebuilt = _invoke(entry, request, context, executor, logger)
+            handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
             result = await handler
         else:
-            result, prebuilt = await _limited(entry, limit, request, context, executor, logger)
+            result, prebuilt = await _limited(
+                entry, limit, request, context_of, work, executor, logger
+            )
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name
         raise
     except asyncio.CancelledError as exc:
         if _being_cancelled():
-            context._mark_cancelled()
+            context_of(work)._mark_cancelled()
             raise
         # Nobody cancelled this task: the handler awaited something that was cancelled under
         # it. Re-raising would end the call without a reply, so it is the handler's failure.
-        raise _handler_raised(entry, context, exc, logger) from None
+        raise _handler_raised(entry, context_of(work), exc, logger) from None
     except Exception as exc:
-        raise _handler_raised(entry, context, exc, logger) from None
+        raise _handler_raised(entry, context_of(work), exc, logger) from None
     return _encode_response(entry, result, prebuilt, logger)
 
 
@@ -936,7 +962,8 @@ async def _limited(
     entry: ServiceEntry,
     limit: ConcurrencyLimit,
     request: BaseModel,
-    context: Context,
+    context_of: ContextOf,
+    work: Any,
     executor: Executor | None,
     logger: logging.Logger | None,
 ) -> tuple[Any, BaseModel | None]:
@@ -944,7 +971,7 @@ async def _limited(
     (a blocking handler's thread gives it back, since it may run on after its caller left)."""
     await limit.acquire()
     try:
-        handler, prebuilt = _invoke(entry, request, context, executor, logger)
+        handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
     except BaseException:
         limit.release()
         raise

@@ -107,6 +107,7 @@ from srvwire.primitives import (
     UInt64,
     WString,
 )
+from srvwire.protocol import Request, timeout_seconds
 
 __all__ = [
     "FLOAT32_MAX",
@@ -739,11 +740,9 @@ class ModelDecoder(Generic[M]):
 # --- a request read in one pass ----------------------------------------------------------------
 
 _LONG_INTEGER = re.compile(r"[0-9]{309}")
-_LONG_INTEGER_BYTES = re.compile(rb"[0-9]{309}")
+_LONG_BYTES = re.compile(rb"[0-9]{309}")
 """A run of digits as long as the smallest integer a double cannot hold (about 1.8e308): only
 such a literal reads differently as JSON text (infinity) and as a parsed Python int (refused)."""
-
-_NO_META = object()
 
 
 class CallReader:
@@ -753,11 +752,12 @@ class CallReader:
     union tagged by ``method`` (each name with and without its leading ``/``) of envelopes:
     ``jsonrpc`` exactly ``"2.0"``, an integer or string ``id``, and ``params``, an object that
     is that service's ``Request`` with ``_meta`` let through (the rest of the request's rules
-    unchanged). :meth:`read` returns ``(id, method, request, meta)``, the request built and
-    ``_meta`` taken out of it (:data:`NO_META` when there was none), or None for anything else:
-    a notification, a batch, another method, an invalid message, params that do not validate,
-    or a member the request does not have besides ``_meta``. None means "parse it the full way",
-    which then says what is wrong exactly as it always does.
+    unchanged). :meth:`read` returns the :class:`~srvwire.protocol.Request` whose ``params`` is
+    the request built, ``_meta`` taken out of it and read into ``timeout``, or None for
+    anything else: a notification, a batch, another method, an invalid message, params that do
+    not validate, a member the request does not have besides ``_meta``, a ``_meta`` that is not
+    an object with a valid ``timeout``. None means "parse it the full way", which then says
+    what is wrong exactly as it always does.
 
     Only classes srvwire builds (:class:`Message`, no validators of their own) are read so:
     JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``),
@@ -767,8 +767,6 @@ class CallReader:
     """
 
     __slots__ = ("floats", "validate")
-
-    NO_META: ClassVar[object] = _NO_META
 
     def __init__(self, requests: Mapping[str, type[pydantic.BaseModel]]) -> None:
         choices: dict[str, Any] = {}
@@ -802,8 +800,8 @@ class CallReader:
             # Not the classes' own validators: their params refuse _meta.
             self.validate = SchemaValidator(schema, _use_prebuilt=False).validate_json
 
-    def read(self, data: str | bytes) -> tuple[Any, str, pydantic.BaseModel, Any] | None:
-        """Return ``(id, method, request, meta)`` for a request read in one pass, else None."""
+    def read(self, data: str | bytes) -> Request | None:
+        """Return the request read in one pass, its params validated; else None."""
         validate = self.validate
         if validate is None:
             return None
@@ -813,20 +811,25 @@ class CallReader:
             return None
         request: pydantic.BaseModel = envelope["params"]
         extra = request.__pydantic_extra__
-        meta = _NO_META
+        timeout = None
         if extra:
-            meta = extra.pop("_meta", _NO_META)
-            if extra:  # a member the request does not have: the full parse names it
+            if len(extra) != 1 or "_meta" not in extra:  # the full parse names the member
                 return None
+            meta = extra["_meta"]
+            if type(meta) is not dict:
+                return None
+            raw = meta.get("timeout")
+            if raw is not None:
+                timeout = timeout_seconds(raw)
+                if timeout is None:
+                    return None
             request.__pydantic_fields_set__.discard("_meta")
         object.__setattr__(request, "__pydantic_extra__", None)  # as the class makes it
-        if type(request) in self.floats and (
-            _LONG_INTEGER.search(data)
-            if isinstance(data, str)
-            else _LONG_INTEGER_BYTES.search(data)
-        ):
-            return None
-        return envelope["id"], envelope["method"], request, meta
+        if self.floats and type(request) in self.floats:
+            if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
+                return None
+        validated: Any = request  # the params of a request read in one pass
+        return Request(envelope["id"], envelope["method"], validated, timeout)
 
 
 def _params_schema(

@@ -204,13 +204,15 @@ class _Batch:
 class Call(Generic[E]):
     """A call the session admitted: what to run, and where its reply goes.
 
-    ``context``, ``task``, ``started`` and ``task_cancelled`` belong to whoever runs the call
-    (the server keeps them here so that a call is one object); the session never reads them.
+    ``context``, ``deadline``, ``task``, ``started`` and ``task_cancelled`` belong to whoever
+    runs the call (the server keeps them here so that a call is one object); the session never
+    reads them.
     """
 
     __slots__ = (
         "batch",
         "context",
+        "deadline",
         "entry",
         "id",
         "index",
@@ -229,6 +231,7 @@ class Call(Generic[E]):
         self.batch: _Batch | None = None
         self.index = 0
         self.context: Any = None
+        self.deadline: float | None = None
         self.task: Any = None
         self.started = False
         self.task_cancelled = False
@@ -241,9 +244,9 @@ class Call(Generic[E]):
 class NotificationCall(Generic[E]):
     """A notification to run; tell the session with :meth:`ServerSession.done` when it ends.
 
-    ``in_batch``: it came in a batch. ``context``, ``task``, ``started`` and ``task_cancelled``
-    belong to whoever runs it, as a :class:`Call`'s do; it has nothing to answer, so it counts
-    as started from the first.
+    ``in_batch``: it came in a batch. ``context``, ``deadline``, ``task``, ``started`` and
+    ``task_cancelled`` belong to whoever runs it, as a :class:`Call`'s do; it has nothing to
+    answer, so it counts as started from the first.
     """
 
     entry: E
@@ -251,6 +254,7 @@ class NotificationCall(Generic[E]):
     timeout: float | None
     in_batch: bool = False
     context: Any = None
+    deadline: float | None = None
     task: Any = None
     started: bool = True
     task_cancelled: bool = False
@@ -303,8 +307,8 @@ class ServerSession(Generic[E]):
         """Calls in flight with ``"id": null``."""
         self.in_flight = 0
         self.closing = False
-        # A registry that reads a call in one pass (ServiceRegistry.read_call), else None.
-        self._read_call = getattr(services, "read_call", None)
+        # Whether the registry reads a call in one pass (ServiceRegistry.read_call).
+        self._one_pass = hasattr(services, "read_call")
 
     # --- what the client sent -----------------------------------------------------------------
 
@@ -320,9 +324,8 @@ class ServerSession(Generic[E]):
         it has one, which reads it and validates its params in one pass; what that refuses is
         parsed in full, so every answer is the one the full parse gives.
         """
-        read_call = self._read_call
-        if read_call is not None:
-            request = read_call(data)
+        if self._one_pass:
+            request = self.services.read_call(data)  # type: ignore[attr-defined]
             if request is not None:
                 events: list[Any] = []
                 admitted = self._admit(request, None, events)
