@@ -922,8 +922,8 @@ async def run_handler(
     is neither cancelled nor late never has one made (the server's call runner, which keeps
     the context on the call, passes its own ``context_of``).
     """
-    try:
-        request = entry.validate(params)
+    try:  # a request read in one pass is validated already
+        request = params if type(params) is entry.request_model else entry.validate(params)
     except InvalidParams:
         raise
     except (Exception, asyncio.CancelledError) as exc:

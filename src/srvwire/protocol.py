@@ -89,6 +89,7 @@ __all__ = [
     "timeout_seconds",
     "valid_id",
     "write_call",
+    "write_response",
 ]
 
 CANCEL_METHOD = "$/cancel"
@@ -350,13 +351,22 @@ class Response:
             written = text if isinstance(text, bytes) else text.encode()
         else:
             written = encode_json(result).encode()
-        return b"".join(
-            (b'{"jsonrpc":"2.0","id":', _encode_id(self.id).encode(), b',"result":', written, b"}")
-        )
+        return write_response(self.id, written)
 
     def decode(self, decoder: Decoder[T] | None = None) -> T | Any:
         """Return the result, through ``decoder`` when given (raising its ``ValueError``)."""
         return self.result if decoder is None else decoder.from_data(self.result)
+
+
+def write_response(id: Id, result: bytes) -> bytes:
+    """Write a response around its result, JSON already written as UTF-8 bytes, in one go.
+
+    The same bytes as ``Response(id, RawJSON(result)).serialize()``, which calls this; the
+    server writes the replies of its calls with it, without the two objects.
+    """
+    return b"".join(
+        (b'{"jsonrpc":"2.0","id":', _encode_id(id).encode(), b',"result":', result, b"}")
+    )
 
 
 @dataclass(slots=True)

@@ -88,6 +88,7 @@ from srvwire.protocol import (
     services_notification,
     valid_id,
     write_call,
+    write_response,
 )
 
 _TOPIC_METHODS = frozenset({SUBSCRIBE_METHOD, PUBLISH_METHOD})
@@ -537,7 +538,7 @@ class ServerSession(Generic[E]):
 
     def reply(self, call: Call[E], result: bytes) -> bytes | None:
         """Write the reply to ``call`` with ``result`` (its JSON); None while its batch waits."""
-        return self._answer(call, Response(call.id, RawJSON(result)).serialize())
+        return self._answer(call, write_response(call.id, result))
 
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
         """Write the error reply to ``call``; None while its batch waits."""
