@@ -243,7 +243,11 @@ def look_server() -> Server:
         return {"seen": f"{seen!r} extra={request.__pydantic_extra__!r}"}
 
     srv.add_service("/look", Look, look)
-    srv.add_service("/subtract", Subtract, lambda r: {"difference": r.minuend - r.subtrahend})
+
+    async def subtract(request: Any) -> Any:  # on the loop: answered in the order read
+        return {"difference": request.minuend - request.subtrahend}
+
+    srv.add_service("/subtract", Subtract, subtract)
     return srv
 
 
