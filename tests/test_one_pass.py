@@ -169,6 +169,24 @@ def test_a_class_srvwire_did_not_build_is_not_read_in_one_pass() -> None:
     assert CallReader({"/s": Mine}).read(envelope('{"a": 1}')) is None
 
 
+def test_a_validator_that_fails_its_own_way_is_left_to_the_full_parse() -> None:
+    # Not a ValidationError: the full parse meets it where it always did (dispatch answers
+    # INTERNAL), and the one pass never lets it out of the session's receive.
+    from typing import Annotated
+
+    from pydantic import AfterValidator
+
+    def boom(value: int) -> int:
+        raise KeyError(value)
+
+    class Odd(Message):
+        a: Annotated[int, AfterValidator(boom)] = 0
+
+    assert CallReader({"/s": Odd}).read(envelope('{"a": 1}')) is None
+    with pytest.raises(KeyError):
+        validate_python(Odd, {"a": 1})
+
+
 def test_the_registry_reads_a_call_and_its_meta_in_one_pass() -> None:
     services = ServiceRegistry()
     services.add("/subtract", Subtract, lambda request: None)

@@ -807,8 +807,8 @@ class CallReader:
             return None
         try:
             envelope = validate(data)
-        except (ValueError, TypeError):  # pydantic's ValidationError is a ValueError
-            return None
+        except Exception:  # refused (a ValidationError), or a validator's own failure: the
+            return None  # full parse says which, as it always did
         request: pydantic.BaseModel = envelope["params"]
         extra = request.__pydantic_extra__
         timeout = None
