@@ -232,3 +232,21 @@ def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Pa
         assert row["ratio_to_async"] == pytest.approx(row["us_per_call"] / baseline)
         assert row["calls_per_second"] == pytest.approx(1e6 / row["us_per_call"])
         assert f"{row['measurement']:<30} {row['us_per_call']:>12.1f}" in result.stdout
+
+
+def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> None:
+    # A smoke run of both modes; the script itself exits unless every call got its reply.
+    script = ROOT / "benchmarks" / "server_path.py"
+    result = subprocess.run(
+        [sys.executable, str(script), "--calls", "300", "--repeat", "2", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [row["mode"] for row in rows] == ["pipelined", "one-by-one"]
+    for row in rows:
+        assert 0 < row["min_us"] <= row["median_us"]

@@ -57,6 +57,13 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness: minutes long; tests/test_benchmarks.py runs it in --quick mode"
     ),
+    r"\.venv/bin/python benchmarks/server_path\.py": (
+        "the server's path in one process: a minute long; tests/test_benchmarks.py runs it small"
+    ),
+    r"valgrind --tool=callgrind .* benchmarks/server_path\.py .*": (
+        "benchmarks/server_path.py counted under callgrind: minutes long, and valgrind is no "
+        "dependency; tests/test_benchmarks.py runs the script itself"
+    ),
     r"\.venv/bin/python benchmarks/topics\.py( .*)?": (
         "the topic benchmark: minutes long; tests/test_benchmarks.py runs its --quick mode"
     ),

@@ -888,10 +888,10 @@ async def test_a_failure_inside_srvwire_is_still_answered(
     monkeypatch: pytest.MonkeyPatch,
     transport: Transport,
 ) -> None:
-    async def broken_dispatch(*args: Any, **kwargs: Any) -> bytes:
+    async def broken_run_handler(*args: Any, **kwargs: Any) -> bytes:
         raise RuntimeError("a bug in srvwire")
 
-    monkeypatch.setattr("srvwire.serving.dispatch", broken_dispatch)
+    monkeypatch.setattr("srvwire.serving.run_handler", broken_run_handler)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         reply = await w.call(request("echo", {"text": "hi"}, id=7))
@@ -1502,6 +1502,61 @@ async def test_a_call_that_waits_keeps_its_task_and_a_new_reader_takes_over(
         assert (await w.recv_reply())["result"] == {"text": "done"}
         assert seen["after"] is seen["before"]
         assert not conn.counted and not conn.session.calls
+        await w.ws.close()
+
+
+async def test_a_call_has_a_context_made_only_when_something_needs_it(
+    server: Server, transport: Transport, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A handler that takes no context and answers, at once or after waiting, costs no Context;
+    # one that asks gets its own, with its id and deadline; a cancellation or a passed deadline
+    # makes one to record its reason, and is answered as always.
+    made: list[Context] = []
+
+    class Counted(Context):
+        __slots__ = ()
+
+        def __init__(self, **fields: Any) -> None:
+            super().__init__(**fields)
+            made.append(self)
+
+    monkeypatch.setattr(serving, "Context", Counted)
+    release = asyncio.Event()
+    hangs = Hang()
+
+    async def waits(request: Any) -> Any:
+        await release.wait()
+        return {"text": "waited"}
+
+    async def asks(request: Any, context: Context) -> Any:
+        return {"text": f"{context.request_id} {context.time_remaining() is not None}"}
+
+    server.add_service("/waits", Echo, waits)
+    server.add_service("/asks", Echo, asks)
+    server.add_service("/hangs", Echo, hangs)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        assert (await w.request("/echo", {"text": "a"}, id=1))["result"] == {"text": "a"}
+        await w.send(request("/waits", {"_meta": {"timeout": 30}}, id=2))
+        assert (await w.request("/echo", {"text": "b"}, id=3))["result"] == {"text": "b"}
+        release.set()
+        assert (await w.recv_reply())["result"] == {"text": "waited"}
+        assert made == []
+        reply = await w.request("/asks", {"_meta": {"timeout": 30}}, id="x")
+        assert reply["result"] == {"text": "x True"}
+        assert [context.request_id for context in made] == ["x"]
+        assert error(await w.request("/echo", {"_meta": {"timeout": 0}}, id=4)) == (
+            4,
+            -32001,
+            "DEADLINE_EXCEEDED",
+        )
+        assert [context.request_id for context in made] == ["x", 4]
+        await w.send(request("/hangs", {}, id=5))
+        await hangs.entered.wait()
+        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 5}})
+        assert error(await w.recv_reply()) == (5, -32002, "CANCELLED")
+        assert [context.request_id for context in made] == ["x", 4, 5]
+        assert made[2].cancelled
         await w.ws.close()
 
 

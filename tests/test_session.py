@@ -84,10 +84,11 @@ def only(events: list[Any]) -> Any:
 def test_a_call_is_admitted_and_answered(server: ServerSession[ServiceEntry]) -> None:
     started = only(send(server, call(7, params={"minuend": 5, "_meta": {"timeout": 2.5}})))
     assert type(started) is Call
+    # Read in one pass: the params are the service's request, validated, without _meta.
     assert (started.id, started.entry.name, started.params, started.timeout) == (
         7,
         "/subtract",
-        {"minuend": 5},
+        Subtract.Request(minuend=5),
         2.5,
     )
     assert server.in_flight == 1 and server.calls == {7: started}
@@ -410,8 +411,8 @@ def test_a_session_pair_talks_with_no_loop(server: ServerSession[ServiceEntry]) 
     assert type(services) is ServicesChanged and "/subtract" in services.services
     _, request = client.request("/subtract", '{"minuend":9,"subtrahend":4}', 3.0, "mine")
     started = only(server.receive(request))
-    assert started.params == {"minuend": 9, "subtrahend": 4}
-    difference = started.params["minuend"] - started.params["subtrahend"]
+    assert started.params == Subtract.Request(minuend=9, subtrahend=4)
+    difference = started.params.minuend - started.params.subtrahend
     answer = server.reply(started, json.dumps({"difference": difference}).encode())
     ((waiter, reply),) = client.receive(answer.decode())  # type: ignore[union-attr]
     assert waiter == "mine"

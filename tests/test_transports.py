@@ -1090,3 +1090,20 @@ def test_a_missing_picows_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> No
     assert str(info.value) == (
         "the picows transport needs the picows package: pip install 'srvwire[fast]'"
     )
+
+
+async def test_once_open_a_picows_servers_reads_go_straight_to_picows() -> None:
+    """The server's protocol looks at the first bytes it reads (a TLS record is refused at
+    once); every later read reaches picows' own compiled methods, with no Python frame between
+    the event loop and the frame parser, and messages still flow both ways."""
+    from picows.picows import WSProtocol  # type: ignore[attr-defined]
+
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        protocol = pair.server._ws.underlying_transport.get_protocol()  # type: ignore[attr-defined]
+        assert protocol.get_buffer == WSProtocol.get_buffer.__get__(protocol)
+        assert protocol.buffer_updated == WSProtocol.buffer_updated.__get__(protocol)
+        for i in range(3):
+            await pair.client.send(f"call {i}")
+            assert await pair.server.recv() == f"call {i}"
+            await pair.server.send(f"reply {i}".encode())
+            assert await pair.client.recv() == f"reply {i}"

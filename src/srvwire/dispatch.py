@@ -78,6 +78,7 @@ from srvwire.errors import (
 )
 from srvwire.models import (
     INF_NAN_MODES,
+    CallReader,
     InfNan,
     Message,
     Service,
@@ -88,7 +89,7 @@ from srvwire.models import (
     validate_python,
     validation_errors,
 )
-from srvwire.protocol import Id, canonical_name, encode_json
+from srvwire.protocol import Id, Request, canonical_name, encode_json
 from srvwire.threads import ConcurrencyLimit
 from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
@@ -102,6 +103,7 @@ __all__ = [
     "definitions",
     "dispatch",
     "normalize_name",
+    "run_handler",
     "service_not_found",
 ]
 
@@ -236,6 +238,10 @@ class Context:
         )
 
 
+ContextOf = Callable[[Any], Context]
+"""Returns the :class:`Context` of a call, making it the first time (see :func:`run_handler`)."""
+
+
 def _is_context_annotation(annotation: Any) -> bool:
     if annotation is Context:
         return True
@@ -320,8 +326,15 @@ class ServiceEntry:
         """The service type's name, such as ``example_interfaces/srv/AddTwoInts``."""
         return str(getattr(self.srv_type, "type_name", self.srv_type.__name__))
 
-    def validate(self, params: dict[str, Any] | list[Any] | None) -> BaseModel:
-        """Build the request from ``params``, or raise :class:`~srvwire.errors.InvalidParams`."""
+    def validate(self, params: dict[str, Any] | list[Any] | BaseModel | None) -> BaseModel:
+        """Build the request from ``params``, or raise :class:`~srvwire.errors.InvalidParams`.
+
+        A request already read in one pass (:meth:`ServiceRegistry.read_call`) is returned as
+        it is.
+        """
+        if type(params) is self.request_model:
+            assert isinstance(params, BaseModel)
+            return params
         if params is None:
             params = {}
         elif type(params) is list:
@@ -513,6 +526,18 @@ class ServiceRegistry:
         self.topics: TopicBoard[Any] = TopicBoard()
         """The server's topics (their entries are :class:`srvwire.pubsub.TopicEntry`)."""
         self.types = process_types() if types is None else types
+        self.read_call: Callable[[str | bytes], Request | None] = self._read_call
+        """Read a request to one of these services in one pass; None: parse it in full.
+
+        The request's ``params`` is then its service's ``Request``, already validated, with
+        ``_meta`` taken out of it and read into :attr:`~srvwire.protocol.Request.timeout`.
+        Only a request that the full parse would read the same way, and whose params would
+        validate to an equal instance, is read so; anything else (notifications, batches,
+        protocol methods, an invalid message or ``_meta``, params that do not validate, a
+        service whose ``Request`` is not one of srvwire's classes) is None, for the full parse
+        to answer it (see :class:`~srvwire.models.CallReader`). Its reader is built at the
+        first call after the services changed.
+        """
 
     def add(
         self,
@@ -590,6 +615,7 @@ class ServiceRegistry:
         if definition is not None:
             self._fingerprints[canonical] = fingerprint(definition)
         self._discovery.clear()
+        self.read_call = self._read_call
         return entry
 
     def remove(self, name: str) -> ServiceEntry:
@@ -600,6 +626,7 @@ class ServiceRegistry:
             raise RegistrationError(f"no service named {canonical} is registered")
         self._fingerprints.pop(canonical, None)
         self._discovery.clear()
+        self.read_call = self._read_call
         return entry
 
     def get(self, name: str) -> ServiceEntry | None:
@@ -615,6 +642,12 @@ class ServiceRegistry:
         if entry is not None:
             return entry
         raise service_not_found(name, self._entries)
+
+    def _read_call(self, data: str | bytes) -> Request | None:
+        """:attr:`read_call` before its reader is built: build it, then read."""
+        requests = {entry.name: entry.request_model for entry in self._entries.values()}
+        self.read_call = CallReader(requests).read
+        return self.read_call(data)
 
     def __contains__(self, name: object) -> bool:
         return isinstance(name, str) and self.get(name) is not None
@@ -719,14 +752,16 @@ def _reasons(errors: list[dict[str, str]]) -> str:
 def _invoke(
     entry: ServiceEntry,
     request: BaseModel,
-    context: Context,
+    context_of: ContextOf,
+    work: Any,
     executor: Executor | None,
     logger: logging.Logger | None = None,
 ) -> tuple[Coroutine[Any, Any, Any], BaseModel | None]:
     """Start calling the handler the way it was registered to be called.
 
     Return the coroutine that runs it (the handler's own, for an async handler) and the
-    response built for a handler of the ROS shape ``(request, response)``.
+    response built for a handler of the ROS shape ``(request, response)``. The call's context
+    is made (``context_of(work)``) only for a handler that takes it or runs in a thread.
     """
     args: tuple[Any, ...]
     prebuilt: BaseModel | None = None
@@ -735,12 +770,16 @@ def _invoke(
         args = (request, prebuilt)
     else:
         args = (request,)
-    kwargs = {entry.context_param: context} if entry.context_param else {}
     if entry.is_async:
-        awaitable = entry.handler(*args, **kwargs)
+        if entry.context_param:
+            awaitable = entry.handler(*args, **{entry.context_param: context_of(work)})
+        else:
+            awaitable = entry.handler(*args)
         if type(awaitable) is not CoroutineType:  # a function marked as a coroutine function
             awaitable = _await(awaitable)
         return awaitable, prebuilt
+    context = context_of(work)
+    kwargs = {entry.context_param: context} if entry.context_param else {}
     job = _Blocking(entry, functools.partial(entry.handler, *args, **kwargs), context, logger)
     return _run_in_executor(job, executor), prebuilt
 
@@ -860,37 +899,62 @@ async def dispatch(
     handler and marks ``context`` cancelled; a deadline that passes later is enforced that
     way, by whoever runs the call.
     """
-    try:
-        request = entry.validate(params)
+    return await run_handler(entry, params, context.deadline, _given, context, executor, logger)
+
+
+def _given(context: Context) -> Context:
+    return context
+
+
+async def run_handler(
+    entry: ServiceEntry,
+    params: dict[str, Any] | list[Any] | BaseModel | None,
+    deadline: float | None,
+    context_of: ContextOf,
+    work: Any,
+    executor: Executor | None,
+    logger: logging.Logger | None,
+) -> bytes:
+    """:func:`dispatch`, with the call's :class:`Context` made only if something needs it.
+
+    ``context_of(work)`` returns the context of the call ``work`` (making it the first time),
+    and ``deadline`` is its deadline: a handler that takes no context, runs on the loop, and
+    is neither cancelled nor late never has one made (the server's call runner, which keeps
+    the context on the call, passes its own ``context_of``).
+    """
+    try:  # a request read in one pass is validated already
+        request = params if type(params) is entry.request_model else entry.validate(params)
     except InvalidParams:
         raise
     except (Exception, asyncio.CancelledError) as exc:
         # A validator in the model raised something pydantic does not wrap. Validation never
         # awaits, so not even a CancelledError from it can be this task's own cancellation.
+        context = context_of(work)
         raise _handler_raised(entry, context, exc, logger, "validating the request") from None
-    deadline = context.deadline
     limit = entry.limit
     try:
         if deadline is not None and deadline <= time.monotonic():
-            raise _deadline_exceeded(entry, context)
+            raise _deadline_exceeded(entry, context_of(work))
         if limit is None:
-            handler, prebuilt = _invoke(entry, request, context, executor, logger)
+            handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
             result = await handler
         else:
-            result, prebuilt = await _limited(entry, limit, request, context, executor, logger)
+            result, prebuilt = await _limited(
+                entry, limit, request, context_of, work, executor, logger
+            )
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name
         raise
     except asyncio.CancelledError as exc:
         if _being_cancelled():
-            context._mark_cancelled()
+            context_of(work)._mark_cancelled()
             raise
         # Nobody cancelled this task: the handler awaited something that was cancelled under
         # it. Re-raising would end the call without a reply, so it is the handler's failure.
-        raise _handler_raised(entry, context, exc, logger) from None
+        raise _handler_raised(entry, context_of(work), exc, logger) from None
     except Exception as exc:
-        raise _handler_raised(entry, context, exc, logger) from None
+        raise _handler_raised(entry, context_of(work), exc, logger) from None
     return _encode_response(entry, result, prebuilt, logger)
 
 
@@ -898,7 +962,8 @@ async def _limited(
     entry: ServiceEntry,
     limit: ConcurrencyLimit,
     request: BaseModel,
-    context: Context,
+    context_of: ContextOf,
+    work: Any,
     executor: Executor | None,
     logger: logging.Logger | None,
 ) -> tuple[Any, BaseModel | None]:
@@ -906,7 +971,7 @@ async def _limited(
     (a blocking handler's thread gives it back, since it may run on after its caller left)."""
     await limit.acquire()
     try:
-        handler, prebuilt = _invoke(entry, request, context, executor, logger)
+        handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
     except BaseException:
         limit.release()
         raise

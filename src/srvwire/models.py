@@ -64,7 +64,12 @@ from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
 from pydantic import ConfigDict, Field
-from pydantic_core import PydanticSerializationError, SchemaSerializer
+from pydantic_core import (
+    PydanticSerializationError,
+    SchemaSerializer,
+    SchemaValidator,
+    core_schema,
+)
 
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
@@ -102,6 +107,7 @@ from srvwire.primitives import (
     UInt64,
     WString,
 )
+from srvwire.protocol import Request, timeout_seconds
 
 __all__ = [
     "FLOAT32_MAX",
@@ -112,6 +118,7 @@ __all__ = [
     "Action",
     "Bool",
     "Byte",
+    "CallReader",
     "Char",
     "Float32",
     "Float64",
@@ -728,3 +735,138 @@ class ModelDecoder(Generic[M]):
         validator = model.__pydantic_validator__
         self.from_json: Callable[[str], M] = validator.validate_json
         self.from_data: Callable[[Any], M] = validator.validate_python
+
+
+# --- a request read in one pass ----------------------------------------------------------------
+
+_LONG_INTEGER = re.compile(r"[0-9]{309}")
+_LONG_BYTES = re.compile(rb"[0-9]{309}")
+"""A run of digits as long as the smallest integer a double cannot hold (about 1.8e308): only
+such a literal reads differently as JSON text (infinity) and as a parsed Python int (refused)."""
+
+
+class CallReader:
+    """Reads a request to one of some services from its JSON text in one pass of pydantic-core.
+
+    ``requests`` maps each service's name to its ``Request`` class. The one validator is a
+    union tagged by ``method`` (each name with and without its leading ``/``) of envelopes:
+    ``jsonrpc`` exactly ``"2.0"``, an integer or string ``id``, and ``params``, an object that
+    is that service's ``Request`` with ``_meta`` let through (the rest of the request's rules
+    unchanged). :meth:`read` returns the :class:`~srvwire.protocol.Request` whose ``params`` is
+    the request built, ``_meta`` taken out of it and read into ``timeout``, or None for
+    anything else: a notification, a batch, another method, an invalid message, params that do
+    not validate, a member the request does not have besides ``_meta``, a ``_meta`` that is not
+    an object with a valid ``timeout``. None means "parse it the full way", which then says
+    what is wrong exactly as it always does.
+
+    Only classes srvwire builds (:class:`Message`, no validators of their own) are read so:
+    JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``),
+    but for one case, an integer literal too large for a double in a float field, which the
+    full parse refuses and JSON mode reads as infinity; a request with a float field and such a
+    run of digits anywhere in its text is left to the full parse.
+    """
+
+    __slots__ = ("floats", "validate")
+
+    def __init__(self, requests: Mapping[str, type[pydantic.BaseModel]]) -> None:
+        choices: dict[str, Any] = {}
+        definitions: dict[str, Any] = {}
+        self.floats: set[type[pydantic.BaseModel]] = set()
+        id_schema = core_schema.union_schema(
+            [core_schema.int_schema(strict=True), core_schema.str_schema(strict=True)]
+        )
+        for name, model in requests.items():
+            params = _params_schema(model, definitions)
+            if params is None:
+                continue
+            if _has_float(model.__pydantic_core_schema__):
+                self.floats.add(model)
+            envelope = core_schema.typed_dict_schema(
+                {
+                    "jsonrpc": core_schema.typed_dict_field(core_schema.literal_schema(["2.0"])),
+                    "id": core_schema.typed_dict_field(id_schema),
+                    "method": core_schema.typed_dict_field(core_schema.str_schema()),
+                    "params": core_schema.typed_dict_field(params),
+                },
+                extra_behavior="ignore",  # as the full parse ignores members it does not know
+            )
+            choices[name] = envelope
+            choices[name[1:] if name.startswith("/") else "/" + name] = envelope
+        self.validate: Callable[[Any], dict[str, Any]] | None = None
+        if choices:
+            schema: Any = core_schema.tagged_union_schema(choices, discriminator="method")
+            if definitions:
+                schema = core_schema.definitions_schema(schema, list(definitions.values()))
+            # Not the classes' own validators: their params refuse _meta.
+            self.validate = SchemaValidator(schema, _use_prebuilt=False).validate_json
+
+    def read(self, data: str | bytes) -> Request | None:
+        """Return the request read in one pass, its params validated; else None."""
+        validate = self.validate
+        if validate is None:
+            return None
+        try:
+            envelope = validate(data)
+        except Exception:  # refused (a ValidationError), or a validator's own failure: the
+            return None  # full parse says which, as it always did
+        request: pydantic.BaseModel = envelope["params"]
+        extra = request.__pydantic_extra__
+        timeout = None
+        if extra:
+            if len(extra) != 1 or "_meta" not in extra:  # the full parse names the member
+                return None
+            meta = extra["_meta"]
+            if type(meta) is not dict:
+                return None
+            raw = meta.get("timeout")
+            if raw is not None:
+                timeout = timeout_seconds(raw)
+                if timeout is None:
+                    return None
+            request.__pydantic_fields_set__.discard("_meta")
+        object.__setattr__(request, "__pydantic_extra__", None)  # as the class makes it
+        if self.floats and type(request) in self.floats:
+            if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
+                return None
+        validated: Any = request  # the params of a request read in one pass
+        return Request(envelope["id"], envelope["method"], validated, timeout)
+
+
+def _params_schema(
+    model: type[pydantic.BaseModel], definitions: dict[str, Any]
+) -> dict[str, Any] | None:
+    """``model``'s core schema with ``_meta`` let through (extra members kept aside), its
+    definitions added to ``definitions``; None for a class not read in one pass."""
+    if not issubclass(model, Message) or model.__pydantic_custom_init__:
+        return None
+    decorators = model.__pydantic_decorators__
+    if (
+        decorators.validators
+        or decorators.field_validators
+        or decorators.root_validators
+        or decorators.model_validators
+    ):
+        return None
+    schema: Any = model.__pydantic_core_schema__
+    if schema["type"] == "definitions":
+        for definition in schema["definitions"]:
+            definitions.setdefault(definition["ref"], definition)
+        schema = schema["schema"]
+    if schema["type"] != "model" or schema["schema"]["type"] != "model-fields":
+        return None
+    fields = {**schema["schema"], "extra_behavior": "allow"}
+    params = {**schema, "schema": fields, "config": {**schema.get("config", {})}}
+    params["config"]["extra_fields_behavior"] = "allow"
+    params.pop("ref", None)  # another schema than the class's own
+    return params
+
+
+def _has_float(schema: Any) -> bool:
+    """Whether a core schema has a float anywhere, its definitions included."""
+    if isinstance(schema, dict):
+        if schema.get("type") == "float":
+            return True
+        return any(_has_float(value) for value in schema.values())
+    if isinstance(schema, list | tuple):
+        return any(_has_float(item) for item in schema)
+    return False

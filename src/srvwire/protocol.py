@@ -83,11 +83,13 @@ __all__ = [
     "parse_incoming",
     "parse_replies",
     "peek_reply",
+    "read_meta",
     "serialize_batch",
     "services_notification",
     "timeout_seconds",
     "valid_id",
     "write_call",
+    "write_response",
 ]
 
 CANCEL_METHOD = "$/cancel"
@@ -349,13 +351,22 @@ class Response:
             written = text if isinstance(text, bytes) else text.encode()
         else:
             written = encode_json(result).encode()
-        return b"".join(
-            (b'{"jsonrpc":"2.0","id":', _encode_id(self.id).encode(), b',"result":', written, b"}")
-        )
+        return write_response(self.id, written)
 
     def decode(self, decoder: Decoder[T] | None = None) -> T | Any:
         """Return the result, through ``decoder`` when given (raising its ``ValueError``)."""
         return self.result if decoder is None else decoder.from_data(self.result)
+
+
+def write_response(id: Id, result: bytes) -> bytes:
+    """Write a response around its result, JSON already written as UTF-8 bytes, in one go.
+
+    The same bytes as ``Response(id, RawJSON(result)).serialize()``, which calls this; the
+    server writes the replies of its calls with it, without the two objects.
+    """
+    return b"".join(
+        (b'{"jsonrpc":"2.0","id":', _encode_id(id).encode(), b',"result":', result, b"}")
+    )
 
 
 @dataclass(slots=True)
@@ -473,6 +484,8 @@ def timeout_seconds(value: Any) -> float | None:
     decoded exactly), just as ``1e400`` is not. The server reads ``_meta.timeout`` with it,
     the client its ``timeout`` arguments.
     """
+    if type(value) is float:  # what clients send: no conversion to check
+        return value if 0.0 <= value < math.inf else None
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
     try:
@@ -489,6 +502,23 @@ def describe_value(value: Any) -> str:
     if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1024:
         return "an integer too large for a float"
     return encode_json(value)
+
+
+def read_meta(meta: Any) -> tuple[float | None, InvalidParams | None]:
+    """Read a request's ``params._meta``: its deadline (None for none), or the error it is."""
+    if type(meta) is not dict:
+        return None, _bad_meta("_meta", f"must be an object, not {_kind(meta)}", "dict_type")
+    raw = meta.get("timeout")
+    if raw is None:
+        return None, None
+    timeout = timeout_seconds(raw)
+    if timeout is None:
+        return None, _bad_meta(
+            "_meta.timeout",
+            f"must be a number of seconds >= 0, not {describe_value(raw)}",
+            "timeout",
+        )
+    return timeout, None
 
 
 def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
@@ -513,17 +543,8 @@ def _parse_item(item: Any) -> Request | Notification | ErrorResponse:
     bad_meta: InvalidParams | None = None
     if type(params) is dict:
         if "_meta" in params:
-            meta = params.pop("_meta")  # a fresh dict from decode_json: no copy needed
-            if type(meta) is not dict:
-                bad_meta = _bad_meta("_meta", f"must be an object, not {_kind(meta)}", "dict_type")
-            elif (raw := meta.get("timeout")) is not None:
-                timeout = timeout_seconds(raw)
-                if timeout is None:
-                    bad_meta = _bad_meta(
-                        "_meta.timeout",
-                        f"must be a number of seconds >= 0, not {describe_value(raw)}",
-                        "timeout",
-                    )
+            # a fresh dict from decode_json: no copy needed
+            timeout, bad_meta = read_meta(params.pop("_meta"))
     elif type(params) is not list and "params" in item:
         return _invalid(id, f"'params' must be an object or an array, not {_kind(params)}")
     if not has_id:  # a notification is never answered, not even with an error

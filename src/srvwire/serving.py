@@ -20,6 +20,10 @@ Invariants:
   itself, and waits; and while the bytes waiting to be sent are past the connection's budget
   (:attr:`~srvwire.transports.base.Connection.congested`), it reads nothing, and a batch's call
   waits before its handler runs: no reply is built that could not be queued.
+* **A call's** :class:`~srvwire.dispatch.Context` **is made when something needs it**: its
+  handler takes one or runs in a thread, the call is cancelled, or it is late
+  (:meth:`CallRunner.context_of`). A call that answers without any of these never has one;
+  its deadline is kept on the call itself.
 * **A deadline is a cancellation with a reason.** A call's ``_meta.timeout`` is armed as one
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
@@ -50,7 +54,7 @@ from concurrent.futures import Executor
 from contextvars import copy_context
 from typing import Any, TypeAlias
 
-from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, dispatch
+from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, run_handler
 from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError, ServiceError
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
@@ -152,7 +156,7 @@ class CallRunner:
     # --- deadlines and cancellation -----------------------------------------------------------
 
     def begin(self, work: Work) -> None:
-        """Give a call or notification its context, its deadline measured from now.
+        """Give a call or notification its deadline, measured from now.
 
         A notification without a deadline of its own gets ``notification_timeout``: nobody
         waits for it, so nothing else would ever end one that hangs.
@@ -160,18 +164,28 @@ class CallRunner:
         timeout = work.timeout
         if timeout is None and type(work) is NotificationCall:
             timeout = self.notification_timeout
-        work.context = Context(
-            service=work.entry.name,
-            request_id=work.id if type(work) is Call else None,
-            peer=self.peer,
-            deadline=None if timeout is None else time.monotonic() + timeout,
-            identity=self.identity,
-            channel=self.channel,
-        )
+        deadline = work.deadline = None if timeout is None else time.monotonic() + timeout
+        if work.context is not None:  # made before it began, by a cancellation
+            work.context.deadline = deadline
+
+    def context_of(self, work: Work) -> Context:
+        """The :class:`~srvwire.dispatch.Context` of a call or notification, made the first
+        time something needs it (see the invariants)."""
+        context: Context | None = work.context
+        if context is None:
+            context = work.context = Context(
+                service=work.entry.name,
+                request_id=work.id if type(work) is Call else None,
+                peer=self.peer,
+                deadline=work.deadline,
+                identity=self.identity,
+                channel=self.channel,
+            )
+        return context
 
     def arm(self, work: Work) -> asyncio.TimerHandle | None:
         """Arm the deadline of a call or notification that waits; None when it has none."""
-        deadline = work.context.deadline
+        deadline = work.deadline
         if deadline is None:
             return None
         return self.loop.call_later(deadline - time.monotonic(), self.expire, work)
@@ -193,9 +207,7 @@ class CallRunner:
         A call whose task has not started is only marked: it answers when it starts. A task is
         cancelled once at most, since the call takes one cancellation back before replying.
         """
-        context: Context | None = work.context
-        if context is not None:  # None only before the reader has begun it
-            context._mark_cancelled(error)
+        self.context_of(work)._mark_cancelled(error)
         task = work.task
         if task is not None and not work.task_cancelled and (work.started or error is None):
             work.task_cancelled = True
@@ -257,13 +269,13 @@ class CallRunner:
     async def run_call(self, call: Call[ServiceEntry]) -> None:
         """Run one call and send its reply (or its batch's, when it is the last to reply)."""
         call.started = True
-        context: Context = call.context
+        context: Context | None = call.context  # None: nothing has needed it yet
         session = self.session
         entry = call.entry
         log = self.log
         reply: bytes | None
         try:
-            if context._cancel_error is not None:  # cancelled before it started
+            if context is not None and context._cancel_error is not None:  # before it started
                 reply = session.fail(call, context._cancel_error)
             else:
                 if call.batch is not None and self.conn.congested:  # see the invariants
@@ -272,11 +284,12 @@ class CallRunner:
                     except TransportClosed:  # nobody to answer: do not run it
                         session.forget(call)
                         return
-                result = await dispatch(
-                    entry, call.params, context, executor=self.executor, logger=log
+                result = await run_handler(
+                    entry, call.params, call.deadline, self.context_of, call, self.executor, log
                 )
                 if call.task_cancelled:  # cancelled meanwhile, and the handler finished anyway
                     await self.take_back_cancellation()
+                    context = self.context_of(call)
                     if context._cancel_error is None:  # the connection went away
                         session.forget(call)
                         raise asyncio.CancelledError
@@ -291,7 +304,7 @@ class CallRunner:
                 log.debug("%s id %r from %s: %s", entry.name, call.id, self.peer, exc)
             reply = session.fail(call, exc)
         except asyncio.CancelledError:
-            error = context._cancel_error
+            error = self.context_of(call)._cancel_error
             if error is not None:  # srvwire cancelled it, for this reason: take it back
                 asyncio.current_task().uncancel()  # type: ignore[union-attr]
             elif call.task_cancelled:  # the connection went away: nobody to answer
@@ -320,14 +333,15 @@ class CallRunner:
     async def run_notification(self, note: NotificationCall[ServiceEntry]) -> None:
         """Run a notification's handler; nothing is answered, a failure is logged."""
         entry = note.entry
-        context: Context = note.context
         try:
-            await dispatch(entry, note.params, context, executor=self.executor, logger=self.log)
+            await run_handler(
+                entry, note.params, note.deadline, self.context_of, note, self.executor, self.log
+            )
         except RPCError as exc:
             if self.log.isEnabledFor(logging.INFO):
                 self.log.info("notification to %s failed: %s", entry.name, exc)
         except asyncio.CancelledError:
-            error = context._cancel_error
+            error = self.context_of(note)._cancel_error
             if error is None:
                 raise
             asyncio.current_task().uncancel()  # type: ignore[union-attr]
@@ -984,8 +998,9 @@ class ServedConnection:
         work.task = task
         if type(work) is Call:
             work.started = True
-            if work.context.cancelled:  # cancelled while its first step ran
-                runner.cancel(work, work.context._cancel_error)
+            context = work.context
+            if context is not None and context.cancelled:  # cancelled while its first step ran
+                runner.cancel(work, context._cancel_error)
         timer = runner.arm(work)
         self.start_reader()
         try:

@@ -89,6 +89,7 @@ from srvwire.protocol import (
     services_notification,
     valid_id,
     write_call,
+    write_response,
 )
 
 _TOPIC_METHODS = frozenset({SUBSCRIBE_METHOD, PUBLISH_METHOD})
@@ -206,13 +207,15 @@ class _Batch:
 class Call(Generic[E]):
     """A call the session admitted: what to run, and where its reply goes.
 
-    ``context``, ``task``, ``started`` and ``task_cancelled`` belong to whoever runs the call
-    (the server keeps them here so that a call is one object); the session never reads them.
+    ``context``, ``deadline``, ``task``, ``started`` and ``task_cancelled`` belong to whoever
+    runs the call (the server keeps them here so that a call is one object); the session never
+    reads them.
     """
 
     __slots__ = (
         "batch",
         "context",
+        "deadline",
         "entry",
         "id",
         "index",
@@ -231,6 +234,7 @@ class Call(Generic[E]):
         self.batch: _Batch | None = None
         self.index = 0
         self.context: Any = None
+        self.deadline: float | None = None
         self.task: Any = None
         self.started = False
         self.task_cancelled = False
@@ -243,9 +247,9 @@ class Call(Generic[E]):
 class NotificationCall(Generic[E]):
     """A notification to run; tell the session with :meth:`ServerSession.done` when it ends.
 
-    ``in_batch``: it came in a batch. ``context``, ``task``, ``started`` and ``task_cancelled``
-    belong to whoever runs it, as a :class:`Call`'s do; it has nothing to answer, so it counts
-    as started from the first.
+    ``in_batch``: it came in a batch. ``context``, ``deadline``, ``task``, ``started`` and
+    ``task_cancelled`` belong to whoever runs it, as a :class:`Call`'s do; it has nothing to
+    answer, so it counts as started from the first.
     """
 
     entry: E
@@ -253,6 +257,7 @@ class NotificationCall(Generic[E]):
     timeout: float | None
     in_batch: bool = False
     context: Any = None
+    deadline: float | None = None
     task: Any = None
     started: bool = True
     task_cancelled: bool = False
@@ -305,6 +310,8 @@ class ServerSession(Generic[E]):
         """Calls in flight with ``"id": null``."""
         self.in_flight = 0
         self.closing = False
+        # Whether the registry reads a call in one pass (ServiceRegistry.read_call).
+        self._one_pass = hasattr(services, "read_call")
 
     # --- what the client sent -----------------------------------------------------------------
 
@@ -315,13 +322,25 @@ class ServerSession(Generic[E]):
         :class:`NotificationCall` to run, a :class:`CancelCall` to carry out, a
         :class:`Publish` to hand on, a :class:`SubscriptionDeadline` to arm, or a
         :class:`Dropped` notification to log. Never raises on what a peer sent.
+
+        A single request to a service is first offered to the registry's ``read_call``, when
+        it has one, which reads it and validates its params in one pass; what that refuses is
+        parsed in full, so every answer is the one the full parse gives.
         """
+        if self._one_pass:
+            request = self.services.read_call(data)  # type: ignore[attr-defined]
+            if request is not None:
+                events: list[Any] = []
+                admitted = self._admit(request, None, events)
+                if admitted is not None:  # always: it is a call to a service
+                    events.append(admitted)
+                return events
         incoming = parse_incoming(data)
         items = incoming.items
         if not incoming.is_batch:
             item = items[0]
             if type(item) is Request:
-                events: list[Any] = []
+                events = []
                 admitted = self._admit(item, None, events)
                 if admitted is not None:  # None: a subscription, which answers later
                     events.append(admitted)
@@ -521,7 +540,7 @@ class ServerSession(Generic[E]):
 
     def reply(self, call: Call[E], result: bytes) -> bytes | None:
         """Write the reply to ``call`` with ``result`` (its JSON); None while its batch waits."""
-        return self._answer(call, Response(call.id, RawJSON(result)).serialize())
+        return self._answer(call, write_response(call.id, result))
 
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
         """Write the error reply to ``call``; None while its batch waits."""

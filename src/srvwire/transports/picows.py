@@ -661,7 +661,12 @@ class _Opening(WSProtocol):  # type: ignore[misc]
     """``picows``' server protocol, which first looks at the opening bytes: a TLS record on a
     listener without TLS (a ``wss://`` client) is refused at once by closing the connection,
     where ``picows`` would wait for the end of an HTTP request until its handshake timeout.
-    The client then says its TLS handshake failed and that the server may not speak TLS."""
+    The client then says its TLS handshake failed and that the server may not speak TLS.
+
+    Only the first read passes through this class: after it, the instance's ``get_buffer`` and
+    ``buffer_updated`` are ``picows``' own, so every later read goes from the event loop
+    straight to compiled code (an event loop that kept the first ones it saw, as ``uvloop``
+    and TLS do, still reaches ``picows`` through them)."""
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
@@ -678,6 +683,9 @@ class _Opening(WSProtocol):  # type: ignore[misc]
         if self.opening:
             self.opening = False
             first, self.buffer = self.buffer, None
+            # Later reads look these up on the instance first: picows' bound methods.
+            self.get_buffer = super().get_buffer  # type: ignore[method-assign]
+            self.buffer_updated = super().buffer_updated  # type: ignore[method-assign]
             if nbytes and first is not None and first[0] == _TLS_HANDSHAKE_RECORD:
                 self.transport.disconnect()
                 return
