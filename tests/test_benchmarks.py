@@ -186,3 +186,29 @@ def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Pa
         assert row["ratio_to_async"] == pytest.approx(row["us_per_call"] / baseline)
         assert row["calls_per_second"] == pytest.approx(1e6 / row["us_per_call"])
         assert f"{row['measurement']:<30} {row['us_per_call']:>12.1f}" in result.stdout
+
+
+def test_the_client_path_benchmark_compares_source_trees() -> None:
+    # A smoke run of the in-process client benchmark, the same tree twice: every call got
+    # its typed reply (the child asserts it), and each tree has a figure and a ratio.
+    src = str(ROOT / "src")
+    sources = ["--repeat", "1", "--src", src, "--src", src]
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "640", *sources],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = result.stdout.splitlines()
+    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == [
+        "pipelined",
+        "sequential",
+    ]
+    rows = [line.split() for line in lines if line.startswith(" ")]
+    assert len(rows) == 4
+    for row in rows:
+        assert float(row[0]) > 0 and row[1] == "ratio" and row[3] == src
+    assert rows[0][2] == rows[2][2] == "1.000"

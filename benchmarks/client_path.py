@@ -1,0 +1,193 @@
+"""The client's CPU per call, in-process: ``client.call`` against a connection that answers at once.
+
+No server, no socket, no transport: a fake :class:`~srvwire.transports.base.Connection`
+announces the benchmark's service (with its fingerprint, as a srvwire server does), and answers
+each request it is sent with the small ``RobotStateQuery`` reply a srvwire server writes, which
+the client's reader receives at the next turn of the loop. What is measured is everything the
+client does per call above the transport: ``Client.call``, the link, the session, writing the
+request, the deadline, routing and decoding the reply, asyncio's futures and timers.
+
+Two shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
+
+* **pipelined**: 64 tasks call in a loop, so 64 calls are in flight, as in the harness's W2;
+* **sequential**: one task calls in a loop, one call at a time, as in W1.
+
+Several source trees can be compared in the same run (``--src old/src --src src``): each is
+measured in a child process of its own, first on ``sys.path``, and the trees alternate within
+every repeat; the figure is the minimum over ``--repeat`` runs (the least disturbed by other
+processes), and the table gives each tree's ratio to the first one.
+
+    python benchmarks/client_path.py                       # this checkout's src/
+    python benchmarks/client_path.py --src /tmp/old/src --src src --repeat 7
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+PIPELINE = 64  # calls in flight in the pipelined shape, as W2
+TIMEOUT = 30.0  # every call's deadline, as the harness's
+
+
+def measure(calls: int, shapes: list[str]) -> dict[str, float]:
+    """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call."""
+    from srvwire.client import connect
+    from srvwire.protocol import services_notification
+    from srvwire.transports.base import Connection, Transport, TransportClosed
+    from srvwire.typeregistry import fingerprint, full_definition
+
+    from common import SERVICE, SMALL_REQUEST, SRV_TYPE, reply_fields
+    from typed import RobotStateQuery
+
+    definition = full_definition(RobotStateQuery)
+    assert definition is not None
+    announcement = services_notification(
+        [(SERVICE, SRV_TYPE)], {SERVICE: fingerprint(definition)}
+    ).serialize()
+    result = RobotStateQuery.Response(**reply_fields("position")).model_dump_json().encode()
+    id_of = re.compile(rb'"id":([0-9]+)')
+
+    class Answering(Connection):
+        """Answers every request with the small reply, as a srvwire server writes it."""
+
+        remote_address = ("fake", 0)
+        identity = None
+
+        def __init__(self) -> None:
+            self.messages: deque[str | bytes] = deque([announcement.decode()])
+            self.waiter: asyncio.Future[None] | None = None
+            self.loop = asyncio.get_running_loop()
+            self.ended = False
+
+        async def recv(self) -> str | bytes:
+            while not self.messages:
+                if self.ended:
+                    raise TransportClosed(1000)
+                self.waiter = self.loop.create_future()
+                try:
+                    await self.waiter
+                finally:
+                    self.waiter = None
+            return self.messages.popleft()
+
+        async def send(self, message: str | bytes) -> None:
+            data = message if isinstance(message, bytes) else message.encode()
+            found = id_of.search(data)
+            if found is None:  # a notification ($/cancel): nothing to answer
+                return
+            reply = b'{"jsonrpc":"2.0","id":' + found[1] + b',"result":' + result + b"}"
+            self.messages.append(reply.decode())
+            self.wake()
+
+        def wake(self) -> None:
+            if self.waiter is not None and not self.waiter.done():
+                self.waiter.set_result(None)
+
+        @property
+        def congested(self) -> bool:
+            return False
+
+        async def writable(self) -> None:
+            return None
+
+        async def close(self, code: int = 1000, reason: str = "") -> None:
+            self.ended = True
+            self.wake()
+
+        @property
+        def close_code(self) -> int | None:
+            return 1000 if self.ended else None
+
+        @property
+        def close_reason(self) -> str:
+            return ""
+
+    class Fake(Transport):
+        name = "fake"
+
+        async def listen(self, *args: Any, **kwargs: Any) -> Any:
+            raise NotImplementedError
+
+        async def connect(self, url: str, options: Any, **kwargs: Any) -> Connection:
+            return Answering()
+
+        def check_url(self, url: str) -> None:
+            return None
+
+    async def run() -> dict[str, float]:
+        request = RobotStateQuery.Request(**SMALL_REQUEST)
+        figures: dict[str, float] = {}
+        async with connect("ws://fake", transport=Fake(), timeout=TIMEOUT) as client:
+
+            async def caller(n: int) -> None:
+                for _ in range(n):
+                    reply = await client.call(SERVICE, request)
+                    assert type(reply) is RobotStateQuery.Response
+
+            await caller(200)  # warm up: the type, the fingerprint check, caches
+            for shape in shapes:
+                tasks = PIPELINE if shape == "pipelined" else 1
+                started = time.process_time()
+                await asyncio.gather(*(caller(calls // tasks) for _ in range(tasks)))
+                spent = time.process_time() - started
+                figures[shape] = spent / (calls // tasks * tasks) * 1e6
+        return figures
+
+    return asyncio.run(run())
+
+
+def child(src: str, calls: int, shapes: list[str]) -> dict[str, float]:
+    """Run :func:`measure` in a child process with ``src`` first on its path."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, str(HERE)]))
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", "--calls", str(calls), "--shapes", ",".join(shapes)],
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    figures: dict[str, float] = json.loads(out.splitlines()[-1])
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
+    parser.add_argument("--src", action="append", help="a srvwire source tree (repeatable)")
+    parser.add_argument("--calls", type=int, default=64_000, help="calls per shape and run")
+    parser.add_argument("--repeat", type=int, default=5, help="runs per tree (the minimum counts)")
+    parser.add_argument("--shapes", default="pipelined,sequential")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    shapes = args.shapes.split(",")
+    if args.child:
+        print(json.dumps(measure(args.calls, shapes)))
+        return
+    sources = args.src or [str(HERE.parent / "src")]
+    runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
+    for _ in range(args.repeat):
+        for src in sources:
+            for shape, value in child(src, args.calls, shapes).items():
+                runs[src][shape].append(value)
+    first = sources[0]
+    for shape in shapes:
+        print(f"{shape} (µs of client CPU per call, minimum of {args.repeat}; all runs)")
+        for src in sources:
+            values = runs[src][shape]
+            ratio = min(values) / min(runs[first][shape])
+            listed = " ".join(f"{v:.2f}" for v in values)
+            print(f"  {min(values):6.2f}  ratio {ratio:.3f}  {src}  [{listed}]")
+
+
+if __name__ == "__main__":
+    main()
