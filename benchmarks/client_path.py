@@ -32,6 +32,7 @@ import subprocess
 import sys
 import time
 from collections import deque
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -147,18 +148,38 @@ def measure(calls: int, shapes: list[str]) -> dict[str, float]:
     return asyncio.run(run())
 
 
-def child(src: str, calls: int, shapes: list[str]) -> dict[str, float]:
-    """Run :func:`measure` in a child process with ``src`` first on its path."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, str(HERE)]))
-    out = subprocess.run(
-        [sys.executable, __file__, "--child", "--calls", str(calls), "--shapes", ",".join(shapes)],
+def child(src: str, calls: int, shapes: list[str], prefix: Sequence[str] = ()) -> Any:
+    """Run :func:`measure` in a child process with ``src`` first on its path; return what it
+    printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), str(HERE)]))
+    env["PYTHONHASHSEED"] = "0"  # the same work in every run, for the instruction counts
+    command = [sys.executable, __file__, "--child", "--calls", str(calls)]
+    done = subprocess.run(
+        [*prefix, *command, "--shapes", ",".join(shapes)],
         env=env,
-        check=True,
+        check=False,
         capture_output=True,
         text=True,
-    ).stdout
-    figures: dict[str, float] = json.loads(out.splitlines()[-1])
-    return figures
+    )
+    if done.returncode != 0:
+        raise SystemExit(f"measuring {src} failed:\n{done.stderr}")
+    return json.loads(done.stdout.splitlines()[-1]), done.stderr
+
+
+def instructions(src: str, calls: int, shape: str) -> float:
+    """Instructions per call (valgrind's count): the difference between a run of ``calls``
+    and one of three times as many, so that starting up and warming up cancel out."""
+    counted = []
+    for n in (calls, 3 * calls):
+        _, err = child(src, n, [shape], VALGRIND)
+        found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
+        if found is None:
+            raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
+        counted.append(int(found[1].replace(",", "")))
+    return (counted[1] - counted[0]) / (2 * calls)
+
+
+VALGRIND = ["valgrind", "--tool=cachegrind", "--cache-sim=no", "--cachegrind-out-file=/dev/null"]
 
 
 def main() -> None:
@@ -167,6 +188,12 @@ def main() -> None:
     parser.add_argument("--calls", type=int, default=64_000, help="calls per shape and run")
     parser.add_argument("--repeat", type=int, default=5, help="runs per tree (the minimum counts)")
     parser.add_argument("--shapes", default="pipelined,sequential")
+    parser.add_argument(
+        "--instructions",
+        action="store_true",
+        help="count instructions per call under valgrind instead (slow; not disturbed by "
+        "other processes); --calls is then the smaller of the two runs (default 2 000)",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     shapes = args.shapes.split(",")
@@ -174,10 +201,18 @@ def main() -> None:
         print(json.dumps(measure(args.calls, shapes)))
         return
     sources = args.src or [str(HERE.parent / "src")]
+    if args.instructions:
+        calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
+        for shape in shapes:
+            print(f"{shape} (instructions per call, valgrind)")
+            counts = [instructions(src, calls, shape) for src in sources]
+            for src, count in zip(sources, counts, strict=True):
+                print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
+        return
     runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
     for _ in range(args.repeat):
         for src in sources:
-            for shape, value in child(src, args.calls, shapes).items():
+            for shape, value in child(src, args.calls, shapes)[0].items():
                 runs[src][shape].append(value)
     first = sources[0]
     for shape in shapes:

@@ -19,6 +19,7 @@ from srvwire.errors import (
 )
 from srvwire.protocol import (
     MAX_DEPTH,
+    CallWriter,
     ErrorResponse,
     Incoming,
     Notification,
@@ -406,6 +407,34 @@ def test_a_call_written_in_one_go_is_the_request_the_general_path_writes(
     assert json.loads(written) == json.loads(Request(3, "/m", params, timeout).serialize())
     (item,) = parse_incoming(written).items
     assert item == Request(3, "/m", params, timeout)
+
+
+@settings(max_examples=200)
+@given(
+    method=st.text(),
+    timeout=st.floats(min_value=0, allow_nan=False, allow_infinity=False),
+    params=st.dictionaries(st.text(), st.integers() | st.text()),
+)
+@example(method="/m%d%r%b%%", timeout=1.5, params={"%s": "%d"})
+@example(method='/a"b', timeout=1e16, params={})
+def test_a_call_writer_writes_what_the_general_path_writes(
+    method: str, timeout: float, params: dict[str, Any]
+) -> None:
+    # The template made once per method: the same bytes as Request.serialize, whatever the
+    # name and params hold (a % in either is text, not a format).
+    text = encode_json(params)
+    written = CallWriter(method)(5, text.encode(), timeout)
+    assert written == Request(5, method, RawJSON(text), timeout).serialize()
+
+
+def test_a_call_writer_leaves_what_is_not_a_call_to_the_general_path() -> None:
+    write = CallWriter("/m")
+    assert write(1, b"[1]", 1.0) is None  # not an object
+    assert write(1, b"{ }", 1.0) is None  # not written compactly
+    assert write(1, b'{"a":1', 1.0) is None  # cut short
+    assert write(1, b"{}", math.inf) is None and write(1, b"{}", math.nan) is None
+    assert write(1, b"{}", 1) is None  # an int timeout: the general path writes it as 1.0
+    assert write(1, b"{}", 0.25) == Request(1, "/m", RawJSON("{}"), 0.25).serialize()
 
 
 @settings(max_examples=200)

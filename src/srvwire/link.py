@@ -30,7 +30,7 @@ import asyncio
 import contextlib
 import logging
 import ssl as _ssl
-from collections.abc import Coroutine, Sequence
+from collections.abc import Coroutine, Hashable, Sequence
 from typing import Any, Protocol, TypeAlias
 
 from srvwire.errors import (
@@ -64,6 +64,7 @@ from srvwire.transports.base import Connection, Options, Transport, TransportClo
 __all__ = [
     "CLOSE_PROTOCOL_VIOLATION",
     "LOOP_ENDED",
+    "MAX_READY",
     "Arrived",
     "Link",
     "LoggerLike",
@@ -80,6 +81,9 @@ LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
 
 CLOSE_PROTOCOL_VIOLATION = 1008
 """The close code sent when the server breaks the protocol (RFC 6455 "policy violation")."""
+
+MAX_READY = 1024
+"""How many calls' names and types a link keeps at most (see :meth:`Link.remember`)."""
 
 LOOP_ENDED = "the client's event loop ended"
 """The reason of the close (1001) a client's connection ends with when its event loop does."""
@@ -151,6 +155,7 @@ class Link:
         "loop",
         "owner",
         "reader",
+        "ready",
         "session",
         "streams",
         "verified",
@@ -168,6 +173,9 @@ class Link:
         # whose local type the client has compared with it since.
         self.fingerprints: dict[str, str] = {}
         self.verified: set[str] = set()
+        # What the client found for a call (its service's name and type), by what the call
+        # named, once compared: the next call finds it here; forgotten with ``verified``.
+        self.ready: dict[Hashable, Any] = {}
         self.streams: dict[int, Stream] = {}  # subscriptions on this connection, by id
 
     @classmethod
@@ -218,6 +226,13 @@ class Link:
         link.fingerprints = events[0].fingerprints
         return link, events[0].services
 
+    def remember(self, key: Hashable, ready: Any) -> None:
+        """Keep what a call named ``key`` needs, for the next call (at most :data:`MAX_READY`
+        of them: past it, the oldest are found again)."""
+        if len(self.ready) >= MAX_READY:
+            self.ready.clear()
+        self.ready[key] = ready
+
     def start(self) -> None:
         """Start the reader."""
         self.reader = self.loop.create_task(self.read())
@@ -249,6 +264,7 @@ class Link:
                     elif kind is ServicesChanged:
                         self.fingerprints = event.fingerprints
                         self.verified = set()
+                        self.ready = {}
                         owner.services_changed(self, event.services)
                     elif kind is Subscribed:
                         stream = self.streams.get(event.id)
@@ -362,12 +378,12 @@ class Link:
         return self.fail(f"the server broke the protocol: {message}")
 
     async def roundtrip(
-        self, method: str, params: str | None, deadline: float, budget: float
+        self, method: str, params: str | bytes | None, deadline: float, budget: float
     ) -> Arrived:
         """Send one request and wait for its reply until ``deadline`` (loop time).
 
-        ``params`` is the request's JSON object text, sent with the time left as
-        ``_meta.timeout``; None sends no params (and no deadline).
+        ``params`` is the request's JSON object text (a string or UTF-8 bytes), sent with the
+        time left as ``_meta.timeout``; None sends no params (and no deadline).
         """
         loop = self.loop
         remaining = deadline - loop.time()
