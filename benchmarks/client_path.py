@@ -41,7 +41,7 @@ PIPELINE = 64  # calls in flight in the pipelined shape, as W2
 TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 
-def measure(calls: int, shapes: list[str]) -> dict[str, float]:
+def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
     """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call."""
     from srvwire.client import connect
     from srvwire.protocol import services_notification
@@ -70,6 +70,7 @@ def measure(calls: int, shapes: list[str]) -> dict[str, float]:
             self.waiter: asyncio.Future[None] | None = None
             self.loop = asyncio.get_running_loop()
             self.ended = False
+            self.receive: Any = None
 
         async def recv(self) -> str | bytes:
             while not self.messages:
@@ -88,8 +89,19 @@ def measure(calls: int, shapes: list[str]) -> dict[str, float]:
             if found is None:  # a notification ($/cancel): nothing to answer
                 return
             reply = b'{"jsonrpc":"2.0","id":' + found[1] + b',"result":' + result + b"}"
+            if self.receive is not None:  # as a read callback would, at the next turn
+                self.loop.call_soon(self.receive, reply.decode())
+                return
             self.messages.append(reply.decode())
             self.wake()
+
+        def deliver_to(self, receive: Any) -> bool:
+            if not push:
+                return False
+            while self.messages:
+                receive(self.messages.popleft())
+            self.receive = receive
+            return True
 
         def wake(self) -> None:
             if self.waiter is not None and not self.waiter.done():
@@ -148,12 +160,14 @@ def measure(calls: int, shapes: list[str]) -> dict[str, float]:
     return asyncio.run(run())
 
 
-def child(src: str, calls: int, shapes: list[str], prefix: Sequence[str] = ()) -> Any:
+def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[str] = ()) -> Any:
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
     printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), str(HERE)]))
     env["PYTHONHASHSEED"] = "0"  # the same work in every run, for the instruction counts
     command = [sys.executable, __file__, "--child", "--calls", str(calls)]
+    if push:
+        command.append("--push")
     done = subprocess.run(
         [*prefix, *command, "--shapes", ",".join(shapes)],
         env=env,
@@ -166,12 +180,12 @@ def child(src: str, calls: int, shapes: list[str], prefix: Sequence[str] = ()) -
     return json.loads(done.stdout.splitlines()[-1]), done.stderr
 
 
-def instructions(src: str, calls: int, shape: str) -> float:
+def instructions(src: str, calls: int, shape: str, push: bool) -> float:
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], VALGRIND)
+        _, err = child(src, n, [shape], push, VALGRIND)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -194,25 +208,32 @@ def main() -> None:
         help="count instructions per call under valgrind instead (slow; not disturbed by "
         "other processes); --calls is then the smaller of the two runs (default 2 000)",
     )
+    parser.add_argument(
+        "--push",
+        action="store_true",
+        help="the connection hands each reply to the client as it arrives, where the client "
+        "asks for it (Connection.deliver_to, as the picows transport does), instead of "
+        "queueing it for the client's reader task",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     shapes = args.shapes.split(",")
     if args.child:
-        print(json.dumps(measure(args.calls, shapes)))
+        print(json.dumps(measure(args.calls, shapes, args.push)))
         return
     sources = args.src or [str(HERE.parent / "src")]
     if args.instructions:
         calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
         for shape in shapes:
             print(f"{shape} (instructions per call, valgrind)")
-            counts = [instructions(src, calls, shape) for src in sources]
+            counts = [instructions(src, calls, shape, args.push) for src in sources]
             for src, count in zip(sources, counts, strict=True):
                 print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
         return
     runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
     for _ in range(args.repeat):
         for src in sources:
-            for shape, value in child(src, args.calls, shapes)[0].items():
+            for shape, value in child(src, args.calls, shapes, args.push)[0].items():
                 runs[src][shape].append(value)
     first = sources[0]
     for shape in shapes:

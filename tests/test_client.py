@@ -120,9 +120,11 @@ async def peer() -> AsyncIterator[FakePeer]:
     await fake.stop()
 
 
-@pytest.fixture
-async def client(peer: FakePeer) -> AsyncIterator[Client]:
-    async with connect(peer.url, timeout=scaled(5)) as opened:
+@pytest.fixture(params=["websockets", "picows"])
+async def client(peer: FakePeer, request: pytest.FixtureRequest) -> AsyncIterator[Client]:
+    """A client of the scripted peer, on each network transport in turn (on picows, replies
+    reach their calls from the transport's read callback: Connection.deliver_to)."""
+    async with connect(peer.url, timeout=scaled(5), transport=request.param) as opened:
         yield opened
 
 

@@ -3,7 +3,9 @@
 A :class:`Link` lives as long as its connection. The reader is the only code that receives: it
 hands each message to the :class:`~srvwire.session.ClientSession`, resolves the future of the
 call a reply belongs to (a srvwire-shaped response unparsed), and tells its :class:`Owner`
-(the client) when the services change or the connection ends. :meth:`Link.roundtrip` is one
+(the client) when the services change or the connection ends. On a transport that hands
+messages over as they arrive (picows), the reader takes them in the transport's read
+callback (:meth:`Link.take`), and its task only waits for the end. :meth:`Link.roundtrip` is one
 call's send and wait.
 
 Invariants:
@@ -152,6 +154,7 @@ class Link:
         "fingerprints",
         "goals",
         "limit",
+        "live",
         "loop",
         "owner",
         "reader",
@@ -168,6 +171,7 @@ class Link:
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
+        self.live = True  # False once the connection ended or this side failed it
         self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
         # What the latest $/services says of each service's definition, and the services
         # whose local type the client has compared with it since.
@@ -238,45 +242,19 @@ class Link:
         self.reader = self.loop.create_task(self.read())
 
     async def read(self) -> None:
-        """Receive every message of this connection; on its end, fail what is pending."""
-        owner = self.owner
+        """Receive every message of this connection; on its end, fail what is pending.
+
+        On a transport that hands each message over as it arrives
+        (:meth:`~srvwire.transports.base.Connection.deliver_to`), messages go to :meth:`take`
+        from the transport's read callback, without a wake-up of this task for each, and this
+        task only waits for the end.
+        """
         conn = self.conn
-        session = self.session
         cause: TransportClosed | None = None
         try:
-            while True:
-                data = await conn.recv()
-                try:
-                    events = session.receive(data)
-                except ProtocolViolation as exc:
-                    self.violation(exc)
-                    break
-                for event in events:
-                    kind = type(event)
-                    if kind is TopicMessage:
-                        stream = self.streams.get(event.id)
-                        if stream is not None:  # else cancelled: its last messages are late
-                            stream.deliver(event)
-                    elif kind is tuple:
-                        future = event[0]
-                        if not future.done():
-                            future.set_result(event[1])
-                    elif kind is ServicesChanged:
-                        self.fingerprints = event.fingerprints
-                        self.verified = set()
-                        self.ready = {}
-                        owner.services_changed(self, event.services)
-                    elif kind is Subscribed:
-                        stream = self.streams.get(event.id)
-                        if stream is not None:
-                            stream.started(event)
-                    elif kind is TopicsChanged:
-                        owner.topics_changed(self, event.topics)
-                    elif kind is Notice:
-                        self.notice(event)
-                    else:
-                        assert type(event) is Stray
-                        self.stray(event.reply)
+            conn.deliver_to(self.take)  # where it does, recv returns no message: it raises
+            while self.live:
+                self.take(await conn.recv())
         except TransportClosed as exc:
             cause = exc
         except asyncio.CancelledError:
@@ -284,15 +262,66 @@ class Link:
             # cancels every task as it returns). The connection ends with the loop, closed
             # with 1001 so that the server is told, and every call still waiting says why.
             cause = TransportClosed(1001, LOOP_ENDED)
+            self.live = False
             self.lost(None, cause)
             with contextlib.suppress(Exception):  # however the close goes, the loop ends
                 await conn.close(1001, LOOP_ENDED)
             raise
-        except Exception:  # a bug here must not leave calls waiting for their deadlines
-            owner.logger.exception("the reader of %s failed; closing the connection", owner.url)
-            self.fail("the client failed to process a message from the server")
+        except Exception:  # a bug in the transport must not leave calls waiting either
+            self.broken()
         finally:
+            self.live = False
             self.lost(None, cause)  # nothing to do when this side failed the connection
+
+    def take(self, data: str | bytes) -> None:
+        """Handle one message from the server: resolve the call it answers, or pass its news
+        on. Something that is not JSON-RPC, or a failure here, fails the connection, and
+        nothing after it is taken."""
+        if not self.live:
+            return
+        try:
+            try:
+                events = self.session.receive(data)
+            except ProtocolViolation as exc:
+                self.live = False
+                self.violation(exc)
+                return
+            for event in events:
+                kind = type(event)
+                if kind is TopicMessage:
+                    stream = self.streams.get(event.id)
+                    if stream is not None:  # else cancelled: its last messages are late
+                        stream.deliver(event)
+                elif kind is tuple:
+                    future = event[0]
+                    if not future.done():
+                        future.set_result(event[1])
+                elif kind is ServicesChanged:
+                    self.fingerprints = event.fingerprints
+                    self.verified = set()
+                    self.ready = {}
+                    self.owner.services_changed(self, event.services)
+                elif kind is Subscribed:
+                    stream = self.streams.get(event.id)
+                    if stream is not None:
+                        stream.started(event)
+                elif kind is TopicsChanged:
+                    self.owner.topics_changed(self, event.topics)
+                elif kind is Notice:
+                    self.notice(event)
+                else:
+                    assert type(event) is Stray
+                    self.stray(event.reply)
+        except Exception:  # a bug here must not leave calls waiting for their deadlines
+            self.broken()
+
+    def broken(self) -> None:
+        """The reader failed (a bug): close the connection, and fail every pending call."""
+        self.live = False
+        self.owner.logger.exception(
+            "the reader of %s failed; closing the connection", self.owner.url
+        )
+        self.fail("the client failed to process a message from the server")
 
     def notice(self, notice: Notice) -> None:
         """Hand a goal's ``$/goal`` or ``$/feedback`` to its goal; drop anything else."""
