@@ -2,8 +2,11 @@
 
 No server, no socket, no transport: a fake :class:`~srvwire.transports.base.Connection`
 announces the benchmark's service (with its fingerprint, as a srvwire server does), and answers
-each request it is sent with the small ``RobotStateQuery`` reply a srvwire server writes, which
-the client's reader receives at the next turn of the loop. What is measured is everything the
+each request it is sent with the small ``RobotStateQuery`` reply a srvwire server writes. The
+replies to the requests of one turn of the loop arrive together at the next turn, in one
+callback, as one socket read would bring them: queued for the client's reader task, or with
+``--push`` handed to the client one by one from that callback (``Connection.deliver_to``, as
+the picows transport does, where the client asks for it). What is measured is everything the
 client does per call above the transport: ``Client.call``, the link, the session, writing the
 request, the deadline, routing and decoding the reply, asyncio's futures and timers.
 
@@ -71,6 +74,7 @@ def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
             self.loop = asyncio.get_running_loop()
             self.ended = False
             self.receive: Any = None
+            self.arriving: list[str] = []
 
         async def recv(self) -> str | bytes:
             while not self.messages:
@@ -89,10 +93,18 @@ def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
             if found is None:  # a notification ($/cancel): nothing to answer
                 return
             reply = b'{"jsonrpc":"2.0","id":' + found[1] + b',"result":' + result + b"}"
-            if self.receive is not None:  # as a read callback would, at the next turn
-                self.loop.call_soon(self.receive, reply.decode())
+            if not self.arriving:  # the replies of one turn arrive together, in one callback
+                self.loop.call_soon(self.arrive)
+            self.arriving.append(reply.decode())
+
+        def arrive(self) -> None:
+            """What a transport's read callback does with the replies of one socket read."""
+            arriving, self.arriving = self.arriving, []
+            if self.receive is not None:
+                for reply in arriving:
+                    self.receive(reply)
                 return
-            self.messages.append(reply.decode())
+            self.messages.extend(arriving)
             self.wake()
 
         def deliver_to(self, receive: Any) -> bool:
