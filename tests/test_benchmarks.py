@@ -188,11 +188,12 @@ def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Pa
         assert f"{row['measurement']:<30} {row['us_per_call']:>12.1f}" in result.stdout
 
 
-def test_the_client_path_benchmark_compares_source_trees() -> None:
+@pytest.mark.parametrize("push", [[], ["--push"]])
+def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> None:
     # A smoke run of the in-process client benchmark, the same tree twice: every call got
     # its typed reply (the child asserts it), and each tree has a figure and a ratio.
     src = str(ROOT / "src")
-    sources = ["--repeat", "1", "--src", src, "--src", src]
+    sources = ["--repeat", "1", "--src", src, "--src", src, *push]
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "640", *sources],
         capture_output=True,
