@@ -57,6 +57,10 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness: minutes long; tests/test_benchmarks.py runs it in --quick mode"
     ),
+    r"\.venv/bin/python benchmarks/client_path\.py( .*)?": (
+        "the client's in-process benchmark: a minute long, valgrind's counts longer; "
+        "tests/test_benchmarks.py runs it small"
+    ),
     r"\.venv/bin/python benchmarks/topics\.py": (
         "the topic benchmark: a minute long; tests/test_benchmarks.py runs its --quick mode"
     ),
