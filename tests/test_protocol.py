@@ -420,11 +420,16 @@ def test_a_call_written_in_one_go_is_the_request_the_general_path_writes(
 def test_a_call_writer_writes_what_the_general_path_writes(
     method: str, timeout: float, params: dict[str, Any]
 ) -> None:
-    # The template made once per method: the same bytes as Request.serialize, whatever the
-    # name and params hold (a % in either is text, not a format).
+    # The template made once per method: the bytes Request.serialize writes with the timeout
+    # rounded to the microsecond, but for the timeout's text (six decimals: the same number),
+    # whatever the name and params hold (a % in either is text, not a format).
     text = encode_json(params)
     written = CallWriter(method)(5, text.encode(), timeout)
-    assert written == Request(5, method, RawJSON(text), timeout).serialize()
+    rounded = round(timeout, 6)
+    general = Request(5, method, RawJSON(text), rounded).serialize()
+    six_decimals = b'"timeout":%s}' % f"{timeout:.6f}".encode()
+    assert written == general.replace(b'"timeout":%s}' % repr(rounded).encode(), six_decimals, 1)
+    assert json.loads(written) == json.loads(general)  # the same timeout, to the bit
 
 
 def test_a_call_writer_leaves_what_is_not_a_call_to_the_general_path() -> None:
@@ -434,7 +439,12 @@ def test_a_call_writer_leaves_what_is_not_a_call_to_the_general_path() -> None:
     assert write(1, b'{"a":1', 1.0) is None  # cut short
     assert write(1, b"{}", math.inf) is None and write(1, b"{}", math.nan) is None
     assert write(1, b"{}", 1) is None  # an int timeout: the general path writes it as 1.0
-    assert write(1, b"{}", 0.25) == Request(1, "/m", RawJSON("{}"), 0.25).serialize()
+    assert write(1, b"{}", 0.25) == (
+        b'{"jsonrpc":"2.0","id":1,"method":"/m","params":{"_meta":{"timeout":0.250000}}}'
+    )
+    assert write(2, b'{"a":1}', 29.99998749) == (  # rounded to the microsecond
+        b'{"jsonrpc":"2.0","id":2,"method":"/m","params":{"_meta":{"timeout":29.999987},"a":1}}'
+    )
 
 
 @settings(max_examples=200)

@@ -427,9 +427,7 @@ class Link:
             raise foreign_loop(loop)
         future: asyncio.Future[Arrived] = loop.create_future()
         session = self.session
-        id, data = session.request(
-            method, params, None if params is None else round(remaining, 6), future
-        )
+        id, data = session.request(method, params, None if params is None else remaining, future)
         cancelling = task.cancelling()
         try:
             if self.limit is not None and len(data) > self.limit:

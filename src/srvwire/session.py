@@ -708,9 +708,9 @@ class ClientSession(Generic[W]):
         """Write a request for ``method`` and register ``waiter`` under its new id.
 
         ``params`` is the request's JSON object text, as a string or UTF-8 bytes (None: no
-        params), ``timeout`` the time the caller has left, sent as ``_meta.timeout``. Raise
-        ``ValueError`` for params that are not a JSON object when a timeout is sent; nothing is
-        registered then.
+        params), ``timeout`` the time the caller has left, sent as ``_meta.timeout`` rounded to
+        the microsecond. Raise ``ValueError`` for params that are not a JSON object when a
+        timeout is sent; nothing is registered then.
         """
         id = next(self._ids)
         data = None
@@ -723,10 +723,11 @@ class ClientSession(Generic[W]):
                     writer = self._writers[method] = CallWriter(method)
                 data = writer(id, params, timeout)
             else:
-                data = write_call(id, method, params, timeout)
+                data = write_call(id, method, params, round(timeout, 6))
         if data is None:
             text = params.decode() if isinstance(params, bytes) else params
-            data = Request(id, method, None if text is None else RawJSON(text), timeout).serialize()
+            left = None if timeout is None else round(timeout, 6)
+            data = Request(id, method, None if text is None else RawJSON(text), left).serialize()
         self.pending[id] = waiter
         return id, data
 
