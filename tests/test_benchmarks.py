@@ -250,3 +250,30 @@ def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> N
     assert [row["mode"] for row in rows] == ["pipelined", "one-by-one"]
     for row in rows:
         assert 0 < row["min_us"] <= row["median_us"]
+
+
+@pytest.mark.parametrize("push", [[], ["--push"]])
+def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> None:
+    # A smoke run of the in-process client benchmark, the same tree twice: every call got
+    # its typed reply (the child asserts it), and each tree has a figure and a ratio.
+    src = str(ROOT / "src")
+    sources = ["--repeat", "1", "--src", src, "--src", src, *push]
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "640", *sources],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = result.stdout.splitlines()
+    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == [
+        "pipelined",
+        "sequential",
+    ]
+    rows = [line.split() for line in lines if line.startswith(" ")]
+    assert len(rows) == 4
+    for row in rows:
+        assert float(row[0]) > 0 and row[1] == "ratio" and row[3] == src
+    assert rows[0][2] == rows[2][2] == "1.000"

@@ -14,6 +14,7 @@ import math
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
+from unittest.mock import ANY
 
 import pytest
 from websockets.asyncio.server import Server as WsServer, ServerConnection, serve as ws_serve
@@ -38,6 +39,7 @@ from srvwire.errors import (
     ServiceUnavailable,
     Unauthenticated,
 )
+from srvwire.link import MAX_READY, Link
 from srvwire.loader import load_service
 from srvwire.models import Service
 from srvwire.protocol import RawReply
@@ -118,9 +120,11 @@ async def peer() -> AsyncIterator[FakePeer]:
     await fake.stop()
 
 
-@pytest.fixture
-async def client(peer: FakePeer) -> AsyncIterator[Client]:
-    async with connect(peer.url, timeout=scaled(5)) as opened:
+@pytest.fixture(params=["websockets", "picows"])
+async def client(peer: FakePeer, request: pytest.FixtureRequest) -> AsyncIterator[Client]:
+    """A client of the scripted peer, on each network transport in turn (on picows, replies
+    reach their calls from the transport's read callback: Connection.deliver_to)."""
+    async with connect(peer.url, timeout=scaled(5), transport=request.param) as opened:
         yield opened
 
 
@@ -1197,6 +1201,39 @@ async def test_wait_for_service_wakes_when_the_real_server_adds_it(
         server.server.remove_service("/late")
         with pytest.raises(ServiceUnavailable):
             await client.wait_for_service("/gone", timeout=scaled(0.2))
+
+
+async def test_a_call_after_the_services_change_finds_its_type_again(
+    server: RunningServer,
+) -> None:
+    # What a call found for its service (its type, compared with the server's) is kept for
+    # the next calls on the connection, until $/services says something changed.
+    trigger = load_service("std_srvs/srv/Trigger")
+    set_bool = load_service("std_srvs/srv/SetBool")
+    server.server.add_service("/switch", trigger, lambda request: {"success": True})
+    async with connect(server.url, transport=server.transport) as client:
+        await client.wait_for_service("/switch")
+        for _ in range(2):  # the second call finds what the first one found
+            assert type(await client.call("/switch")) is trigger.Response
+        link = client._link
+        assert link is not None and link.ready == {"/switch": ("/switch", ANY)}
+        server.server.remove_service("/switch")
+        server.server.add_service("/switch", set_bool, lambda request: {"success": request.data})
+        server.server.add_service("/marker", trigger, lambda request: {"success": True})
+        await client.wait_for_service("/marker")  # every $/services before it has arrived
+        assert link.ready == {}
+        reply = await client.call("switch", {"data": True})  # a Trigger takes no "data"
+        assert type(reply) is set_bool.Response and reply.success is True
+        assert link.ready == {"switch": ("/switch", ANY)}
+
+
+async def test_a_link_keeps_a_bounded_number_of_calls_ready() -> None:
+    link = Link(None, None)  # type: ignore[arg-type]  # neither is used here
+    for i in range(MAX_READY):
+        link.remember(f"/s{i}", (f"/s{i}", None))
+    assert len(link.ready) == MAX_READY
+    link.remember("/one_more", ("/one_more", None))
+    assert link.ready == {"/one_more": ("/one_more", None)}
 
 
 async def test_wait_for_ready_waits_for_the_real_server_to_come_up() -> None:

@@ -67,6 +67,10 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/topics\.py( .*)?": (
         "the topic benchmark: minutes long; tests/test_benchmarks.py runs its --quick mode"
     ),
+    r"\.venv/bin/python benchmarks/client_path\.py( .*)?": (
+        "the client's in-process benchmark: a minute long, valgrind's counts longer; "
+        "tests/test_benchmarks.py runs it small"
+    ),
     r"MALLOC_TOP_PAD_=\d+ \.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness with the heap kept: minutes long; tests/test_benchmarks.py runs it"
     ),

@@ -19,6 +19,7 @@ from srvwire.errors import (
 )
 from srvwire.protocol import (
     MAX_DEPTH,
+    CallWriter,
     ErrorResponse,
     Incoming,
     Notification,
@@ -406,6 +407,44 @@ def test_a_call_written_in_one_go_is_the_request_the_general_path_writes(
     assert json.loads(written) == json.loads(Request(3, "/m", params, timeout).serialize())
     (item,) = parse_incoming(written).items
     assert item == Request(3, "/m", params, timeout)
+
+
+@settings(max_examples=200)
+@given(
+    method=st.text(),
+    timeout=st.floats(min_value=0, allow_nan=False, allow_infinity=False),
+    params=st.dictionaries(st.text(), st.integers() | st.text()),
+)
+@example(method="/m%d%r%b%%", timeout=1.5, params={"%s": "%d"})
+@example(method='/a"b', timeout=1e16, params={})
+def test_a_call_writer_writes_what_the_general_path_writes(
+    method: str, timeout: float, params: dict[str, Any]
+) -> None:
+    # The template made once per method: the bytes Request.serialize writes with the timeout
+    # rounded to the microsecond, but for the timeout's text (six decimals: the same number),
+    # whatever the name and params hold (a % in either is text, not a format).
+    text = encode_json(params)
+    written = CallWriter(method)(5, text.encode(), timeout)
+    rounded = round(timeout, 6)
+    general = Request(5, method, RawJSON(text), rounded).serialize()
+    six_decimals = b'"timeout":%s}' % f"{timeout:.6f}".encode()
+    assert written == general.replace(b'"timeout":%s}' % repr(rounded).encode(), six_decimals, 1)
+    assert json.loads(written) == json.loads(general)  # the same timeout, to the bit
+
+
+def test_a_call_writer_leaves_what_is_not_a_call_to_the_general_path() -> None:
+    write = CallWriter("/m")
+    assert write(1, b"[1]", 1.0) is None  # not an object
+    assert write(1, b"{ }", 1.0) is None  # not written compactly
+    assert write(1, b'{"a":1', 1.0) is None  # cut short
+    assert write(1, b"{}", math.inf) is None and write(1, b"{}", math.nan) is None
+    assert write(1, b"{}", 1) is None  # an int timeout: the general path writes it as 1.0
+    assert write(1, b"{}", 0.25) == (
+        b'{"jsonrpc":"2.0","id":1,"method":"/m","params":{"_meta":{"timeout":0.250000}}}'
+    )
+    assert write(2, b'{"a":1}', 29.99998749) == (  # rounded to the microsecond
+        b'{"jsonrpc":"2.0","id":2,"method":"/m","params":{"_meta":{"timeout":29.999987},"a":1}}'
+    )
 
 
 @settings(max_examples=200)

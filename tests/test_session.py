@@ -314,6 +314,25 @@ def test_requests_get_fresh_ids_and_carry_the_deadline() -> None:
     assert client.pending == {1: "first", 2: "second"}
 
 
+def test_params_as_bytes_are_written_as_the_same_params_as_text() -> None:
+    # The time left is sent to the microsecond either way (from bytes, with six decimals).
+    client: ClientSession[str] = ClientSession()
+    for params in ('{"minuend":3}', "{}", '{"a":"%d"}'):
+        text_id, as_text = client.request("/subtract", params, 1.4999996, "text")
+        bytes_id, as_bytes = client.request("/subtract", params.encode(), 1.4999996, "bytes")
+        assert b'"timeout":1.5}' in as_text and b'"timeout":1.500000}' in as_bytes
+        assert json.loads(as_bytes) == {**json.loads(as_text), "id": bytes_id}
+        assert json.loads(as_text)["id"] == text_id
+    # Not an object written compactly, or no deadline: written the long way, all the same.
+    _, spaced = client.request("/subtract", b'{ "minuend": 3 }', 1.5, "spaced")
+    assert json.loads(spaced)["params"] == {"_meta": {"timeout": 1.5}, "minuend": 3}
+    _, bare = client.request("/subtract", b'{"minuend":3}', None, "bare")
+    assert json.loads(bare)["params"] == {"minuend": 3}
+    with pytest.raises(ValueError):
+        client.request("/subtract", b"[3]", 1.5, "not an object")
+    assert "not an object" not in client.pending.values()
+
+
 def test_a_reply_reaches_its_waiter_unparsed() -> None:
     client: ClientSession[str] = ClientSession()
     id, _ = client.request("/subtract", "{}", 1.0, "waiter")

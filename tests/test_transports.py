@@ -169,6 +169,37 @@ async def test_messages_arrive_in_order(transport: Transport) -> None:
         assert [await pair.client.recv() for _ in range(500)] == [f"down {i}" for i in range(500)]
 
 
+async def test_a_receiver_given_gets_every_message_in_order_once(transport: Transport) -> None:
+    # Where the transport hands messages over as they arrive (picows), the ones already
+    # received go first; where it does not, recv goes on as before. Either way every message
+    # arrives once, in order, and recv says how the connection ended.
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+        for i in range(200):
+            await pair.server.send(f"before {i}")
+        first = await pair.client.recv()  # the others are on their way, or arrived
+        taken: list[str | bytes] = []
+        all_taken = asyncio.get_running_loop().create_future()
+
+        def receive(message: str | bytes) -> None:
+            taken.append(message)
+            if len(taken) == 399 and not all_taken.done():
+                all_taken.set_result(None)
+
+        delivers = pair.client.deliver_to(receive)
+        assert delivers is (transport.name == "picows")
+        for i in range(200):
+            await pair.server.send(f"after {i}")
+        if delivers:
+            await all_taken
+        else:
+            taken.extend([await pair.client.recv() for _ in range(399)])
+        expected = [f"before {i}" for i in range(200)] + [f"after {i}" for i in range(200)]
+        assert [first, *taken] == expected
+        await pair.server.close(4000, "done")
+        assert (await closed_with(pair.client)).code == 4000
+        assert [first, *taken] == expected  # nothing more
+
+
 async def test_remote_address_names_the_peer(transport: Transport) -> None:
     async with connected(transport) as pair:
         assert pair.client.remote_address == ("127.0.0.1", pair.listener.port)

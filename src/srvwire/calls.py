@@ -135,14 +135,10 @@ def encode_request(
     one that is not written as a JSON object.
     """
     srv = None if codec is None else codec.service
-    if codec is not None and type(request) is codec.service.Request:  # the common case
-        try:
-            text = codec.write(request).decode()
-        except PydanticSerializationError:
-            pass  # said below, with the field
-        else:
-            if text[:1] == "{":
-                return text
+    if codec is not None and type(request) is codec.request:  # the common case
+        written = codec.params(request)
+        if written is not None:
+            return written.decode()
     value: BaseModel | Mapping[str, Any] = {} if request is None else request
     if srv is not None and not isinstance(value, srv.Request):
         if isinstance(value, BaseModel):
@@ -181,13 +177,23 @@ class ServiceCodec:
     """A service type with what its calls need at hand: its response decoder, its request's
     writer, which writes non-finite floats as ``inf_nan`` says (built once, here)."""
 
-    __slots__ = ("decoder", "inf_nan", "service", "write")
+    __slots__ = ("decoder", "inf_nan", "request", "service", "write")
 
     def __init__(self, service: type[Service], inf_nan: InfNan = INF_NAN_MODES[0]) -> None:
         self.service = service
+        self.request: type[Message] = service.Request
         self.inf_nan: InfNan = inf_nan
         self.decoder: ModelDecoder[Message] = ModelDecoder(service.Response)
         self.write: Callable[[Any], bytes] = json_writer(service.Request, inf_nan)
+
+    def params(self, request: Any) -> bytes | None:
+        """The JSON object text of ``request``, an instance of exactly :attr:`request`; None
+        when it cannot be written so, for :func:`encode_request` to say why."""
+        try:
+            written = self.write(request)
+        except PydanticSerializationError:
+            return None
+        return written if written[:1] == b"{" else None
 
 
 class ServiceTypes:

@@ -56,7 +56,7 @@ from collections import deque
 from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType, TracebackType
-from typing import Any, Generic, TypeVar, overload
+from typing import Any, Generic, TypeAlias, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
@@ -132,6 +132,10 @@ DEFAULT_TIMEOUT = 10.0
 """The deadline, in seconds, of a call that does not give its own."""
 
 R = TypeVar("R", bound=Message)
+
+Ready: TypeAlias = tuple[str, ServiceCodec | None]
+"""What a call needs before it is written: its service's canonical name, and its type (None:
+a service not advertised, whose request is sent as it is)."""
 
 # Reconnection backoff: first retry at once, then from this delay, growing to the cap.
 _BACKOFF_INITIAL = 0.05
@@ -414,11 +418,53 @@ class Client:
         :class:`~srvwire.errors.InterfaceError` when the type can be found neither locally nor
         from the server (:class:`~srvwire.errors.InterfaceConflictError` when the two differ).
         """
-        method = canonical_name(name)
         budget = self.timeout if timeout is None else check_timeout(timeout)
         # The client's own loop, not asyncio.get_running_loop(): on Python 3.11 that asks the
         # kernel for the process id on every call, to notice a fork.
         deadline = (self._loop or asyncio.get_running_loop()).time() + budget
+        link = self._link
+        ready: Ready | None = None
+        if link is not None and not wait_for_ready:
+            ready = link.ready.get(name if srv_type is None else (name, srv_type))
+        if link is None or ready is None:
+            link, ready = await self._prepare(name, srv_type, wait_for_ready, deadline, budget)
+        method, codec = ready
+        params: str | bytes | None = None
+        if codec is not None and type(request) is codec.request:  # the common case
+            params = codec.params(request)
+        if params is None:
+            params = encode_request(method, codec, request)
+        reply = await link.roundtrip(method, params, deadline, budget)
+        try:
+            return reply.decode(None if codec is None else codec.decoder)
+        except (RPCError, ProtocolViolation) as exc:
+            raise link.failure(method, exc) from None
+        except ValidationError as exc:
+            assert codec is not None
+            data = error_data(exc)
+            raise InternalError(
+                f"the response does not match {codec.service.type_name}: "
+                f"{summarize_errors(data['errors'], exc.error_count())}",
+                data,
+                service=method,
+            ) from None
+
+    async def _prepare(
+        self,
+        name: str,
+        srv_type: SrvType | None,
+        wait_for_ready: bool,
+        deadline: float,
+        budget: float,
+    ) -> tuple[Link, Ready]:
+        """What a call of ``name`` needs before it is written: the link to send it on, its
+        canonical name and its type (None: not advertised, sent as it is).
+
+        Waits for the connection and the service with ``wait_for_ready``; finds the type and
+        compares it with the server's, once per connection (again after ``$/services``), and
+        keeps the outcome in the link's :attr:`~srvwire.link.Link.ready` for the next call.
+        """
+        method = canonical_name(name)
         if wait_for_ready:
             await self._wait_until_ready(method, deadline, budget)
         link = self._link
@@ -434,23 +480,13 @@ class Client:
                 except RPCError as exc:  # asking for the description failed: this call did
                     exc.service = method
                     raise
-        if codec is not None and method not in link.verified:
+        if codec is None:
+            return link, (method, None)
+        if method not in link.verified:
             await self._verify(link, method, codec, advertised, deadline, budget)
-        params = encode_request(method, codec, request)
-        reply = await link.roundtrip(method, params, deadline, budget)
-        try:
-            return reply.decode(None if codec is None else codec.decoder)
-        except (RPCError, ProtocolViolation) as exc:
-            raise link.failure(method, exc) from None
-        except ValidationError as exc:
-            assert codec is not None
-            data = error_data(exc)
-            raise InternalError(
-                f"the response does not match {codec.service.type_name}: "
-                f"{summarize_errors(data['errors'], exc.error_count())}",
-                data,
-                service=method,
-            ) from None
+        if method in link.verified:  # not when $/services came while this compared them
+            link.remember(name if srv_type is None else (name, srv_type), (method, codec))
+        return link, (method, codec)
 
     async def send_goal(
         self,

@@ -3,7 +3,9 @@
 A :class:`Link` lives as long as its connection. The reader is the only code that receives: it
 hands each message to the :class:`~srvwire.session.ClientSession`, resolves the future of the
 call a reply belongs to (a srvwire-shaped response unparsed), and tells its :class:`Owner`
-(the client) when the services change or the connection ends. :meth:`Link.roundtrip` is one
+(the client) when the services change or the connection ends. On a transport that hands
+messages over as they arrive (picows), the reader takes them in the transport's read
+callback (:meth:`Link.take`), and its task only waits for the end. :meth:`Link.roundtrip` is one
 call's send and wait.
 
 Invariants:
@@ -31,7 +33,7 @@ import asyncio
 import contextlib
 import logging
 import ssl as _ssl
-from collections.abc import Coroutine, Sequence
+from collections.abc import Coroutine, Hashable, Sequence
 from typing import Any, Protocol, TypeAlias
 
 from srvwire.errors import (
@@ -65,6 +67,7 @@ from srvwire.transports.base import Connection, Options, Transport, TransportClo
 __all__ = [
     "CLOSE_PROTOCOL_VIOLATION",
     "LOOP_ENDED",
+    "MAX_READY",
     "Arrived",
     "Link",
     "LoggerLike",
@@ -81,6 +84,9 @@ LoggerLike: TypeAlias = logging.Logger | logging.LoggerAdapter[logging.Logger]
 
 CLOSE_PROTOCOL_VIOLATION = 1008
 """The close code sent when the server breaks the protocol (RFC 6455 "policy violation")."""
+
+MAX_READY = 1024
+"""How many calls' names and types a link keeps at most (see :meth:`Link.remember`)."""
 
 LOOP_ENDED = "the client's event loop ended"
 """The reason of the close (1001) a client's connection ends with when its event loop does."""
@@ -149,9 +155,11 @@ class Link:
         "fingerprints",
         "goals",
         "limit",
+        "live",
         "loop",
         "owner",
         "reader",
+        "ready",
         "session",
         "streams",
         "verified",
@@ -164,11 +172,15 @@ class Link:
         self.loop = asyncio.get_running_loop()
         self.session: ClientSession[asyncio.Future[Arrived]] = ClientSession()
         self.reader: asyncio.Task[None] | None = None
+        self.live = True  # False once the connection ended or this side failed it
         self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
         # What the latest $/services says of each service's definition, and the services
         # whose local type the client has compared with it since.
         self.fingerprints: dict[str, str] = {}
         self.verified: set[str] = set()
+        # What the client found for a call (its service's name and type), by what the call
+        # named, once compared: the next call finds it here; forgotten with ``verified``.
+        self.ready: dict[Hashable, Any] = {}
         self.streams: dict[int, Stream] = {}  # subscriptions on this connection, by id
 
     @classmethod
@@ -219,49 +231,31 @@ class Link:
         link.fingerprints = events[0].fingerprints
         return link, events[0].services
 
+    def remember(self, key: Hashable, ready: Any) -> None:
+        """Keep what a call named ``key`` needs, for the next call (at most :data:`MAX_READY`
+        of them: past it, the oldest are found again)."""
+        if len(self.ready) >= MAX_READY:
+            self.ready.clear()
+        self.ready[key] = ready
+
     def start(self) -> None:
         """Start the reader."""
         self.reader = self.loop.create_task(self.read())
 
     async def read(self) -> None:
-        """Receive every message of this connection; on its end, fail what is pending."""
-        owner = self.owner
+        """Receive every message of this connection; on its end, fail what is pending.
+
+        On a transport that hands each message over as it arrives
+        (:meth:`~srvwire.transports.base.Connection.deliver_to`), messages go to :meth:`take`
+        from the transport's read callback, without a wake-up of this task for each, and this
+        task only waits for the end.
+        """
         conn = self.conn
-        session = self.session
         cause: TransportClosed | None = None
         try:
-            while True:
-                data = await conn.recv()
-                try:
-                    events = session.receive(data)
-                except ProtocolViolation as exc:
-                    self.violation(exc)
-                    break
-                for event in events:
-                    kind = type(event)
-                    if kind is TopicMessage:
-                        stream = self.streams.get(event.id)
-                        if stream is not None:  # else cancelled: its last messages are late
-                            stream.deliver(event)
-                    elif kind is tuple:
-                        future = event[0]
-                        if not future.done():
-                            future.set_result(event[1])
-                    elif kind is ServicesChanged:
-                        self.fingerprints = event.fingerprints
-                        self.verified = set()
-                        owner.services_changed(self, event.services)
-                    elif kind is Subscribed:
-                        stream = self.streams.get(event.id)
-                        if stream is not None:
-                            stream.started(event)
-                    elif kind is TopicsChanged:
-                        owner.topics_changed(self, event.topics)
-                    elif kind is Notice:
-                        self.notice(event)
-                    else:
-                        assert type(event) is Stray
-                        self.stray(event.reply)
+            conn.deliver_to(self.take)  # where it does, recv returns no message: it raises
+            while self.live:
+                self.take(await conn.recv())
         except TransportClosed as exc:
             cause = exc
         except asyncio.CancelledError:
@@ -269,15 +263,66 @@ class Link:
             # cancels every task as it returns). The connection ends with the loop, closed
             # with 1001 so that the server is told, and every call still waiting says why.
             cause = TransportClosed(1001, LOOP_ENDED)
+            self.live = False
             self.lost(None, cause)
             with contextlib.suppress(Exception):  # however the close goes, the loop ends
                 await conn.close(1001, LOOP_ENDED)
             raise
-        except Exception:  # a bug here must not leave calls waiting for their deadlines
-            owner.logger.exception("the reader of %s failed; closing the connection", owner.url)
-            self.fail("the client failed to process a message from the server")
+        except Exception:  # a bug in the transport must not leave calls waiting either
+            self.broken()
         finally:
+            self.live = False
             self.lost(None, cause)  # nothing to do when this side failed the connection
+
+    def take(self, data: str | bytes) -> None:
+        """Handle one message from the server: resolve the call it answers, or pass its news
+        on. Something that is not JSON-RPC, or a failure here, fails the connection, and
+        nothing after it is taken."""
+        if not self.live:
+            return
+        try:
+            try:
+                events = self.session.receive(data)
+            except ProtocolViolation as exc:
+                self.live = False
+                self.violation(exc)
+                return
+            for event in events:
+                kind = type(event)
+                if kind is TopicMessage:
+                    stream = self.streams.get(event.id)
+                    if stream is not None:  # else cancelled: its last messages are late
+                        stream.deliver(event)
+                elif kind is tuple:
+                    future = event[0]
+                    if not future.done():
+                        future.set_result(event[1])
+                elif kind is ServicesChanged:
+                    self.fingerprints = event.fingerprints
+                    self.verified = set()
+                    self.ready = {}
+                    self.owner.services_changed(self, event.services)
+                elif kind is Subscribed:
+                    stream = self.streams.get(event.id)
+                    if stream is not None:
+                        stream.started(event)
+                elif kind is TopicsChanged:
+                    self.owner.topics_changed(self, event.topics)
+                elif kind is Notice:
+                    self.notice(event)
+                else:
+                    assert type(event) is Stray
+                    self.stray(event.reply)
+        except Exception:  # a bug here must not leave calls waiting for their deadlines
+            self.broken()
+
+    def broken(self) -> None:
+        """The reader failed (a bug): close the connection, and fail every pending call."""
+        self.live = False
+        self.owner.logger.exception(
+            "the reader of %s failed; closing the connection", self.owner.url
+        )
+        self.fail("the client failed to process a message from the server")
 
     def notice(self, notice: Notice) -> None:
         """Hand a goal's ``$/goal`` or ``$/feedback`` to its goal; drop anything else."""
@@ -365,12 +410,12 @@ class Link:
         return self.fail(f"the server broke the protocol: {message}")
 
     async def roundtrip(
-        self, method: str, params: str | None, deadline: float, budget: float
+        self, method: str, params: str | bytes | None, deadline: float, budget: float
     ) -> Arrived:
         """Send one request and wait for its reply until ``deadline`` (loop time).
 
-        ``params`` is the request's JSON object text, sent with the time left as
-        ``_meta.timeout``; None sends no params (and no deadline).
+        ``params`` is the request's JSON object text (a string or UTF-8 bytes), sent with the
+        time left as ``_meta.timeout``; None sends no params (and no deadline).
         """
         loop = self.loop
         remaining = deadline - loop.time()
@@ -385,9 +430,7 @@ class Link:
             raise foreign_loop(loop)
         future: asyncio.Future[Arrived] = loop.create_future()
         session = self.session
-        id, data = session.request(
-            method, params, None if params is None else round(remaining, 6), future
-        )
+        id, data = session.request(method, params, None if params is None else remaining, future)
         cancelling = task.cancelling()
         try:
             if self.limit is not None and len(data) > self.limit:

@@ -72,6 +72,7 @@ from srvwire.protocol import (
     SUBSCRIBE_METHOD,
     SUBSCRIBED_METHOD,
     TOPICS_METHOD,
+    CallWriter,
     Decoder,
     ErrorResponse,
     Id,
@@ -751,6 +752,10 @@ class Stray:
     reply: Response | ErrorResponse
 
 
+_MAX_WRITERS = 256
+"""The methods a client session keeps a :class:`~srvwire.protocol.CallWriter` for at once."""
+
+
 class ClientSession(Generic[W]):
     """The client's side of one connection: ids, the calls waiting, and what the server said.
 
@@ -764,24 +769,34 @@ class ClientSession(Generic[W]):
     def __init__(self) -> None:
         self._ids: Iterator[int] = itertools.count(1)
         self.pending: dict[int, W] = {}
+        self._writers: dict[str, CallWriter] = {}  # by method, made on its first call
 
     def request(
-        self, method: str, params: str | None, timeout: float | None, waiter: W
+        self, method: str, params: str | bytes | None, timeout: float | None, waiter: W
     ) -> tuple[int, bytes]:
         """Write a request for ``method`` and register ``waiter`` under its new id.
 
-        ``params`` is the request's JSON object text (None: no params), ``timeout`` the time
-        the caller has left, sent as ``_meta.timeout``. Raise ``ValueError`` for params that
-        are not a JSON object when a timeout is sent; nothing is registered then.
+        ``params`` is the request's JSON object text, as a string or UTF-8 bytes (None: no
+        params), ``timeout`` the time the caller has left, sent as ``_meta.timeout`` rounded to
+        the microsecond. Raise ``ValueError`` for params that are not a JSON object when a
+        timeout is sent; nothing is registered then.
         """
         id = next(self._ids)
         data = None
         if params is not None and timeout is not None:
-            data = write_call(id, method, params, timeout)
+            if isinstance(params, bytes):
+                writer = self._writers.get(method)
+                if writer is None:
+                    if len(self._writers) >= _MAX_WRITERS:
+                        self._writers.clear()
+                    writer = self._writers[method] = CallWriter(method)
+                data = writer(id, params, timeout)
+            else:
+                data = write_call(id, method, params, round(timeout, 6))
         if data is None:
-            data = Request(
-                id, method, None if params is None else RawJSON(params), timeout
-            ).serialize()
+            text = params.decode() if isinstance(params, bytes) else params
+            left = None if timeout is None else round(timeout, 6)
+            data = Request(id, method, None if text is None else RawJSON(text), left).serialize()
         self.pending[id] = waiter
         return id, data
 

@@ -238,6 +238,17 @@ class Connection(abc.ABC):
         Raise :class:`TransportClosed` once the connection ended.
         """
 
+    def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
+        """Hand every message to ``receive`` as it arrives, instead of to :meth:`recv`, where
+        the transport can; return whether it does (by default it does not).
+
+        The messages received and not yet taken go first, in order, before this returns.
+        ``receive`` then runs in the transport's read callback, so it must not block or
+        raise; :meth:`recv` returns no more messages, and raises :class:`TransportClosed` at
+        the end as before. It saves a wake-up of the receiving task per message.
+        """
+        return False
+
     @property
     @abc.abstractmethod
     def congested(self) -> bool:

@@ -25,7 +25,9 @@ leaves to its user:
   connection congested for ``write_timeout`` (or a ping period, when sooner) is dropped at once
   and ends with :class:`~srvwire.transports.base.WriteTimedOut`. Messages not yet received
   are held in a queue; past :data:`READ_HIGH_WATER` of them the socket is not read until
-  ``recv`` has taken them down to :data:`READ_LOW_WATER`.
+  ``recv`` has taken them down to :data:`READ_LOW_WATER`. Once given a receiver
+  (:meth:`PicowsConnection.deliver_to`, what a client's link does), a connection hands it
+  each message from ``on_ws_frame`` instead, and queues nothing.
 * **Keepalive** as ``websockets`` does it: a ping every ``ping_interval``; no pong within
   ``ping_timeout`` fails the connection with 1011 ``keepalive ping timeout``.
 * **Closing.** A close frame received is answered with the same code, then the TCP connection
@@ -54,7 +56,7 @@ import ssl as _ssl
 import struct
 import urllib.parse
 from collections import deque
-from collections.abc import Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from http import HTTPStatus
 from typing import Any
 
@@ -163,6 +165,7 @@ class PicowsConnection(WSListener, Connection):
         self._messages: deque[str | bytes] = deque()
         self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
         self._reading = True
+        self._receive: Callable[[str | bytes], None] | None = None  # see deliver_to
         self._parts: list[bytes] = []  # the fragments of a message being received
         self._parts_size = 0
         self._parts_text = False
@@ -302,6 +305,16 @@ class PicowsConnection(WSListener, Connection):
         else:
             ws.send(_TEXT, data)
 
+    def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
+        messages = self._messages
+        while messages:
+            receive(messages.popleft())
+        self._receive = receive
+        if not self._reading and self._ws is not None:  # nothing is queued any more
+            self._reading = True
+            self._ws.underlying_transport.resume_reading()
+        return True
+
     @property
     def congested(self) -> bool:
         """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
@@ -365,6 +378,9 @@ class PicowsConnection(WSListener, Connection):
                 return
         else:
             message = payload
+        if self._receive is not None:
+            self._receive(message)
+            return
         messages = self._messages
         messages.append(message)
         if len(messages) >= READ_HIGH_WATER and self._reading and self._ws is not None:

@@ -1,0 +1,261 @@
+"""The client's CPU per call, in-process: ``client.call`` against a connection that answers at once.
+
+No server, no socket, no transport: a fake :class:`~srvwire.transports.base.Connection`
+announces the benchmark's service (with its fingerprint, as a srvwire server does), and answers
+each request it is sent with the small ``RobotStateQuery`` reply a srvwire server writes. The
+replies to the requests of one turn of the loop arrive together at the next turn, in one
+callback, as one socket read would bring them: queued for the client's reader task, or with
+``--push`` handed to the client one by one from that callback (``Connection.deliver_to``, as
+the picows transport does, where the client asks for it). What is measured is everything the
+client does per call above the transport: ``Client.call``, the link, the session, writing the
+request, the deadline, routing and decoding the reply, asyncio's futures and timers.
+
+Two shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
+
+* **pipelined**: 64 tasks call in a loop, so 64 calls are in flight, as in the harness's W2;
+* **sequential**: one task calls in a loop, one call at a time, as in W1.
+
+Several source trees can be compared in the same run (``--src old/src --src src``): each is
+measured in a child process of its own, first on ``sys.path``, and the trees alternate within
+every repeat; the figure is the minimum over ``--repeat`` runs (the least disturbed by other
+processes), and the table gives each tree's ratio to the first one.
+
+    python benchmarks/client_path.py                       # this checkout's src/
+    python benchmarks/client_path.py --src /tmp/old/src --src src --repeat 7
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+PIPELINE = 64  # calls in flight in the pipelined shape, as W2
+TIMEOUT = 30.0  # every call's deadline, as the harness's
+
+
+def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
+    """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call."""
+    from srvwire.client import connect
+    from srvwire.protocol import services_notification
+    from srvwire.transports.base import Connection, Transport, TransportClosed
+    from srvwire.typeregistry import fingerprint, full_definition
+
+    from common import SERVICE, SMALL_REQUEST, SRV_TYPE, reply_fields
+    from typed import RobotStateQuery
+
+    definition = full_definition(RobotStateQuery)
+    assert definition is not None
+    announcement = services_notification(
+        [(SERVICE, SRV_TYPE)], {SERVICE: fingerprint(definition)}
+    ).serialize()
+    result = RobotStateQuery.Response(**reply_fields("position")).model_dump_json().encode()
+    id_of = re.compile(rb'"id":([0-9]+)')
+
+    class Answering(Connection):
+        """Answers every request with the small reply, as a srvwire server writes it."""
+
+        remote_address = ("fake", 0)
+        identity = None
+
+        def __init__(self) -> None:
+            self.messages: deque[str | bytes] = deque([announcement.decode()])
+            self.waiter: asyncio.Future[None] | None = None
+            self.loop = asyncio.get_running_loop()
+            self.ended = False
+            self.receive: Any = None
+            self.arriving: list[str] = []
+
+        async def recv(self) -> str | bytes:
+            while not self.messages:
+                if self.ended:
+                    raise TransportClosed(1000)
+                self.waiter = self.loop.create_future()
+                try:
+                    await self.waiter
+                finally:
+                    self.waiter = None
+            return self.messages.popleft()
+
+        async def send(self, message: str | bytes) -> None:
+            data = message if isinstance(message, bytes) else message.encode()
+            found = id_of.search(data)
+            if found is None:  # a notification ($/cancel): nothing to answer
+                return
+            reply = b'{"jsonrpc":"2.0","id":' + found[1] + b',"result":' + result + b"}"
+            if not self.arriving:  # the replies of one turn arrive together, in one callback
+                self.loop.call_soon(self.arrive)
+            self.arriving.append(reply.decode())
+
+        def arrive(self) -> None:
+            """What a transport's read callback does with the replies of one socket read."""
+            arriving, self.arriving = self.arriving, []
+            if self.receive is not None:
+                for reply in arriving:
+                    self.receive(reply)
+                return
+            self.messages.extend(arriving)
+            self.wake()
+
+        def deliver_to(self, receive: Any) -> bool:
+            if not push:
+                return False
+            while self.messages:
+                receive(self.messages.popleft())
+            self.receive = receive
+            return True
+
+        def wake(self) -> None:
+            if self.waiter is not None and not self.waiter.done():
+                self.waiter.set_result(None)
+
+        @property
+        def congested(self) -> bool:
+            return False
+
+        async def writable(self) -> None:
+            return None
+
+        async def close(self, code: int = 1000, reason: str = "") -> None:
+            self.ended = True
+            self.wake()
+
+        @property
+        def close_code(self) -> int | None:
+            return 1000 if self.ended else None
+
+        @property
+        def close_reason(self) -> str:
+            return ""
+
+    class Fake(Transport):
+        name = "fake"
+
+        async def listen(self, *args: Any, **kwargs: Any) -> Any:
+            raise NotImplementedError
+
+        async def connect(self, url: str, options: Any, **kwargs: Any) -> Connection:
+            return Answering()
+
+        def check_url(self, url: str) -> None:
+            return None
+
+    async def run() -> dict[str, float]:
+        request = RobotStateQuery.Request(**SMALL_REQUEST)
+        figures: dict[str, float] = {}
+        async with connect("ws://fake", transport=Fake(), timeout=TIMEOUT) as client:
+
+            async def caller(n: int) -> None:
+                for _ in range(n):
+                    reply = await client.call(SERVICE, request)
+                    assert type(reply) is RobotStateQuery.Response
+
+            await caller(200)  # warm up: the type, the fingerprint check, caches
+            for shape in shapes:
+                tasks = PIPELINE if shape == "pipelined" else 1
+                started = time.process_time()
+                await asyncio.gather(*(caller(calls // tasks) for _ in range(tasks)))
+                spent = time.process_time() - started
+                figures[shape] = spent / (calls // tasks * tasks) * 1e6
+        return figures
+
+    return asyncio.run(run())
+
+
+def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[str] = ()) -> Any:
+    """Run :func:`measure` in a child process with ``src`` first on its path; return what it
+    printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), str(HERE)]))
+    env["PYTHONHASHSEED"] = "0"  # the same work in every run, for the instruction counts
+    command = [sys.executable, __file__, "--child", "--calls", str(calls)]
+    if push:
+        command.append("--push")
+    done = subprocess.run(
+        [*prefix, *command, "--shapes", ",".join(shapes)],
+        env=env,
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode != 0:
+        raise SystemExit(f"measuring {src} failed:\n{done.stderr}")
+    return json.loads(done.stdout.splitlines()[-1]), done.stderr
+
+
+def instructions(src: str, calls: int, shape: str, push: bool) -> float:
+    """Instructions per call (valgrind's count): the difference between a run of ``calls``
+    and one of three times as many, so that starting up and warming up cancel out."""
+    counted = []
+    for n in (calls, 3 * calls):
+        _, err = child(src, n, [shape], push, VALGRIND)
+        found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
+        if found is None:
+            raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
+        counted.append(int(found[1].replace(",", "")))
+    return (counted[1] - counted[0]) / (2 * calls)
+
+
+VALGRIND = ["valgrind", "--tool=cachegrind", "--cache-sim=no", "--cachegrind-out-file=/dev/null"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
+    parser.add_argument("--src", action="append", help="a srvwire source tree (repeatable)")
+    parser.add_argument("--calls", type=int, default=64_000, help="calls per shape and run")
+    parser.add_argument("--repeat", type=int, default=5, help="runs per tree (the minimum counts)")
+    parser.add_argument("--shapes", default="pipelined,sequential")
+    parser.add_argument(
+        "--instructions",
+        action="store_true",
+        help="count instructions per call under valgrind instead (slow; not disturbed by "
+        "other processes); --calls is then the smaller of the two runs (default 2 000)",
+    )
+    parser.add_argument(
+        "--push",
+        action="store_true",
+        help="the connection hands each reply to the client as it arrives, where the client "
+        "asks for it (Connection.deliver_to, as the picows transport does), instead of "
+        "queueing it for the client's reader task",
+    )
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    shapes = args.shapes.split(",")
+    if args.child:
+        print(json.dumps(measure(args.calls, shapes, args.push)))
+        return
+    sources = args.src or [str(HERE.parent / "src")]
+    if args.instructions:
+        calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
+        for shape in shapes:
+            print(f"{shape} (instructions per call, valgrind)")
+            counts = [instructions(src, calls, shape, args.push) for src in sources]
+            for src, count in zip(sources, counts, strict=True):
+                print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
+        return
+    runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
+    for _ in range(args.repeat):
+        for src in sources:
+            for shape, value in child(src, args.calls, shapes, args.push)[0].items():
+                runs[src][shape].append(value)
+    first = sources[0]
+    for shape in shapes:
+        print(f"{shape} (µs of client CPU per call, minimum of {args.repeat}; all runs)")
+        for src in sources:
+            values = runs[src][shape]
+            ratio = min(values) / min(runs[first][shape])
+            listed = " ".join(f"{v:.2f}" for v in values)
+            print(f"  {min(values):6.2f}  ratio {ratio:.3f}  {src}  [{listed}]")
+
+
+if __name__ == "__main__":
+    main()
