@@ -74,7 +74,7 @@ from srvwire.models import (
     summarize_errors,
     validate_python,
 )
-from srvwire.threads import ConcurrencyLimit
+from srvwire.threads import ConcurrencyLimit, SlotJob
 
 __all__ = [
     "ClientGoal",
@@ -445,51 +445,23 @@ async def _take_slot(limit: ConcurrencyLimit, handle: GoalHandle) -> bool:
     return taken
 
 
-class _BlockingGoal:
+class _BlockingGoal(SlotJob):
     """A plain ``def`` handler's goal, as its thread runs it.
 
     It holds the action's slot (if it has a limit) until the handler returns, or, if its goal
     ends before a thread takes it, until then: such a job never runs its handler.
     """
 
-    __slots__ = ("call", "handle", "limit", "lock", "state")
+    __slots__ = ("handle",)
 
     def __init__(
         self, call: Callable[[], Any], handle: GoalHandle, limit: ConcurrencyLimit | None
     ) -> None:
-        self.call = call
+        super().__init__(call, limit)
         self.handle = handle
-        self.limit = limit
-        self.state = "queued"  # then "running", or "left" (its goal ended first)
-        self.lock = threading.Lock()
 
-    @property
-    def func(self) -> Callable[[], Any]:
-        """What it runs, for :class:`~srvwire.threads.HandlerThreads` to name it."""
-        return self.call
-
-    def __call__(self) -> Any:
-        with self.lock:
-            if self.state == "left":
-                return None  # its goal ended meanwhile: the slot was given back then
-            self.state = "running"
-        try:
-            if self.handle._closed:
-                return None  # nobody waits for it any more
-            return self.call()
-        finally:
-            if self.limit is not None:
-                self.limit.release()
-
-    def leave(self) -> None:
-        """Its goal ended (cancelled, deadline, shutdown): give the slot back if no thread
-        took it."""
-        with self.lock:
-            if self.state != "queued":
-                return
-            self.state = "left"
-        if self.limit is not None:
-            self.limit.release()
+    def abandoned(self) -> bool:
+        return self.handle._closed  # its goal ended: nobody waits for it any more
 
 
 # --- the client's side ---------------------------------------------------------------------------

@@ -90,7 +90,7 @@ from srvwire.models import (
     validation_errors,
 )
 from srvwire.protocol import Id, Request, canonical_name, encode_json
-from srvwire.threads import ConcurrencyLimit
+from srvwire.threads import ConcurrencyLimit, SlotJob
 from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
 from srvwire.version import __version__
@@ -799,7 +799,7 @@ async def _run_in_executor(job: _Blocking, executor: Executor | None) -> Any:
     return result
 
 
-class _Blocking:
+class _Blocking(SlotJob):
     """A blocking handler's call, as its thread runs it.
 
     It holds its service's slot (:attr:`ServiceEntry.limit`) until the handler returns, or, if
@@ -808,7 +808,7 @@ class _Blocking:
     deadline says so (see :meth:`check_wait`).
     """
 
-    __slots__ = ("call", "context", "entry", "lock", "log", "queued", "state")
+    __slots__ = ("context", "entry", "log", "queued")
 
     def __init__(
         self,
@@ -817,44 +817,20 @@ class _Blocking:
         context: Context,
         logger: logging.Logger | None,
     ) -> None:
+        super().__init__(call, entry.limit)
         self.entry = entry
-        self.call = call
         self.context = context
         self.log = logger
         self.queued = time.monotonic()
-        self.state = "queued"  # then "running", or "left" (its caller left first)
-        self.lock = threading.Lock()
 
-    @property
-    def func(self) -> Callable[[], Any]:
-        """What it runs, for :class:`~srvwire.threads.HandlerThreads` to name it."""
-        return self.call
+    def abandoned(self) -> bool:
+        return self.context._cancelled  # its caller left: nobody waits for it any more
 
-    def __call__(self) -> Any:
-        with self.lock:
-            if self.state == "left":
-                return None  # its caller left meanwhile: the slot was given back then
-            self.state = "running"
-        try:
-            if self.context._cancelled:
-                return None  # nobody waits for it any more
-            self.check_wait(time.monotonic())
-            return self.call()
-        finally:
-            limit = self.entry.limit
-            if limit is not None:
-                limit.release()
-
-    def leave(self) -> None:
-        """Its caller left (cancelled, deadline): give the slot back if no thread took it."""
-        with self.lock:
-            if self.state != "queued":
-                return
-            self.state = "left"
+    def starting(self) -> None:
         self.check_wait(time.monotonic())
-        limit = self.entry.limit
-        if limit is not None:
-            limit.release()
+
+    def leaving(self) -> None:
+        self.check_wait(time.monotonic())
 
     def check_wait(self, now: float) -> None:
         """Log, at most once per :data:`QUEUE_WARNING_INTERVAL` and service, a job that waited

@@ -36,7 +36,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from typing import Any, TypeVar
 
-__all__ = ["ConcurrencyLimit", "HandlerThreads"]
+__all__ = ["ConcurrencyLimit", "HandlerThreads", "SlotJob"]
 
 T = TypeVar("T")
 
@@ -299,3 +299,63 @@ class ConcurrencyLimit:
             self.release()
         else:
             waiter.set_result(None)
+
+
+class SlotJob:
+    """A blocking handler's run, as a thread runs it, holding a :class:`ConcurrencyLimit`'s
+    slot (or none: ``limit=None``) until the handler returns.
+
+    A job whose caller leaves before a thread takes it (:meth:`leave`) gives its slot back
+    then and never runs its handler; one a thread took keeps the slot until the handler
+    returns, even after its caller left. Subclasses say when nobody waits for the job any
+    more (:meth:`abandoned`) and what to do as it starts or leaves (:meth:`starting`,
+    :meth:`leaving`).
+    """
+
+    __slots__ = ("call", "limit", "lock", "state")
+
+    def __init__(self, call: Callable[[], Any], limit: ConcurrencyLimit | None) -> None:
+        self.call = call
+        self.limit = limit
+        self.state = "queued"  # then "running", or "left" (its caller left first)
+        self.lock = threading.Lock()
+
+    @property
+    def func(self) -> Callable[[], Any]:
+        """What it runs, for :class:`HandlerThreads` to name it."""
+        return self.call
+
+    def abandoned(self) -> bool:
+        """Whether nobody waits for the job any more, so that a thread need not run it."""
+        return False
+
+    def starting(self) -> None:
+        """Called in the thread just before the handler runs."""
+
+    def leaving(self) -> None:
+        """Called when the caller left before a thread took the job."""
+
+    def __call__(self) -> Any:
+        with self.lock:
+            if self.state == "left":
+                return None  # its caller left meanwhile: the slot was given back then
+            self.state = "running"
+        try:
+            if self.abandoned():
+                return None
+            self.starting()
+            return self.call()
+        finally:
+            if self.limit is not None:
+                self.limit.release()
+
+    def leave(self) -> None:
+        """Its caller left (cancelled, deadline, shutdown): give the slot back if no thread
+        took the job."""
+        with self.lock:
+            if self.state != "queued":
+                return
+            self.state = "left"
+        self.leaving()
+        if self.limit is not None:
+            self.limit.release()
