@@ -1227,6 +1227,33 @@ async def test_a_call_after_the_services_change_finds_its_type_again(
         assert link.ready == {"switch": ("/switch", ANY)}
 
 
+async def test_a_type_found_while_the_services_change_is_not_kept(peer: FakePeer) -> None:
+    # The client asks the server to describe a type it does not have; the services change
+    # before the description arrives. That call goes on with the type it was advertised, but
+    # what it found is not kept: the next call finds the new type.
+    definitions = {
+        "xx_msgs/srv/Foo": "int64 a\n---\nint64 r\n",
+        "xx_msgs/srv/Bar": "string s\n---\nstring out\n",
+    }
+    peer.services = [{"name": "/svc", "type": "xx_msgs/srv/Foo"}]  # no fingerprints
+
+    async def reply(ws: ServerConnection, message: dict[str, Any]) -> None:
+        if message.get("method") == "rpc.discover":
+            await ws.send(services_text([{"name": "/svc", "type": "xx_msgs/srv/Bar"}]))
+            methods = [{"name": "/svc", "x-srvwire-definitions": definitions}]
+            document = {"openrpc": "1.3.2", "methods": methods}
+            await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": document}))
+        elif "id" in message:
+            result = {"out": "ok"} if "s" in message["params"] else {"r": 1}
+            await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "result": result}))
+
+    peer.reply = reply
+    async with connect(peer.url, timeout=scaled(5)) as client:
+        assert (await client.call("/svc", {"a": 1})).r == 1  # type: ignore[attr-defined]
+        assert client._link is not None and client._link.ready == {}
+        assert (await client.call("/svc", {"s": "x"})).out == "ok"  # type: ignore[attr-defined]
+
+
 async def test_a_link_keeps_a_bounded_number_of_calls_ready() -> None:
     link = Link(None, None)  # type: ignore[arg-type]  # neither is used here
     for i in range(MAX_READY):

@@ -470,6 +470,7 @@ class Client:
         link = self._link
         if link is None:
             raise self._not_connected(method)
+        generation = link.ready  # a $/services while this waits replaces it
         advertised = self._services.get(method)
         codec = self._types.known(srv_type, advertised)
         if codec is None:
@@ -484,7 +485,7 @@ class Client:
             return link, (method, None)
         if method not in link.verified:
             await self._verify(link, method, codec, advertised, deadline, budget)
-        if method in link.verified:  # not when $/services came while this compared them
+        if link.ready is generation:  # not when $/services came while this looked or compared
             link.remember(name if srv_type is None else (name, srv_type), (method, codec))
         return link, (method, codec)
 

@@ -389,9 +389,11 @@ class Link:
         """End this connection from this side: fail every pending call, close with 1008.
 
         The calls fail first and the close runs in the background, since it may wait for the
-        peer; what the reader still takes in meanwhile reaches no subscription. Return the error
+        peer; what the reader still takes in meanwhile reaches no call, goal or subscription.
+        Return the error
         the pending calls got.
         """
+        self.live = False  # nothing the reader still takes in is handed on
         self.lost(failure, None)
         self.streams.clear()
         self.owner.spawn(self.conn.close(CLOSE_PROTOCOL_VIOLATION, "invalid JSON-RPC"))
