@@ -837,7 +837,7 @@ def _params_schema(
 ) -> dict[str, Any] | None:
     """``model``'s core schema with ``_meta`` let through (extra members kept aside), its
     definitions added to ``definitions``; None for a class not read in one pass."""
-    if not issubclass(model, Message) or model.__pydantic_custom_init__:
+    if not _as_built(model) or model.__pydantic_custom_init__:
         return None
     decorators = model.__pydantic_decorators__
     if (
@@ -854,11 +854,43 @@ def _params_schema(
         schema = schema["schema"]
     if schema["type"] != "model" or schema["schema"]["type"] != "model-fields":
         return None
+    if not all(_as_built(nested) for nested in _model_classes(schema)):
+        return None
     fields = {**schema["schema"], "extra_behavior": "allow"}
     params = {**schema, "schema": fields, "config": {**schema.get("config", {})}}
     params["config"]["extra_fields_behavior"] = "allow"
     params.pop("ref", None)  # another schema than the class's own
     return params
+
+
+def _as_built(model: Any) -> bool:
+    """Whether ``model`` is a message class as srvwire builds it, from its own spec, with the
+    fields and config it was given: the classes whose JSON-mode and Python-mode validation
+    are known to agree (``tests/test_decode.py``). A class written by hand, or a subclass that
+    changes a field, is left to the full parse."""
+    if not (isinstance(model, type) and issubclass(model, Message)):
+        return False
+    spec = model.__dict__.get("spec")
+    if not isinstance(spec, MessageSpec):
+        return False
+    config = model.model_config
+    if config.get("extra") != "forbid" or config.get("strict"):
+        return False
+    return list(model.model_fields) == [python_name(field.name) for field in spec.fields]
+
+
+def _model_classes(schema: Any) -> list[Any]:
+    """The classes of every model in a core schema, its definitions included."""
+    found: list[Any] = []
+    if isinstance(schema, dict):
+        if schema.get("type") == "model":
+            found.append(schema.get("cls"))
+        for value in schema.values():
+            found += _model_classes(value)
+    elif isinstance(schema, list | tuple):
+        for item in schema:
+            found += _model_classes(item)
+    return found
 
 
 def _has_float(schema: Any) -> bool:
