@@ -24,6 +24,7 @@ from srvwire.errors import (
     ServiceUnavailable,
 )
 from srvwire.goals import FeedbackOutbox, GoalNews, advance, feedback_notification, goal_news
+from srvwire.inline import Pending, finish, first_step
 from srvwire.models import ModelDecoder, build_action
 from srvwire.parser import parse_action
 from srvwire.server import RunningServer, Server, serve
@@ -1120,6 +1121,50 @@ async def test_a_connection_that_does_not_read_holds_up_no_other_goals_request_t
     await pressing
     await closing
     await client.close()
+
+
+@pytest.mark.parametrize("transport", ["memory"], indirect=True)
+async def test_every_goal_of_a_connection_that_does_not_read_is_asked_to_stop_at_once(
+    transport: Transport,
+) -> None:
+    # The first request to stop cannot be sent until the client reads; the second goal is
+    # asked all the same, long before the grace period.
+    server = Server(max_queued_bytes=4_000, grace_period=scaled(60))
+    started = [asyncio.Event(), asyncio.Event()]
+    asked = [asyncio.Event(), asyncio.Event()]
+
+    @server.action("/polite", Fibonacci)
+    async def polite(goal: Any, handle: GoalHandle) -> Any:
+        started[goal.order].set()
+        await handle.cancelled()
+        asked[goal.order].set()
+        return {"sequence": [goal.order]}
+
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    wire = await open_wire(running)
+    for order in (0, 1):
+        await wire.send(
+            {"jsonrpc": "2.0", "id": order, "method": "/polite", "params": {"order": order}}
+        )
+    for event in started:
+        await event.wait()
+    stuck = connection(running)
+    filler = {"jsonrpc": "2.0", "method": "$/filler", "params": {"x": "x" * 20_000}}
+    pressing = first_step(stuck.conn.send(json.dumps(filler)))  # read by nobody, yet
+    assert isinstance(pressing, Pending) and stuck.conn.congested
+    closing = asyncio.create_task(running.close())
+    async with asyncio.timeout(scaled(10)):  # a sixth of the grace period
+        for event in asked:
+            await event.wait()
+    received = [await wire.recv()]
+    while len([m for m in received if "result" in m]) < 2:
+        received.append(await wire.recv())
+    results = {m["id"]: m["result"] for m in received if "result" in m}
+    assert results == {
+        order: {"status": "canceled", "result": {"sequence": [order]}} for order in (0, 1)
+    }
+    await finish(pressing)
+    await closing
 
 
 async def test_a_goal_accepted_as_shutdown_begins_is_asked_to_stop_at_once(

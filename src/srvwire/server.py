@@ -45,6 +45,7 @@ from srvwire.auth import Authenticator
 from srvwire.dispatch import Handler, ServiceRegistry, normalize_name
 from srvwire.errors import RegistrationError, ServiceUnavailable
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
+from srvwire.inline import Pending, finish, first_step
 from srvwire.models import INF_NAN_MODES, Action, InfNan, Service
 from srvwire.pubsub import Publisher, TopicEntry, check_handler, qos_of
 from srvwire.serving import ServedConnection
@@ -666,16 +667,27 @@ class serve:
             await self._running.close()
 
 
-async def _ask_goals_to_stop(conn: ServedConnection) -> None:
+def _ask_goals_to_stop(conn: ServedConnection) -> None:
     """Ask every goal running on ``conn`` to stop, as a client's ``$/cancel`` asks: each is
-    sent ``$/goal canceling`` before its handler wakes, and has the grace period to return."""
+    sent ``$/goal canceling`` before its handler wakes, and has the grace period to return.
+
+    All of them at once: a send that has to wait for a congested peer goes on in a task of
+    its own (one of the connection's, which shutdown waits for), and holds up no other goal.
+    """
     for call in list(conn.session.calls.values()):
         goal = None if call.context is None else call.context.goal
         if goal is None:
             continue  # a service's call, or a goal not accepted yet (it asks itself)
         canceling = goal.request_cancel(None)
         if canceling is not None:
-            await conn.send(canceling)
+            sending = first_step(conn.send(canceling))
+            if isinstance(sending, Pending):
+                conn.spawn(_go_on(sending))
+
+
+async def _go_on(pending: Pending) -> None:
+    """The rest of a send that had to wait."""
+    await finish(pending)
 
 
 class RunningServer:
@@ -824,8 +836,8 @@ class RunningServer:
     async def _close(self) -> None:
         assert self._listener is not None
         options = self.server
-        for conn in self._connections:  # one task each: a congested one holds up no other
-            conn.spawn(_ask_goals_to_stop(conn))
+        for conn in self._connections:
+            _ask_goals_to_stop(conn)
         tasks = {task for conn in self._connections for task in (*conn.tasks, *conn.counted)}
         if tasks:
             _, pending = await asyncio.wait(tasks, timeout=options.grace_period)
