@@ -277,6 +277,25 @@ def test_a_reply_takes_its_room_from_topic_data_best_effort_first() -> None:
     assert [(m["params"]["seq"], m["params"]["dropped"]) for m in drain(outbox)] == [(5, 4)]
 
 
+def test_a_reply_leaves_a_message_queued_alone_to_go_out() -> None:
+    # One message always gets into an empty outbox, whatever its size; a reply queued next to
+    # it does not take it back: a reliable subscription is not ended for it, nor is a best
+    # effort message dropped.
+    size = len(data(0))
+    for qos in (QoS(depth=10), QoS(depth=10, reliability="best_effort")):
+        transport = Transport()
+        chatter = topic(qos=qos)
+        outbox = Outbox(budget=size, buffered=transport.buffered)
+        outbox.subscribe(1, chatter, chatter.qos)
+        drain(outbox)
+        chatter.publish(data(1))
+        transport.held = size  # a reply as large as the budget was queued
+        outbox.fit()
+        assert list(outbox.subscriptions) == [1]
+        transport.held = 0
+        assert [(m["params"]["seq"], m["params"]["dropped"]) for m in drain(outbox)] == [(1, 0)]
+
+
 def test_a_message_larger_than_the_budget_still_passes_alone() -> None:
     chatter = topic()
     outbox = Outbox(budget=4)

@@ -364,27 +364,34 @@ class Outbox:
     def fit(self) -> None:
         """Give up topic data until it fits in what the transport leaves of the budget (called
         once a reply was queued): best effort's oldest messages first, in turn order, then
-        reliable subscriptions, ended with ``RESOURCE_EXHAUSTED`` (see the module)."""
+        reliable subscriptions, ended with ``RESOURCE_EXHAUSTED`` (see the module). As
+        :meth:`offer` lets one message into an empty outbox whatever its size, one message
+        queued alone is never given up here."""
         room = self.budget - self.buffered()
         if self.queued <= room:
+            return
+        left = sum(len(subscription.queue) for subscription in self.ready)
+        if left <= 1:
             return
         for subscription in tuple(self.ready):
             if not subscription.qos.best_effort:
                 continue
             queue = subscription.queue
-            while queue and self.queued > room:
+            while queue and self.queued > room and left > 1:
                 _, old = queue.popleft()
                 self.queued -= len(old)
                 subscription.dropped += 1
+                left -= 1
             if not queue:
                 subscription.ready = False
                 self.ready.remove(subscription)
-            if self.queued <= room:
+            if self.queued <= room or left <= 1:
                 return
         for subscription in tuple(self.ready):
             seq = subscription.queue[-1][0]
+            left -= len(subscription.queue)
             self.end(subscription, subscription.exhausted(seq, room))
-            if self.queued <= room:
+            if self.queued <= room or left <= 1:
                 return
 
     def subscribe(self, id: Id, topic: Topic[Any], qos: QoS) -> Subscription:
