@@ -227,7 +227,7 @@ async def test_a_message_that_does_not_fit_its_type_ends_the_subscription_with_i
 async def test_a_message_that_is_not_what_its_opening_says_fails_the_connection(
     peer: FakePeer, client: Client, after: str, reason: str
 ) -> None:
-    peer.reply = serving(message(1), message(2, after=after))
+    peer.reply = serving(message(1), message(7, after=after))
     async with client.subscribe("/chatter", String) as sub:
         assert (await sub.receive()).data == "x"
         with pytest.raises(ConnectionLost) as caught:
@@ -235,6 +235,9 @@ async def test_a_message_that_is_not_what_its_opening_says_fails_the_connection(
     assert caught.value.message.startswith("the server broke the protocol: ")
     assert reason in caught.value.message
     assert caught.value.data["close_code"] == 1008
+    # The broken message was received by nobody: the sequence count does not move for it,
+    # so that a replay after reconnecting is not skipped as seen, nor a gap invented.
+    assert (sub.gaps.last, sub.gaps.missed) == (1, 0)
     ws = peer.connections[0]
     await ws.wait_closed()
     assert ws.close_code == 1008

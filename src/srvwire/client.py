@@ -1344,6 +1344,7 @@ class Subscription:
         seq = event.seq
         gaps = self.gaps
         last = gaps.last
+        counted = gaps.missed  # to take the message back if it turns out not to be JSON-RPC
         if last is not None and seq == last + 1:  # Gaps.accept's usual case, inline: none missed
             gaps.last = seq
             missed = 0
@@ -1364,6 +1365,7 @@ class Subscription:
             )
             return
         except ProtocolViolation as exc:  # as the reader does with what is not JSON-RPC
+            gaps.last, gaps.missed = last, counted  # a message nobody received: not seen
             if self._link is not None:
                 self._link.violation(exc)
             return
