@@ -1123,6 +1123,21 @@ def test_a_missing_picows_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> No
     )
 
 
+async def test_a_closed_picows_servers_protocol_no_longer_refers_to_itself() -> None:
+    """The methods the protocol puts on itself after its first read are bound to it; once the
+    connection is lost they are gone, so it is freed with its last owner, not by the cycle
+    collector."""
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        protocol = pair.server._ws.underlying_transport.get_protocol()  # type: ignore[attr-defined]
+        await pair.client.send("call")
+        assert await pair.server.recv() == "call"
+        assert {"get_buffer", "buffer_updated"} <= set(vars(protocol))
+        await pair.client.close()
+        with pytest.raises(TransportClosed):
+            await pair.server.recv()
+    assert not {"get_buffer", "buffer_updated"} & set(vars(protocol))
+
+
 async def test_once_open_a_picows_servers_reads_go_straight_to_picows() -> None:
     """The server's protocol looks at the first bytes it reads (a TLS record is refused at
     once); every later read reaches picows' own compiled methods, with no Python frame between

@@ -707,6 +707,13 @@ class _Opening(WSProtocol):  # type: ignore[misc]
                 return
         super().buffer_updated(nbytes)
 
+    def connection_lost(self, exc: Exception | None) -> None:
+        # The bound methods above refer to this instance: without them it is freed at once,
+        # not by the cycle collector.
+        self.__dict__.pop("get_buffer", None)
+        self.__dict__.pop("buffer_updated", None)
+        super().connection_lost(exc)
+
 
 class _ServerConnection(PicowsConnection):
     """A connection a listener accepted: its handler starts once the upgrade is done."""
