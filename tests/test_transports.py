@@ -918,6 +918,18 @@ async def test_what_is_held_is_written_when_the_reader_is_about_to_wait() -> Non
         assert len(writes) == 1
 
 
+async def test_text_is_counted_in_bytes_against_the_cork_limit() -> None:
+    """A text message is held or written by its UTF-8 size, not its number of characters."""
+    from srvwire.transports.websockets import CORK_LIMIT
+
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        writes = count_writes(pair.server)
+        text = "é" * (CORK_LIMIT * 3 // 4)  # fewer characters than the limit, more bytes
+        await pair.server.send(text)
+        assert len(writes) == 1  # written through at once, not held for the end of the turn
+        assert await pair.client.recv() == text
+
+
 async def test_messages_past_the_cork_limit_write_through_in_order() -> None:
     from srvwire.transports.websockets import CORK_LIMIT
 

@@ -361,6 +361,8 @@ class WebSocketsConnection(Connection):
 
     async def send(self, message: str | bytes) -> None:
         ws = self._ws
+        if isinstance(message, str):  # counted, held and written as its UTF-8 bytes
+            message = message.encode()
         length = len(message)
         size = self._held + length
         if (
@@ -369,7 +371,7 @@ class WebSocketsConnection(Connection):
             and self._protocol.state is OPEN
             and ws.transport.get_write_buffer_size() + size <= ws.write_limit_high
         ):
-            self._protocol.send_text(message.encode() if isinstance(message, str) else message)
+            self._protocol.send_text(message)
             if size >= CORK_LIMIT:
                 self.flush()
                 return
