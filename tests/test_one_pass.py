@@ -208,9 +208,9 @@ def test_a_message_class_written_by_hand_is_not_read_in_one_pass() -> None:
     assert CallReader({"/s": nested.Request}).read(envelope('{"s": "x"}')) is not None
 
 
-def test_a_validator_that_fails_its_own_way_is_left_to_the_full_parse() -> None:
-    # Not a ValidationError: the full parse meets it where it always did (dispatch answers
-    # INTERNAL), and the one pass never lets it out of the session's receive.
+def test_a_class_with_a_validator_of_its_own_is_left_to_the_full_parse() -> None:
+    # Its validator may fail its own way (not a ValidationError): the full parse meets that
+    # where it always did (dispatch answers INTERNAL), and the one pass never runs it.
     from typing import Annotated
 
     from pydantic import AfterValidator

@@ -196,6 +196,24 @@ class ServiceCodec:
         return written if written[:1] == b"{" else None
 
 
+def _described(
+    method: str, name: str, kind: str, definitions: Mapping[str, str] | None, source: str
+) -> tuple[str, str, str]:
+    """The text, package and short name of the ``kind`` (``srv`` or ``action``) type ``name``
+    in the server's ``definitions``; raise InterfaceNotFoundError when they do not have it."""
+    text = None if definitions is None else definitions.get(name)
+    parts = name.split("/")
+    if text is None or len(parts) != 3 or parts[1] != kind:
+        why = "does not describe it" if definitions is not None else "does not describe types"
+        what = "calls" if kind == "srv" else "goals"
+        raise InterfaceNotFoundError(
+            name,
+            f"cannot type the {what} of {method}: {name} is not on the local search path, "
+            f"and the {source} {why}",
+        )
+    return text, parts[0], parts[2]
+
+
 class ServiceTypes:
     """Which type a call's messages have, each made ready once, for the client's life.
 
@@ -257,22 +275,9 @@ class ServiceTypes:
         error in them. Raise :class:`~srvwire.errors.InterfaceError` when they do not define
         ``name`` or do not build.
         """
-        text = None if definitions is None else definitions.get(name)
-        parts = name.split("/")
-        if text is None or len(parts) != 3 or parts[1] != "srv":
-            why = "does not describe it" if definitions is not None else "does not describe types"
-            raise InterfaceNotFoundError(
-                name,
-                f"cannot type the calls of {method}: {name} is not on the local search path, "
-                f"and the {source} {why}",
-            )
-        spec = parse_service(text, parts[0], parts[2], path=source)
-        nested = _RemoteMessages(definitions or {}, source, self._resolve_message, self._types)
-        messages = [other for other in definitions or {} if _is_message_name(other)]
-        for other in messages:  # first compare: nothing is built from a conflicting description
-            nested.check(other)
-        for other in messages:
-            nested.load(other)
+        text, package, short = _described(method, name, "srv", definitions, source)
+        spec = parse_service(text, package, short, path=source)
+        nested = self._nested(definitions, source)
         service = self._types.intern(spec, source, lambda: build_service(spec, nested))
         codec = self._by_name[name] = self._codec(service)
         return codec
@@ -282,23 +287,22 @@ class ServiceTypes:
     ) -> type[Action]:
         """Build the action ``name`` from the server's ``definitions``, as :meth:`remote`
         builds a service type."""
-        text = None if definitions is None else definitions.get(name)
-        parts = name.split("/")
-        if text is None or len(parts) != 3 or parts[1] != "action":
-            why = "does not describe it" if definitions is not None else "does not describe types"
-            raise InterfaceNotFoundError(
-                name,
-                f"cannot type the goals of {method}: {name} is not on the local search path, "
-                f"and the {source} {why}",
-            )
-        spec = parse_action(text, parts[0], parts[2], path=source)
+        text, package, short = _described(method, name, "action", definitions, source)
+        spec = parse_action(text, package, short, path=source)
+        nested = self._nested(definitions, source)
+        return self._types.intern(spec, source, lambda: build_action(spec, nested))
+
+    def _nested(self, definitions: Mapping[str, str] | None, source: str) -> _RemoteMessages:
+        """The messages the server's ``definitions`` describe, each compared with what is
+        known of it first, so that nothing is built from a conflicting description, then
+        built."""
         nested = _RemoteMessages(definitions or {}, source, self._resolve_message, self._types)
         messages = [other for other in definitions or {} if _is_message_name(other)]
         for other in messages:
             nested.check(other)
         for other in messages:
             nested.load(other)
-        return self._types.intern(spec, source, lambda: build_action(spec, nested))
+        return nested
 
     def fingerprint(self, service: type[Service]) -> str | None:
         """The fingerprint of ``service``'s full definition, computed once per class; None

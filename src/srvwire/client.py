@@ -644,16 +644,7 @@ class Client:
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
     ) -> list[ServiceInfo]:
         """Ask the server for every service it offers (``rpc.discover``), sorted by name."""
-        methods = await self._discover(timeout)
-        found = [
-            ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
-            for entry in methods
-            if isinstance(entry, dict)
-            and isinstance(entry.get("name"), str)
-            and isinstance(entry.get("x-srvwire-type"), str)
-            and entry.get("x-srvwire-kind", "service") == "service"
-        ]
-        return sorted(found, key=lambda info: info.name)
+        return await self._listed("service", timeout)
 
     async def list_actions(
         self,
@@ -661,14 +652,22 @@ class Client:
         timeout: float | None = None,  # noqa: ASYNC109 - the deadline travels to the server
     ) -> list[ServiceInfo]:
         """Ask the server for every action it offers (``rpc.discover``), sorted by name."""
-        methods = await self._discover(timeout)
+        return await self._listed("action", timeout)
+
+    async def _listed(
+        self,
+        kind: str,
+        timeout: float | None,  # noqa: ASYNC109 - the deadline travels to the server
+    ) -> list[ServiceInfo]:
+        """What ``rpc.discover`` lists of ``kind`` (an entry without ``x-srvwire-kind`` is a
+        service), by name."""
         found = [
             ServiceInfo(canonical_name(entry["name"]), entry["x-srvwire-type"])
-            for entry in methods
+            for entry in await self._discover(timeout)
             if isinstance(entry, dict)
             and isinstance(entry.get("name"), str)
             and isinstance(entry.get("x-srvwire-type"), str)
-            and entry.get("x-srvwire-kind") == "action"
+            and entry.get("x-srvwire-kind", "service") == kind
         ]
         return sorted(found, key=lambda info: info.name)
 
