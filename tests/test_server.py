@@ -6,6 +6,7 @@ import asyncio
 import json
 import logging
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Iterator
@@ -1984,11 +1985,27 @@ class Logged(logging.Handler):
             self.seen.set()
 
 
+def set_receive_buffer(wire: Wire, size: int) -> None:
+    """Fix the receive buffer of ``wire``'s socket at ``size`` bytes (the kernel doubles it).
+
+    Loopback grows a receive buffer while its reader keeps up (up to ``tcp_rmem``'s maximum, 32
+    MiB on some machines), and a client that reads a few replies into its own queue first can
+    make it grow past what a test sends: then a client that stops reading holds nothing up. The
+    memory transport has no socket: its buffers are its own."""
+    ws = getattr(wire.ws, "_ws", None)
+    if ws is None:
+        return
+    underlying = getattr(ws, "underlying_transport", None) or ws.transport  # picows, websockets
+    sock = underlying.get_extra_info("socket")
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+
+
 @pytest.mark.parametrize("batches", [False, True], ids=["calls", "one-call batches"])
 async def test_a_client_that_does_not_read_is_read_no_further_and_closed_after_the_write_timeout(
     transport: Transport, batches: bool
 ) -> None:
-    # 300 calls of 100 KB replies is 30 MB, more than any buffer between the two ends holds:
+    # 300 calls of 100 KB replies is 30 MB, more than any buffer between the two ends holds
+    # once the client's receive buffer cannot grow:
     # past the budget the server stops reading (and answering) that client's calls, so only
     # some of them ever run; after the write timeout it closes the connection, says so, and
     # another client's calls are answered all along.
@@ -2009,6 +2026,9 @@ async def test_a_client_that_does_not_read_is_read_no_further_and_closed_after_t
     try:
         async with serve(server, "127.0.0.1", 0, transport=transport) as running:
             stuck = await open_wire(running)  # it reads the $/services, then nothing
+            # Small enough that 30 MB cannot hide in it, over loopback's 64 KiB segments so that
+            # the client can read what is left at the end at speed.
+            set_receive_buffer(stuck, 2**18)
             for id in range(calls):
                 call = request("/big", id=id)
                 await stuck.send([call] if batches else call)
