@@ -127,6 +127,40 @@ async def test_recv_returns_no_message_once_they_are_handed_over() -> None:
         assert taker.taken == ["one", "two"]
 
 
+async def test_compressed_messages_are_handed_over_whole() -> None:
+    deflate = Options(compression="deflate")
+    async with connected(WebSocketsTransport(), deflate) as pair, asyncio.timeout(scaled(5)):
+        taker = Taker()
+        assert pair.server.deliver_to(taker)
+        sent = ["héllo ☃" * 100, "x" * 100_000, "small"]
+        for message in sent:
+            await pair.client.send(message)
+        assert await taker.until(3) == sent
+
+
+async def test_pongs_are_taken_while_messages_are_handed_over() -> None:
+    """Keepalive goes on: each ping's pong is acknowledged, so no ping times out."""
+    keepalive = Options(ping_interval=scaled(0.02), ping_timeout=scaled(1))
+    async with connected(WebSocketsTransport(), keepalive) as pair, asyncio.timeout(scaled(5)):
+        client = pair.client
+        assert isinstance(client, WebSocketsConnection)
+        assert client.deliver_to(Taker())
+        acknowledged: list[bytes] = []
+        three = asyncio.get_running_loop().create_future()
+        acknowledge = client._ws.acknowledge_pings
+
+        def counting(data: bytes) -> None:
+            acknowledge(data)
+            acknowledged.append(data)
+            if len(acknowledged) == 3:
+                three.set_result(None)
+
+        client._ws.acknowledge_pings = counting  # type: ignore[method-assign]
+        await three
+        assert client._ws.latency > 0
+        assert client.close_code is None
+
+
 # How a connection ends: the same either way
 
 
