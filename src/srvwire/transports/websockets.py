@@ -32,8 +32,10 @@ Exceptions are mapped here and nowhere else:
 websockets' outgoing buffer and returns; what is held goes out in one socket write at the
 first of three moments: when this connection's reader is about to wait for the peer (every
 message it took from one read has been handled, so the replies to all of them leave
-together), when what is held reaches :data:`CORK_LIMIT`, and at the end of the loop turn
-(``call_soon``; the calls many tasks made in one turn). The limit is what keeps a pipelined
+together; with a receiver, when the read that handed the messages over ends), when what is
+held reaches :data:`CORK_LIMIT`, and at the end of the loop turn (``call_soon``; the calls
+many tasks made in one turn: what writes a client's calls, since its reader never waits in
+``recv`` for each reply). The limit is what keeps a pipelined
 peer busy: holding every reply to 64 calls until the last is made lets the peer start on none
 of them before, and two ends that each answer a whole window in one write settle into taking
 turns, each idle while the other works (measured: half the calls a second, at less CPU per
@@ -44,6 +46,19 @@ is larger than :data:`CORK_LIMIT`, when what is held and what the socket's buffe
 pass the budget (``max_queued_bytes``, the high-water mark: held frames count as waiting to be
 sent, so a peer that does not read still holds the sender back at the same point), and when
 the connection is not open.
+
+**Messages can be handed over in the read callback.** Given a receiver
+(:meth:`WebSocketsConnection.deliver_to`, as a client's link asks), a connection takes each
+data frame from websockets' protocol in ``process_event`` instead of queueing it for ``recv``,
+which saves the reading task's wake-up per message. The protocol has already bounded the
+message (``max_size``: 1009, named as above), answered pings and closes, and checked the order
+of fragments; here fragments are joined (more than websockets' ``MAX_FRAGMENTS``: 1009), text
+is decoded (not UTF-8: 1007, with websockets' reason), pongs are acknowledged, and a receiver
+that raises is logged and closes the connection with 1011, as on picows. Failing the connection
+here is what websockets' ``recv`` does: the close frame at once, the TCP connection dropped if
+the peer has not closed it within ``close_timeout``. :meth:`~WebSocketsConnection.pause_reading`
+stops reading the socket, with or without a receiver: websockets' queue, which stops reading
+while ``recv`` lags 16 messages behind, resumes it only when srvwire does not hold it back.
 
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
