@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import AsyncIterator
 
 import pytest
 from websockets.asyncio.client import connect as websockets_connect
 from websockets.asyncio.messages import MAX_FRAGMENTS
+from websockets.frames import Frame
 
 from conftest import Subtract, subtract
 from srvwire import connect
@@ -109,6 +111,40 @@ async def test_messages_queued_while_reading_was_paused_go_first_and_reading_res
             await pair.server.send(f"after {i}")
         expected = [f"before {i}" for i in range(100)] + [f"after {i}" for i in range(100)]
         assert await taker.until(200) == expected
+
+
+async def test_a_message_begun_in_the_queue_is_finished_by_the_hand_over() -> None:
+    async with (
+        listening(WebSocketsTransport()) as (listener, accepted),
+        asyncio.timeout(scaled(5)),
+        websockets_connect(listener.url, open_timeout=None) as ws,
+    ):
+        server = await accept(accepted)
+        queue = server._ws.recv_messages
+        first_frame = asyncio.get_running_loop().create_future()
+        put = queue.put
+
+        def putting(frame: Frame) -> None:
+            put(frame)
+            if not first_frame.done():
+                first_frame.set_result(None)
+
+        queue.put = putting  # type: ignore[method-assign]
+        go_on = asyncio.Event()
+
+        async def fragments() -> AsyncIterator[str]:
+            yield "hé"
+            await go_on.wait()
+            yield "llo"
+
+        sending = asyncio.create_task(ws.send(fragments()))
+        await first_frame  # the message's first frame waits in websockets' queue
+        taker = Taker()
+        assert server.deliver_to(taker)
+        go_on.set()
+        await sending
+        await ws.send("after")
+        assert await taker.until(2) == ["héllo", "after"]
 
 
 async def test_recv_returns_no_message_once_they_are_handed_over() -> None:
