@@ -9,10 +9,13 @@ outcome, so "as today" is checked, not assumed.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import ssl
 from collections.abc import AsyncIterator
 
 import pytest
+import trustme
 from websockets.asyncio.client import connect as websockets_connect
 from websockets.asyncio.messages import MAX_FRAGMENTS
 from websockets.frames import Frame
@@ -298,18 +301,38 @@ async def turns(count: int = 1000) -> None:
         await asyncio.sleep(0)
 
 
-async def test_pause_stops_delivery_and_resume_restarts_it() -> None:
-    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
-        server = pair.server
-        assert isinstance(server, WebSocketsConnection)
+@contextlib.asynccontextmanager
+async def ends(tls: bool) -> AsyncIterator[tuple[Connection, WebSocketsConnection]]:
+    """A client and the server's end of its connection, over TLS or not."""
+    transport = WebSocketsTransport()
+    server_ssl = client_ssl = None
+    if tls:
+        ca = trustme.CA()
+        server_ssl = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        ca.issue_cert("127.0.0.1").configure_cert(server_ssl)
+        client_ssl = ssl.create_default_context()
+        ca.configure_trust(client_ssl)
+    async with listening(transport, ssl=server_ssl) as (listener, accepted):
+        client = await transport.connect(listener.url, Options(), ssl=client_ssl)
+        try:
+            async with asyncio.timeout(scaled(5)):
+                yield client, await accept(accepted)
+        finally:
+            async with asyncio.timeout(scaled(5)):
+                await client.close()
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["tcp", "tls"])
+async def test_pause_stops_delivery_and_resume_restarts_it(tls: bool) -> None:
+    async with ends(tls) as (client, server):
         taker = Taker()
         assert server.deliver_to(taker)
-        await pair.client.send("first")
+        await client.send("first")
         assert await taker.until(1) == ["first"]
         server.pause_reading()
         assert not server._ws.transport.is_reading()
         for i in range(3):
-            await pair.client.send(f"held {i}")
+            await client.send(f"held {i}")
         await turns()
         assert taker.taken == ["first"]
         server.resume_reading()
