@@ -6,7 +6,7 @@ each request it is sent with the small ``RobotStateQuery`` reply a srvwire serve
 replies to the requests of one turn of the loop arrive together at the next turn, in one
 callback, as one socket read would bring them: queued for the client's reader task, or with
 ``--push`` handed to the client one by one from that callback (``Connection.deliver_to``, as
-the picows transport does, where the client asks for it). What is measured is everything the
+both network transports do, where the client asks for it). What is measured is everything the
 client does per call above the transport: ``Client.call``, the link, the session, writing the
 request, the deadline, routing and decoding the reply, asyncio's futures and timers.
 
@@ -260,7 +260,7 @@ def main() -> None:
         "--push",
         action="store_true",
         help="the connection hands each reply to the client as it arrives, where the client "
-        "asks for it (Connection.deliver_to, as the picows transport does), instead of "
+        "asks for it (Connection.deliver_to, as both network transports do), instead of "
         "queueing it for the client's reader task",
     )
     parser.add_argument(
