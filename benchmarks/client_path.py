@@ -6,9 +6,14 @@ each request it is sent with the small ``RobotStateQuery`` reply a srvwire serve
 replies to the requests of one turn of the loop arrive together at the next turn, in one
 callback, as one socket read would bring them: queued for the client's reader task, or with
 ``--push`` handed to the client one by one from that callback (``Connection.deliver_to``, as
-the picows transport does, where the client asks for it). What is measured is everything the
+both network transports do, where the client asks for it). What is measured is everything the
 client does per call above the transport: ``Client.call``, the link, the session, writing the
 request, the deadline, routing and decoding the reply, asyncio's futures and timers.
+
+With ``--server websockets`` (or ``picows``) the client talks to a real srvwire server instead,
+the harness's ``srvwire_server.py`` started in a process of its own (this checkout's srvwire,
+not measured), over that transport on 127.0.0.1: what is measured is then the client's whole
+path, its transport's reading and writing included, as ``client.call`` pays it on a socket.
 
 Two shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
 
@@ -22,12 +27,14 @@ processes), and the table gives each tree's ratio to the first one.
 
     python benchmarks/client_path.py                       # this checkout's src/
     python benchmarks/client_path.py --src /tmp/old/src --src src --repeat 7
+    python benchmarks/client_path.py --src /tmp/old/src --src src --server websockets --instructions
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import re
@@ -35,7 +42,7 @@ import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,8 +51,10 @@ PIPELINE = 64  # calls in flight in the pipelined shape, as W2
 TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 
-def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
-    """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call."""
+def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
+            transport: str = "websockets") -> dict[str, float]:  # fmt: skip
+    """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call
+    (``url``: of a real server, on ``transport``)."""
     from srvwire.client import connect
     from srvwire.protocol import services_notification
     from srvwire.transports.base import Connection, Transport, TransportClosed
@@ -153,7 +162,12 @@ def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
     async def run() -> dict[str, float]:
         request = RobotStateQuery.Request(**SMALL_REQUEST)
         figures: dict[str, float] = {}
-        async with connect("ws://fake", transport=Fake(), timeout=TIMEOUT) as client:
+        opening = (
+            connect("ws://fake", transport=Fake(), timeout=TIMEOUT)
+            if url is None
+            else connect(url, transport=transport, timeout=TIMEOUT)
+        )
+        async with opening as client:
 
             async def caller(n: int) -> None:
                 for _ in range(n):
@@ -172,16 +186,18 @@ def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
     return asyncio.run(run())
 
 
-def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[str] = ()) -> Any:
+def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[str] = (),
+          server: Sequence[str] = ()) -> Any:  # fmt: skip
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
-    printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under)."""
+    printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under;
+    ``server``: the options naming the real server, if any)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), str(HERE)]))
     env["PYTHONHASHSEED"] = "0"  # the same work in every run, for the instruction counts
     command = [sys.executable, __file__, "--child", "--calls", str(calls)]
     if push:
         command.append("--push")
     done = subprocess.run(
-        [*prefix, *command, "--shapes", ",".join(shapes)],
+        [*prefix, *command, "--shapes", ",".join(shapes), *server],
         env=env,
         check=False,
         capture_output=True,
@@ -192,12 +208,12 @@ def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[
     return json.loads(done.stdout.splitlines()[-1]), done.stderr
 
 
-def instructions(src: str, calls: int, shape: str, push: bool) -> float:
+def instructions(src: str, calls: int, shape: str, push: bool, server: Sequence[str]) -> float:
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], push, VALGRIND)
+        _, err = child(src, n, [shape], push, VALGRIND, server)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -206,6 +222,26 @@ def instructions(src: str, calls: int, shape: str, push: bool) -> float:
 
 
 VALGRIND = ["valgrind", "--tool=cachegrind", "--cache-sim=no", "--cachegrind-out-file=/dev/null"]
+
+
+@contextlib.contextmanager
+def real_server(transport: str) -> Iterator[list[str]]:
+    """Run the harness's srvwire server on ``transport`` until exit; yield the options that
+    point a child at it."""
+    server = subprocess.Popen(
+        [sys.executable, str(HERE / "srvwire_server.py"), "--transport", transport],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert server.stdout is not None
+        port = json.loads(server.stdout.readline())["port"]
+        yield ["--url", f"ws://127.0.0.1:{port}", "--transport", transport]
+    finally:
+        assert server.stdin is not None
+        server.stdin.close()  # the server stops when its stdin closes
+        server.wait(timeout=30)
 
 
 def main() -> None:
@@ -224,28 +260,44 @@ def main() -> None:
         "--push",
         action="store_true",
         help="the connection hands each reply to the client as it arrives, where the client "
-        "asks for it (Connection.deliver_to, as the picows transport does), instead of "
+        "asks for it (Connection.deliver_to, as both network transports do), instead of "
         "queueing it for the client's reader task",
     )
+    parser.add_argument(
+        "--server",
+        choices=["websockets", "picows"],
+        help="call a real srvwire server on this transport instead of the fake connection",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--url", help=argparse.SUPPRESS)
+    parser.add_argument("--transport", default="websockets", help=argparse.SUPPRESS)
     args = parser.parse_args()
     shapes = args.shapes.split(",")
     if args.child:
-        print(json.dumps(measure(args.calls, shapes, args.push)))
+        print(json.dumps(measure(args.calls, shapes, args.push, args.url, args.transport)))
         return
+    with contextlib.ExitStack() as stack:
+        server = [] if args.server is None else stack.enter_context(real_server(args.server))
+        report(args, parser, shapes, server)
+
+
+def report(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, shapes: list[str], server: list[str]
+) -> None:
+    """Measure every source tree and print the tables."""
     sources = args.src or [str(HERE.parent / "src")]
     if args.instructions:
         calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
         for shape in shapes:
             print(f"{shape} (instructions per call, valgrind)")
-            counts = [instructions(src, calls, shape, args.push) for src in sources]
+            counts = [instructions(src, calls, shape, args.push, server) for src in sources]
             for src, count in zip(sources, counts, strict=True):
                 print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
         return
     runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
     for _ in range(args.repeat):
         for src in sources:
-            for shape, value in child(src, args.calls, shapes, args.push)[0].items():
+            for shape, value in child(src, args.calls, shapes, args.push, (), server)[0].items():
                 runs[src][shape].append(value)
     first = sources[0]
     for shape in shapes:

@@ -122,7 +122,7 @@ async def peer() -> AsyncIterator[FakePeer]:
 
 @pytest.fixture(params=["websockets", "picows"])
 async def client(peer: FakePeer, request: pytest.FixtureRequest) -> AsyncIterator[Client]:
-    """A client of the scripted peer, on each network transport in turn (on picows, replies
+    """A client of the scripted peer, on each network transport in turn (on both, replies
     reach their calls from the transport's read callback: Connection.deliver_to)."""
     async with connect(peer.url, timeout=scaled(5), transport=request.param) as opened:
         yield opened

@@ -32,8 +32,10 @@ Exceptions are mapped here and nowhere else:
 websockets' outgoing buffer and returns; what is held goes out in one socket write at the
 first of three moments: when this connection's reader is about to wait for the peer (every
 message it took from one read has been handled, so the replies to all of them leave
-together), when what is held reaches :data:`CORK_LIMIT`, and at the end of the loop turn
-(``call_soon``; the calls many tasks made in one turn). The limit is what keeps a pipelined
+together; with a receiver, when the read that handed the messages over ends), when what is
+held reaches :data:`CORK_LIMIT`, and at the end of the loop turn (``call_soon``; the calls
+many tasks made in one turn: what writes a client's calls, since its reader never waits in
+``recv`` for each reply). The limit is what keeps a pipelined
 peer busy: holding every reply to 64 calls until the last is made lets the peer start on none
 of them before, and two ends that each answer a whole window in one write settle into taking
 turns, each idle while the other works (measured: half the calls a second, at less CPU per
@@ -44,6 +46,19 @@ is larger than :data:`CORK_LIMIT`, when what is held and what the socket's buffe
 pass the budget (``max_queued_bytes``, the high-water mark: held frames count as waiting to be
 sent, so a peer that does not read still holds the sender back at the same point), and when
 the connection is not open.
+
+**Messages can be handed over in the read callback.** Given a receiver
+(:meth:`WebSocketsConnection.deliver_to`, as a client's link asks), a connection takes each
+data frame from websockets' protocol in ``process_event`` instead of queueing it for ``recv``,
+which saves the reading task's wake-up per message. The protocol has already bounded the
+message (``max_size``: 1009, named as above), answered pings and closes, and checked the order
+of fragments; here fragments are joined (more than websockets' ``MAX_FRAGMENTS``: 1009), text
+is decoded (not UTF-8: 1007, with websockets' reason), pongs are acknowledged, and a receiver
+that raises is logged and closes the connection with 1011, as on picows. Failing the connection
+here is what websockets' ``recv`` does: the close frame at once, the TCP connection dropped if
+the peer has not closed it within ``close_timeout``. :meth:`~WebSocketsConnection.pause_reading`
+stops reading the socket, with or without a receiver: websockets' queue, which stops reading
+while ``recv`` lags 16 messages behind, resumes it only when srvwire does not hold it back.
 
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
@@ -69,11 +84,12 @@ import ssl as _ssl
 import struct
 import sys
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.asyncio.connection import Connection as WebSocket
+from websockets.asyncio.messages import MAX_FRAGMENTS
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import (
     ConnectionClosed,
@@ -82,9 +98,9 @@ from websockets.exceptions import (
     InvalidURI,
     WebSocketException,
 )
-from websockets.frames import Close, CloseCode
+from websockets.frames import BINARY, CONT, PONG, TEXT, Close, CloseCode, Frame
 from websockets.http11 import Request, Response
-from websockets.protocol import OPEN, Protocol, Side, State
+from websockets.protocol import OPEN, Event, Protocol, Side, State
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
@@ -121,7 +137,10 @@ DEFAULT_WRITE_LIMIT = 2**15
 
 class _Watched(WebSocket):
     """What srvwire adds to a websockets connection: it knows when writing is paused, and
-    closes the connection when it stays paused for ``write_timeout`` (None: never)."""
+    closes the connection when it stays paused for ``write_timeout`` (None: never); once it
+    has a receiver (:meth:`WebSocketsConnection.deliver_to`), it hands each message to it in
+    the read callback instead of to websockets' queue; and srvwire may hold reading back
+    (``held_back``), which the queue, resuming reading as it drains, respects."""
 
     write_timeout: float | None = None
 
@@ -131,6 +150,93 @@ class _Watched(WebSocket):
         self.drained.set()
         self.stall: asyncio.TimerHandle | None = None
         self.timed_out = False
+        self.receive: Callable[[str | bytes], None] | None = None  # see deliver_to
+        self.pushing: WebSocketsConnection | None = None  # the connection, while receive is
+        self.fragments: list[Frame] = []  # a message not yet whole, while receive is set
+        self.held_back = False  # srvwire paused reading (WebSocketsConnection.pause_reading)
+        self.closing: asyncio.TimerHandle | None = None  # drops a connection this side failed
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        self.recv_messages.resume = self.queue_drained
+
+    def queue_drained(self) -> None:
+        """websockets' queue of frames went down to its low-water mark: read again, unless
+        srvwire holds reading back."""
+        if not self.held_back:
+            self.transport.resume_reading()
+
+    def data_received(self, data: bytes) -> None:
+        pushing = self.pushing
+        if pushing is None:
+            super().data_received(data)
+            return
+        pushing.read_begins()
+        try:
+            super().data_received(data)
+        finally:
+            pushing.read_ends()
+
+    def process_event(self, event: Event) -> None:
+        receive = self.receive
+        if receive is None:
+            super().process_event(event)
+            return
+        assert isinstance(event, Frame)
+        opcode = event.opcode
+        if opcode is PONG:
+            self.acknowledge_pings(bytes(event.data))
+            return
+        if opcode is not TEXT and opcode is not BINARY and opcode is not CONT:
+            return  # a ping or a close: the protocol has answered it
+        # The protocol has checked the frames' order and bounded the message by max_size.
+        fragments = self.fragments
+        if fragments or not event.fin:
+            fragments.append(event)
+            if len(fragments) > MAX_FRAGMENTS:  # as websockets' queue refuses them
+                self.refuse(CloseCode.MESSAGE_TOO_BIG, "too many fragments", None)
+                return
+            if not event.fin:
+                return
+            self.fragments = []
+            data: bytes | bytearray | memoryview = b"".join(frame.data for frame in fragments)
+            text = fragments[0].opcode is TEXT
+        else:
+            data = event.data
+            text = opcode is TEXT
+        message: str | bytes
+        if text:
+            try:
+                message = str(data, "utf-8")
+            except UnicodeDecodeError as exc:  # what websockets' recv says of it
+                self.refuse(CloseCode.INVALID_DATA, f"{exc.reason} at position {exc.start}", exc)
+                return
+        else:
+            message = data if type(data) is bytes else bytes(data)
+        try:
+            receive(message)
+        except Exception as exc:  # as a handler that raises: 1011, and the error in the log
+            self.logger.error(
+                "the receiver of messages failed; closing the connection", exc_info=True
+            )
+            self.refuse(CloseCode.INTERNAL_ERROR, "", exc)
+
+    def refuse(self, code: int, reason: str, exc: BaseException | None) -> None:
+        """Fail the connection from the read callback, as websockets' ``recv`` fails it for a
+        message it cannot return: the close frame now, the TCP connection dropped if the peer
+        has not closed it within ``close_timeout``. Nothing more is delivered."""
+        self.receive = _ignore
+        self.fragments = []
+        self.set_connection_exc(exc)
+        if self.protocol.state is not OPEN:
+            return  # closing already
+        self.protocol.fail(code, reason)
+        try:
+            self.send_data()
+        except Exception as error:  # as data_received: the connection ends anyway
+            self.set_connection_exc(error)
+        if self.close_timeout is not None and self.closing is None:
+            self.closing = self.loop.call_later(self.close_timeout, self.transport.abort)
 
     def pause_writing(self) -> None:
         super().pause_writing()
@@ -151,6 +257,14 @@ class _Watched(WebSocket):
         if self.stall is not None:
             self.stall.cancel()
             self.stall = None
+        if self.closing is not None:
+            self.closing.cancel()
+            self.closing = None
+        # Nothing more arrives: drop what refers back to this connection, so that it is freed
+        # without the cycle collector.
+        self.receive = None
+        self.pushing = None
+        self.recv_messages.resume = self.transport.resume_reading
 
     def stalled(self) -> None:
         """Close now: the peer does not read, so a closing handshake would wait for nothing."""
@@ -160,6 +274,10 @@ class _Watched(WebSocket):
         if self.protocol.state is OPEN:  # record the close frame that recv will report
             self.protocol.fail(WRITE_TIMEOUT_CODE, write_timeout_reason(self.write_timeout))
         self.transport.abort()
+
+
+def _ignore(message: str | bytes) -> None:
+    """The receiver of a connection that failed: what still arrives is dropped."""
 
 
 class _ServerConnection(_Watched, ServerConnection):
@@ -389,6 +507,53 @@ class WebSocketsConnection(Connection):
         except ConnectionClosed as exc:
             raise _closed(exc, ws) from exc
 
+    def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
+        """Hand every message to ``receive`` from the read callback (see the module).
+
+        The messages websockets' queue holds go first, in order. Call it when no ``recv`` is
+        waiting; ``recv`` then returns no message and raises at the end as before. A
+        ``receive`` that raises is a bug: the error is logged and the connection closed with
+        1011, and nothing more is delivered.
+        """
+        ws = self._ws
+        queued = ws.recv_messages.frames.queue
+        ws.receive = receive
+        ws.pushing = self
+        while queued:
+            ws.process_event(queued.popleft())
+        ws.recv_messages.maybe_resume()  # the queue is empty: it reads again, if it had paused
+        if ws.protocol.state is State.CLOSED:  # nothing more arrives
+            ws.receive = None
+            ws.pushing = None
+        return True
+
+    def pause_reading(self) -> None:
+        """Stop reading the socket until :meth:`resume_reading`: no message is received but
+        those the last read brought, and the peer's sends wait once the buffers between the two
+        ends are full. Pings go unanswered meanwhile, so keepalive may end the connection."""
+        ws = self._ws
+        ws.held_back = True
+        ws.transport.pause_reading()
+
+    def resume_reading(self) -> None:
+        """Read the socket again after :meth:`pause_reading` (unless websockets' queue of
+        messages ``recv`` has not taken is full: then once ``recv`` has taken them down)."""
+        ws = self._ws
+        ws.held_back = False
+        if not ws.recv_messages.paused:
+            ws.transport.resume_reading()
+
+    def read_begins(self) -> None:
+        """A read hands its messages to the receiver: what they make is held to its end."""
+        self._flushing = True  # no write at the end of the turn is needed: read_ends writes
+
+    def read_ends(self) -> None:
+        """Every message of a read was handed over: write what they made, in one write."""
+        if self._held:
+            self.flush()
+        else:
+            self._flushing = False
+
     @property
     def congested(self) -> bool:
         return self._ws.paused
@@ -426,6 +591,8 @@ class WebSocketsConnection(Connection):
             self._ws.send_data()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
+        if self._ws.held_back:  # the peer's close frame, or its dropping, must be read
+            self.resume_reading()
         await self._ws.close(code, reason)
 
     # Read from the close frames, as _closed does, so that closed() says what recv raised:
