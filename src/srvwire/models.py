@@ -107,7 +107,7 @@ from srvwire.primitives import (
     UInt64,
     WString,
 )
-from srvwire.protocol import Request, timeout_seconds
+from srvwire.protocol import Id, Request, timeout_seconds, write_response
 
 __all__ = [
     "FLOAT32_MAX",
@@ -147,6 +147,7 @@ __all__ = [
     "json_writer",
     "listed_errors",
     "python_name",
+    "reply_writer",
     "summarize_errors",
     "unencodable_strings",
     "validate_python",
@@ -670,6 +671,56 @@ def json_writer(
     if strict:
         write = functools.partial(_write_checked, write)
     return write
+
+
+def reply_writer(
+    model: type[M], inf_nan: InfNan | None = None, *, strict: bool = False
+) -> Callable[[Id, M], bytes]:
+    """Write the JSON-RPC response whose result is an instance of exactly ``model``, whole.
+
+    ``reply_writer(model, mode)(id, value)`` is the same bytes as
+    ``write_response(id, json_writer(model, mode)(value))``, but for an integer ``id`` (what
+    srvwire's client sends) pydantic-core writes the envelope and the result into one buffer:
+    the result is never a separate copy that the envelope copies again. For a reply of
+    megabytes that is one fewer copy made and alive at once, which is what decides whether the
+    C library hands its heap back after each reply and faults it in again for the next one
+    (docs/performance.md, "Large replies written and read whole"). Any other id is written as
+    before. ``strict`` as in :func:`json_writer`.
+    """
+    schema = model.__pydantic_core_schema__
+    if inf_nan is not None:
+        if inf_nan not in INF_NAN_MODES:
+            raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
+        schema = _with_inf_nan(schema, inf_nan)
+    definitions: list[Any] = []
+    if schema["type"] == "definitions":  # the envelope's own definitions, at its top
+        definitions, schema = schema["definitions"], schema["schema"]
+    envelope: Any = core_schema.typed_dict_schema(
+        {
+            "jsonrpc": core_schema.typed_dict_field(core_schema.str_schema()),
+            "id": core_schema.typed_dict_field(core_schema.int_schema()),
+            "result": core_schema.typed_dict_field(schema),
+        }
+    )
+    if definitions:
+        envelope = core_schema.definitions_schema(envelope, definitions)
+    config: Any = {} if inf_nan is None else {"ser_json_inf_nan": inf_nan}
+    whole: Callable[[dict[str, Any]], bytes] = functools.partial(
+        SchemaSerializer(envelope, config, _use_prebuilt=False).to_json, by_alias=True
+    )
+    result = json_writer(model, inf_nan, strict=strict)
+
+    def write(id: Id, value: M) -> bytes:
+        if type(id) is int:
+            return whole({"jsonrpc": "2.0", "id": id, "result": value})
+        return write_response(id, result(value))
+
+    def write_checked(id: Id, value: M) -> bytes:
+        if type(id) is int:
+            return _write_checked(whole, {"jsonrpc": "2.0", "id": id, "result": value})
+        return write_response(id, result(value))
+
+    return write_checked if strict else write
 
 
 def _write_checked(write: Callable[[Any], bytes], value: Any) -> bytes:
