@@ -107,7 +107,7 @@ from srvwire.primitives import (
     UInt64,
     WString,
 )
-from srvwire.protocol import Id, Request, timeout_seconds, write_response
+from srvwire.protocol import Id, Request, timeout_seconds
 
 __all__ = [
     "FLOAT32_MAX",
@@ -679,13 +679,12 @@ def reply_writer(
     """Write the JSON-RPC response whose result is an instance of exactly ``model``, whole.
 
     ``reply_writer(model, mode)(id, value)`` is the same bytes as
-    ``write_response(id, json_writer(model, mode)(value))``, but for an integer ``id`` (what
-    srvwire's client sends) pydantic-core writes the envelope and the result into one buffer:
-    the result is never a separate copy that the envelope copies again. For a reply of
-    megabytes that is one fewer copy made and alive at once, which is what decides whether the
-    C library hands its heap back after each reply and faults it in again for the next one
-    (docs/performance.md, "Large replies written and read whole"). Any other id is written as
-    before. ``strict`` as in :func:`json_writer`.
+    ``write_response(id, json_writer(model, mode)(value))``, but pydantic-core writes the
+    envelope, the id and the result into one buffer: the result is never a separate copy that
+    the envelope copies again. For a reply of megabytes that is one fewer copy made, and alive
+    at once, which is what decides whether the C library hands its heap back after each reply
+    and faults it in again for the next one (docs/performance.md, "Large replies written
+    whole"). ``strict`` as in :func:`json_writer`.
     """
     schema = model.__pydantic_core_schema__
     if inf_nan is not None:
@@ -698,27 +697,24 @@ def reply_writer(
     envelope: Any = core_schema.typed_dict_schema(
         {
             "jsonrpc": core_schema.typed_dict_field(core_schema.str_schema()),
-            "id": core_schema.typed_dict_field(core_schema.int_schema()),
+            # Any id a reader takes (a string, a finite number, null) is written as
+            # protocol.encode_json writes it: by the same inference.
+            "id": core_schema.typed_dict_field(core_schema.any_schema()),
             "result": core_schema.typed_dict_field(schema),
         }
     )
     if definitions:
         envelope = core_schema.definitions_schema(envelope, definitions)
     config: Any = {} if inf_nan is None else {"ser_json_inf_nan": inf_nan}
-    whole: Callable[[dict[str, Any]], bytes] = functools.partial(
+    whole = functools.partial(
         SchemaSerializer(envelope, config, _use_prebuilt=False).to_json, by_alias=True
     )
-    result = json_writer(model, inf_nan, strict=strict)
 
     def write(id: Id, value: M) -> bytes:
-        if type(id) is int:
-            return whole({"jsonrpc": "2.0", "id": id, "result": value})
-        return write_response(id, result(value))
+        return whole({"jsonrpc": "2.0", "id": id, "result": value})
 
     def write_checked(id: Id, value: M) -> bytes:
-        if type(id) is int:
-            return _write_checked(whole, {"jsonrpc": "2.0", "id": id, "result": value})
-        return write_response(id, result(value))
+        return _write_checked(whole, {"jsonrpc": "2.0", "id": id, "result": value})
 
     return write_checked if strict else write
 
