@@ -8,11 +8,13 @@ values crosses real connections both ways in every mode.
 
 from __future__ import annotations
 
+import json
 import math
 import warnings
 from typing import Any
 
 import pytest
+from pydantic import ValidationError
 from pydantic_core import PydanticSerializationError
 
 from srvwire.client import connect
@@ -22,13 +24,21 @@ from srvwire.models import (
     INF_NAN_MODES,
     InfNan,
     Message,
+    ModelDecoder,
     build_message,
     build_service,
     json_writer,
     reply_writer,
 )
 from srvwire.parser import parse_message, parse_service
-from srvwire.protocol import write_response
+from srvwire.protocol import (
+    WHOLE_REPLY_SIZE,
+    ProtocolViolation,
+    RawReply,
+    Response,
+    peek_reply,
+    write_response,
+)
 from srvwire.server import Server, serve
 from srvwire.transports.base import Transport
 from support import scaled
@@ -140,6 +150,103 @@ def test_a_strict_reply_writer_refuses_a_value_that_does_not_fit_for_any_id() ->
         lenient = reply_writer(Samples.Response)(1, value)
     assert b'"values":[1.0,"x"]' in lenient  # not strict: written, with pydantic's warning
     assert [str(w.message).splitlines()[0] for w in caught] == ["Pydantic serializer warnings:"]
+
+
+# --- the reader ---------------------------------------------------------------------------------
+
+
+class Counting:
+    """A :class:`ModelDecoder` that notes which of its ways each decode took."""
+
+    def __init__(self) -> None:
+        self.decoder = ModelDecoder(Samples.Response)
+        self.calls: list[str] = []
+
+    def from_json(self, text: str) -> Any:
+        self.calls.append("from_json")
+        return self.decoder.from_json(text)
+
+    def from_data(self, data: Any) -> Any:
+        self.calls.append("from_data")
+        return self.decoder.from_data(data)
+
+    def from_reply(self, message: str, id: int) -> Any:
+        self.calls.append("from_reply")
+        return self.decoder.from_reply(message, id)
+
+
+def large_reply(id: int = 5, after: str = "") -> RawReply:
+    text = reply_writer(Samples.Response)(id, response(COUNT)).decode()
+    assert len(text) >= WHOLE_REPLY_SIZE
+    recognised = peek_reply(text[:-1] + after + "}")
+    assert recognised is not None
+    return recognised
+
+
+def test_a_large_reply_is_validated_whole_and_a_small_one_from_its_result() -> None:
+    decoder = Counting()
+    got = large_reply().decode(decoder)
+    assert same_floats(got.values, samples(COUNT), "strings")
+    assert got == large_reply().parse().decode(ModelDecoder(Samples.Response))
+    small = peek_reply(reply_writer(Samples.Response)(5, response(10)).decode())
+    assert small is not None
+    assert same_floats(small.decode(decoder).values, samples(10), "strings")
+    assert decoder.calls == ["from_reply", "from_json"]
+
+
+@pytest.mark.parametrize(
+    ("after", "values", "ways"),
+    [
+        # more members: ignored, as the full parse ignores them (which the envelope leaves to it)
+        (',"x":2', COUNT, ["from_reply", "from_data"]),
+        (',"id":5', COUNT, ["from_reply"]),  # the same id again
+        (',"result":{"values":[1.5]}', 1, ["from_reply"]),  # the last one counts, as parsed
+    ],
+)
+def test_a_large_reply_that_is_not_only_its_envelope_reads_as_the_full_parse_reads_it(
+    after: str, values: int, ways: list[str]
+) -> None:
+    decoder = Counting()
+    got = large_reply(after=after).decode(decoder)
+    assert len(got.values) == values
+    assert got == large_reply(after=after).parse().decode(ModelDecoder(Samples.Response))
+    assert decoder.calls == ways
+
+
+@pytest.mark.parametrize(
+    ("after", "error"),
+    [
+        (',"id":6', "Invalid reply: 'id' given twice (5 and 6)"),
+        (',"id":5.0', "Invalid reply: 'id' given twice (5 and 5.0)"),
+        (',"method":"$/services","params":{}', "Invalid reply: both 'result' and 'method'"),
+        (',"error":{"code":1,"message":"m"}', "Invalid reply: both 'result' and 'error'"),
+    ],
+)
+def test_a_large_reply_that_is_another_message_is_refused_as_the_full_parse_refuses_it(
+    after: str, error: str
+) -> None:
+    with pytest.raises(ProtocolViolation) as caught:
+        large_reply(after=after).decode(Counting())
+    assert str(caught.value.error.message) == error
+
+
+def test_a_large_result_that_does_not_fit_has_the_errors_of_the_parsed_one() -> None:
+    text = reply_writer(Samples.Response)(5, response(COUNT)).decode()
+    bad = text.replace("0.3857142857142857,", '"x",', 1)  # values[2]
+    decoder = ModelDecoder(Samples.Response)
+    with pytest.raises(ValidationError) as whole:
+        decoder.from_reply(bad, 5)
+    with pytest.raises(ValidationError) as read:
+        raw = peek_reply(bad)
+        assert raw is not None
+        raw.decode(decoder)
+    with pytest.raises(ValidationError) as parsed:
+        Response(5, json.loads(bad)["result"]).decode(decoder)
+    assert [(e["loc"], e["type"]) for e in read.value.errors()] == [(("values", 2), "float_type")]
+    assert [(e["loc"], e["type"]) for e in parsed.value.errors()] == [(("values", 2), "float_type")]
+    assert [(e["loc"], e["type"]) for e in whole.value.errors()] == [
+        (("result", "values", 2), "float_type")
+    ]
 
 
 # --- over real connections -----------------------------------------------------------------------

@@ -775,13 +775,55 @@ class ModelDecoder(Generic[M]):
     validator's own methods, so a call costs no Python frame of its own.
     """
 
-    __slots__ = ("from_data", "from_json", "model")
+    __slots__ = ("_whole", "from_data", "from_json", "model")
 
     def __init__(self, model: type[M]) -> None:
         self.model = model
         validator = model.__pydantic_validator__
         self.from_json: Callable[[str], M] = validator.validate_json
         self.from_data: Callable[[Any], M] = validator.validate_python
+        self._whole: Callable[[str], dict[str, Any]] | None = None
+
+    def from_reply(self, message: str, id: int) -> M:
+        """The result of ``message``, the whole response to ``id`` as srvwire servers write it,
+        validated with its envelope in one pass (no copy of the result's text is made).
+
+        ``ValueError`` (pydantic's ``ValidationError``) for anything else: a result that does
+        not fit, another ``id``, a member besides ``jsonrpc``, ``id`` and ``result``; the full
+        parse then says which. Of a member given twice, the last counts, as in the full parse.
+        The validator is built for the first reply read so.
+        """
+        whole = self._whole
+        if whole is None:
+            whole = self._whole = _reply_validator(self.model)
+        envelope = whole(message)
+        if envelope["id"] != id:
+            raise ValueError(f"a reply to {envelope['id']}, not to {id}")
+        result: M = envelope["result"]
+        return result
+
+
+def _reply_validator(model: type[M]) -> Callable[[str], dict[str, Any]]:
+    """Validate a whole response whose result is a ``model``: exactly ``jsonrpc`` "2.0", an
+    integer ``id`` and the ``result``, nothing else."""
+    schema = model.__pydantic_core_schema__
+    definitions: list[Any] = []
+    if schema["type"] == "definitions":
+        definitions, schema = schema["definitions"], schema["schema"]
+    envelope: Any = core_schema.typed_dict_schema(
+        {
+            "jsonrpc": core_schema.typed_dict_field(core_schema.literal_schema(["2.0"])),
+            "id": core_schema.typed_dict_field(core_schema.int_schema(strict=True)),
+            "result": core_schema.typed_dict_field(schema),
+        },
+        extra_behavior="forbid",
+    )
+    if definitions:
+        envelope = core_schema.definitions_schema(envelope, definitions)
+    validate: Callable[[str], dict[str, Any]] = SchemaValidator(
+        envelope, _use_prebuilt=False
+    ).validate_json
+    return validate
 
 
 # --- a request read in one pass ----------------------------------------------------------------
