@@ -16,7 +16,6 @@ import argparse
 import functools
 from typing import Any
 
-from srvwire.heap import keep_freed_heap
 from srvwire.server import Server, serve
 
 from common import MAX_MESSAGE, SERVICE, ServerControl, emit, reply_fields, run, server_parser
@@ -39,6 +38,8 @@ async def main(args: argparse.Namespace) -> None:
 
 if __name__ == "__main__":
     args = server_parser(__doc__ or "").parse_args()
-    if args.keep_heap:
+    if args.keep_heap:  # imported only then: the harness also runs older srvwire with this script
+        from srvwire.heap import keep_freed_heap
+
         keep_freed_heap()
     run(functools.partial(main, args), args)
