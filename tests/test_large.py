@@ -20,6 +20,7 @@ from pydantic_core import PydanticSerializationError
 from srvwire.client import connect
 from srvwire.errors import ConnectionLost
 from srvwire.idl import TypeSpec
+from srvwire.loader import InterfaceLoader
 from srvwire.models import (
     INF_NAN_MODES,
     InfNan,
@@ -42,6 +43,7 @@ from srvwire.protocol import (
 from srvwire.server import Server, serve
 from srvwire.transports.base import Transport
 from support import scaled
+from test_bundled_interfaces import ON_DISK, SEARCH_PATH, load, parts_of, sample
 
 SAMPLES_SRV = """\
 # Send samples, get them back scaled, beside a nested reading.
@@ -123,6 +125,21 @@ def test_a_reply_written_in_one_pass_is_the_two_step_reply_byte_for_byte(
             result = json_writer(model, mode, strict=strict)
             for id in IDS:
                 assert whole(id, value) == write_response(id, result(value)), (id, strict)
+
+
+@pytest.mark.parametrize("name", ON_DISK)
+def test_every_bundled_type_is_written_whole_and_read_whole_as_in_two_steps(name: str) -> None:
+    # Byte arrays, nested messages, fixed and bounded arrays, constants: whatever a type holds.
+    loader = InterfaceLoader(SEARCH_PATH)
+    for part in parts_of(load(name)):
+        decoder = ModelDecoder(part)
+        for value in (part(), part.model_validate(sample(part, loader))):
+            for mode in (None, "null"):
+                written = reply_writer(part, mode, strict=True)(9, value)
+                assert written == write_response(9, json_writer(part, mode)(value))
+            read = peek_reply(written.decode())
+            assert read is not None
+            assert decoder.from_reply(read.message, 9) == decoder.from_json(read.result) == value
 
 
 def test_a_reply_written_in_one_pass_reaches_nested_messages_in_the_mode() -> None:
