@@ -116,6 +116,11 @@ def add_process_options(parser: argparse.ArgumentParser) -> None:
         default="websockets",
         help="srvwire's transport (the srvwire scripts only)",
     )
+    parser.add_argument(
+        "--keep-heap",
+        action="store_true",
+        help="call srvwire.keep_freed_heap() first, as a user would (the srvwire scripts only)",
+    )
 
 
 def run(main: Callable[[], Coroutine[Any, Any, T]], args: argparse.Namespace) -> T:

@@ -10,7 +10,9 @@ Usage::
 ``baseline`` (raw ``websockets``, nothing typed), ``floor`` (the least a typed JSON-RPC
 framework must do per call), ``srvwire``, and on the native transport ``picows`` (raw
 ``picows``, nothing typed: that transport's own floor) and ``srvwire-picows``; and ``peer``, a
-JSON-RPC peer (an ``aiohttp-json-rpc`` server and a ``jsonrpc-websocket`` client). Given several
+JSON-RPC peer (an ``aiohttp-json-rpc`` server and a ``jsonrpc-websocket`` client);
+``srvwire-heap`` and ``srvwire-picows-heap`` are srvwire with ``keep_freed_heap()`` called
+first on both sides, as an application of large messages would. Given several
 times, every implementation named is measured once per repeat, in the same alternation, and
 one table is printed per pair.
 
@@ -63,6 +65,12 @@ IMPLEMENTATIONS: dict[str, tuple[Path, Path, tuple[str, ...]]] = {
         ("--transport", "picows"),
     ),
     "peer": (HERE / "peer_server.py", HERE / "peer_client.py", ()),
+    "srvwire-heap": (HERE / "srvwire_server.py", HERE / "srvwire_client.py", ("--keep-heap",)),
+    "srvwire-picows-heap": (
+        HERE / "srvwire_server.py",
+        HERE / "srvwire_client.py",
+        ("--transport", "picows", "--keep-heap"),
+    ),
 }
 """Each implementation's server script, client script, and the options both take."""
 NETWORK_WORKLOADS = ["W1", "W2", "W3", "W4", "MEM"]

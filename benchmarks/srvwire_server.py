@@ -6,7 +6,8 @@ every call pays for what a real srvwire service pays for: request validation, th
 task, response validation and encoding. The only options changed from the defaults are
 ``max_message_size``, so W4's large replies fit on the way back from the server too, and
 ``max_connections``, so MEM's 1 000 idle connections are all admitted.
-``--transport picows`` serves on the native transport instead of ``websockets``.
+``--transport picows`` serves on the native transport instead of ``websockets``;
+``--keep-heap`` calls ``srvwire.keep_freed_heap()`` first.
 """
 
 from __future__ import annotations
@@ -37,4 +38,8 @@ async def main(args: argparse.Namespace) -> None:
 
 if __name__ == "__main__":
     args = server_parser(__doc__ or "").parse_args()
+    if args.keep_heap:  # imported only then: the harness also runs older srvwire with this script
+        from srvwire.heap import keep_freed_heap
+
+        keep_freed_heap()
     run(functools.partial(main, args), args)

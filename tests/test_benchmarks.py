@@ -280,3 +280,26 @@ def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> Non
     for row in rows:
         assert float(row[0]) > 0 and row[1] == "ratio" and row[3] == src
     assert rows[0][2] == rows[2][2] == "1.000"
+
+
+def test_the_large_reply_steps_agree_both_ways_and_are_measured() -> None:
+    # Each way runs in a process of its own, which exits unless both ways make the same.
+    script = ROOT / "benchmarks" / "large_path.py"
+    for keep in ([], ["--keep-heap"]):
+        result = subprocess.run(
+            [sys.executable, str(script), "--calls", "2", *keep],
+            capture_output=True,
+            text=True,
+            timeout=scaled(120),
+            cwd=ROOT,
+            check=False,
+        )
+        assert result.returncode == 0, result.stdout + result.stderr
+        rows = [line.split() for line in result.stdout.splitlines()[2:]]
+        assert [row[:2] for row in rows] == [
+            ["write", "two-step"],
+            ["write", "one-pass"],
+            ["read", "slice"],
+            ["read", "whole"],
+        ]
+        assert all(float(row[2]) >= 0 and float(row[3]) > 0 for row in rows)

@@ -71,6 +71,9 @@ COMMANDS: dict[str, str] = {
         "the client's in-process benchmark: a minute long, valgrind's counts longer; "
         "tests/test_benchmarks.py runs it small"
     ),
+    r"\.venv/bin/python benchmarks/large_path\.py( .*)?": (
+        "W4's two steps in one process, both ways: tests/test_benchmarks.py runs it small"
+    ),
     r"MALLOC_TOP_PAD_=\d+ \.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness with the heap kept: minutes long; tests/test_benchmarks.py runs it"
     ),

@@ -17,6 +17,7 @@ LAYERS: dict[str, int] = {
     "version": 0,
     "inline": 0,
     "threads": 0,
+    "heap": 0,
     "idl": 1,
     "scanner": 1,
     "primitives": 1,

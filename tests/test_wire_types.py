@@ -375,7 +375,8 @@ async def test_a_mode_builds_its_serializers_once_not_per_call(
 
     monkeypatch.setattr(models, "SchemaSerializer", counting)
     server = wire_server(inf_nan="null")
-    assert len(built) == 2  # one per service: the writer of its response, in this mode
+    # two per service: the writers of its response and of its whole reply, in this mode
+    assert len(built) == 4
     async with (
         serve(server, "127.0.0.1", 0) as running,
         srvwire.connect(running.url, type_resolver=LOADER.load_service, inf_nan="null") as client,
@@ -383,4 +384,4 @@ async def test_a_mode_builds_its_serializers_once_not_per_call(
         for _ in range(3):
             response = await client.call("/scan", Scan.Request(fill=INF))
             assert math.isnan(response.reading.value)
-    assert len(built) == 3  # and one for the client's Scan requests, when it first met Scan
+    assert len(built) == 5  # and one for the client's Scan requests, when it first met Scan

@@ -29,6 +29,7 @@ from srvwire.errors import (
     SrvwireError,
     Unauthenticated,
 )
+from srvwire.heap import keep_freed_heap
 from srvwire.loader import (
     InterfaceLoader,
     default_search_path,
@@ -99,6 +100,7 @@ __all__ = [
     "__version__",
     "connect",
     "default_search_path",
+    "keep_freed_heap",
     "load_action",
     "load_message",
     "load_service",

@@ -51,6 +51,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import difflib
+import enum
 import functools
 import inspect
 import logging
@@ -84,12 +85,13 @@ from srvwire.models import (
     Service,
     error_data,
     json_writer,
+    reply_writer,
     summarize_errors,
     unencodable_strings,
     validate_python,
     validation_errors,
 )
-from srvwire.protocol import Id, Request, canonical_name, encode_json
+from srvwire.protocol import Id, Request, canonical_name, encode_json, write_response
 from srvwire.threads import ConcurrencyLimit, SlotJob
 from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
@@ -311,6 +313,8 @@ class ServiceEntry:
     field_names: tuple[str, ...]
     write_response: Callable[[BaseModel], bytes]
     """Writes an instance of exactly ``response_model`` as JSON, in the registry's mode."""
+    write_reply: Callable[[Id, BaseModel], bytes]
+    """Writes the whole response to an id with such an instance as its result, in one pass."""
     inf_nan: InfNan
     scopes: frozenset[str] = frozenset()
     """What a connection's identity must hold to call it (empty: anyone who may connect)."""
@@ -612,6 +616,7 @@ class ServiceRegistry:
             ),
             scopes=frozenset(scopes),
             write_response=json_writer(response_model, self.inf_nan, strict=True),
+            write_reply=reply_writer(response_model, self.inf_nan, strict=True),
             inf_nan=self.inf_nan,
             limit=None if max_concurrency is None else ConcurrencyLimit(max_concurrency),
         )
@@ -725,8 +730,18 @@ def _invalid_return(
     )
 
 
+class _Alone(enum.Enum):
+    """:func:`run_handler` returns the result alone, not a whole response (its default)."""
+
+    RESULT = 0
+
+
 def _encode_response(
-    entry: ServiceEntry, result: Any, prebuilt: BaseModel | None, logger: logging.Logger | None
+    entry: ServiceEntry,
+    result: Any,
+    prebuilt: BaseModel | None,
+    logger: logging.Logger | None,
+    reply_id: Id | _Alone = _Alone.RESULT,
 ) -> bytes:
     model = entry.response_model
     if result is None:
@@ -743,9 +758,12 @@ def _encode_response(
     if isinstance(response, model):  # a model the handler built is not validated again
         try:
             if type(response) is model:
+                if reply_id is not _Alone.RESULT:
+                    return entry.write_reply(reply_id, response)
                 return entry.write_response(response)
             # A subclass: by its own class, so that the fields it adds are written too.
-            return json_writer(type(response), entry.inf_nan, strict=True)(response)
+            written = json_writer(type(response), entry.inf_nan, strict=True)(response)
+            return written if reply_id is _Alone.RESULT else write_response(reply_id, written)
         except PydanticSerializationError as exc:
             # A lone surrogate in a string passes validation and fails here; say where it is.
             reason = _reasons(unencodable_strings(response)) or str(exc)
@@ -898,13 +916,16 @@ async def run_handler(
     work: Any,
     executor: Executor | None,
     logger: logging.Logger | None,
+    reply_id: Id | _Alone = _Alone.RESULT,
 ) -> bytes:
     """:func:`dispatch`, with the call's :class:`Context` made only if something needs it.
 
     ``context_of(work)`` returns the context of the call ``work`` (making it the first time),
     and ``deadline`` is its deadline: a handler that takes no context, runs on the loop, and
     is neither cancelled nor late never has one made (the server's call runner, which keeps
-    the context on the call, passes its own ``context_of``).
+    the context on the call, passes its own ``context_of``). With a ``reply_id`` (null is one),
+    what is returned is the whole response to that id, written with the result in one pass (a large
+    result is never a separate copy), rather than the result alone.
     """
     try:  # a request read in one pass is validated already
         request = params if type(params) is entry.request_model else entry.validate(params)
@@ -939,7 +960,7 @@ async def run_handler(
         raise _handler_raised(entry, context_of(work), exc, logger) from None
     except Exception as exc:
         raise _handler_raised(entry, context_of(work), exc, logger) from None
-    return _encode_response(entry, result, prebuilt, logger)
+    return _encode_response(entry, result, prebuilt, logger, reply_id)
 
 
 async def _limited(

@@ -63,6 +63,7 @@ __all__ = [
     "DISCOVER_METHOD",
     "MAX_DEPTH",
     "SERVICES_METHOD",
+    "WHOLE_REPLY_SIZE",
     "CallWriter",
     "Decoder",
     "ErrorResponse",
@@ -161,6 +162,11 @@ class Decoder(Protocol[T_co]):
     def from_json(self, text: str) -> T_co: ...
 
     def from_data(self, data: Any) -> T_co: ...
+
+    def from_reply(self, message: str, id: int) -> T_co:
+        """The result of ``message``, a whole response to ``id``, validated with its envelope in
+        one pass; ``ValueError`` for anything else (another id, another member)."""
+        ...
 
 
 def encode_json(value: Any) -> str:
@@ -701,10 +707,19 @@ class RawReply:
         """
         if decoder is not None:
             try:
-                return decoder.from_json(self.result)
+                if len(self.message) < WHOLE_REPLY_SIZE:
+                    return decoder.from_json(self.result)
+                return decoder.from_reply(self.message, self.id)  # not sliced out: no copy
             except ValueError:
                 pass
         return self.parse().decode(decoder)
+
+
+WHOLE_REPLY_SIZE = 2**16
+"""A reply this long or longer (in characters) is validated whole, its envelope with its result,
+rather than its result sliced out first: for a large reply the slice is one more copy of it
+(docs/performance.md, "Large replies written whole"); for a small one it costs less than the
+envelope's validation."""
 
 
 def peek_reply(message: str) -> RawReply | None:

@@ -284,8 +284,15 @@ class CallRunner:
                     except TransportClosed:  # nobody to answer: do not run it
                         session.forget(call)
                         return
-                result = await run_handler(
-                    entry, call.params, call.deadline, self.context_of, call, self.executor, log
+                result = await run_handler(  # the whole response, written in one pass
+                    entry,
+                    call.params,
+                    call.deadline,
+                    self.context_of,
+                    call,
+                    self.executor,
+                    log,
+                    call.id,
                 )
                 if call.task_cancelled:  # cancelled meanwhile, and the handler finished anyway
                     await self.take_back_cancellation()
@@ -297,7 +304,7 @@ class CallRunner:
                 else:
                     if log.isEnabledFor(logging.DEBUG):
                         log.debug("%s id %r from %s: ok", entry.name, call.id, self.peer)
-                    reply = session.reply(call, result)
+                    reply = session.reply(call, result, whole=True)
                 del result  # not held through the send: a large result would be held twice
         except RPCError as exc:
             if log.isEnabledFor(logging.DEBUG):
@@ -700,9 +707,9 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
                 invalid=invalid,
             )
 
-    def reply(self, call: Call[ServiceEntry], result: bytes) -> bytes | None:
+    def reply(self, call: Call[ServiceEntry], result: bytes, whole: bool = False) -> bytes | None:
         self.outcomes[call] = "OK"
-        return super().reply(call, result)
+        return super().reply(call, result, whole)
 
     def fail(self, call: Call[ServiceEntry], error: RPCError) -> bytes | None:
         self.outcomes[call] = _outcome(error)

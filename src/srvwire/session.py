@@ -539,9 +539,10 @@ class ServerSession(Generic[E]):
 
     # --- what the runner reports ----------------------------------------------------------------
 
-    def reply(self, call: Call[E], result: bytes) -> bytes | None:
-        """Write the reply to ``call`` with ``result`` (its JSON); None while its batch waits."""
-        return self._answer(call, write_response(call.id, result))
+    def reply(self, call: Call[E], result: bytes, whole: bool = False) -> bytes | None:
+        """Write the reply to ``call`` with ``result`` (its JSON, or with ``whole`` the whole
+        response already written); None while its batch waits."""
+        return self._answer(call, result if whole else write_response(call.id, result))
 
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
         """Write the error reply to ``call``; None while its batch waits."""
