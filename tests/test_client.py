@@ -1440,6 +1440,70 @@ async def test_only_a_send_that_waits_is_bounded_by_a_timer(
     assert len(armed) == 1
 
 
+def hold_sends_until_answered(
+    client: Client, method: str, monkeypatch: pytest.MonkeyPatch
+) -> asyncio.Event:
+    """Make the client's sends of calls to ``method`` write, then wait, as backpressure holds a
+    send, until the reply has reached the client; return the event set as it does."""
+    link = client._link
+    assert link is not None
+    conn = link.conn
+    send = type(conn).send
+    receive = link.session.receive
+    answered = asyncio.Event()
+
+    def receive_and_tell(data: str | bytes) -> Any:
+        events = receive(data)
+        if any(type(event) is tuple for event in events):  # a reply a call waits for
+            answered.set()
+        return events
+
+    async def send_then_wait(self: Any, message: str | bytes) -> None:
+        await send(self, message)
+        data = message.encode() if isinstance(message, str) else message
+        if self is conn and f'"method":"{method}"'.encode() in data:
+            await answered.wait()
+
+    monkeypatch.setattr(link.session, "receive", receive_and_tell)
+    monkeypatch.setattr(type(conn), "send", send_then_wait)
+    return answered
+
+
+async def test_a_reply_that_arrives_while_the_send_waits_is_returned_at_once(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The send's wait is bounded by its own timer; the reply is there when it ends, so the
+    # call returns it without arming wait_for's timer and waiting a loop turn more.
+    peer.reply = answer_add
+    answered = hold_sends_until_answered(client, ADD, monkeypatch)
+    armed = record_calls(monkeypatch, srvwire.link, "finish_within")
+    waited = record_calls(monkeypatch, asyncio, "wait_for")
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
+    assert answered.is_set() and len(armed) == 1 and waited == []
+    assert client.in_flight == 0
+    monkeypatch.undo()
+    assert (await client.call(ADD, {"a": 2, "b": 2})).sum == 4  # a call that waits: wait_for
+    assert [(await peer.next())["method"] for _ in range(2)] == [ADD, ADD]  # no $/cancel
+
+
+async def test_an_error_that_arrives_while_the_send_waits_is_raised_at_once(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async def refuse(ws: ServerConnection, message: dict[str, Any]) -> None:
+        if "id" not in message:
+            return
+        error = {"code": -32602, "message": "no", "data": {"status": "INVALID_PARAMS"}}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "error": error}))
+
+    peer.reply = refuse
+    hold_sends_until_answered(client, ADD, monkeypatch)
+    waited = record_calls(monkeypatch, asyncio, "wait_for")
+    with pytest.raises(InvalidParams) as caught:
+        await client.call(ADD, {"a": 1, "b": 2})
+    assert (caught.value.message, caught.value.service) == ("no", ADD)
+    assert waited == [] and client.in_flight == 0
+
+
 # --- options and payload never share a namespace --------------------------------------------
 
 OPTIONS_AS_FIELDS = """\

@@ -442,6 +442,10 @@ class Link:
             sending = first_step(self.conn.send(data))
             if isinstance(sending, Pending):
                 await finish_within(sending, deadline - loop.time())
+            if future.done():
+                # Answered (or failed) while the send waited: wait_for would return just this,
+                # after arming a timer and waiting a loop turn (Python 3.11's does not look).
+                return future.result()
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
             if task.cancelling() > cancelling:
