@@ -701,7 +701,7 @@ class RawReply:
         """
         if decoder is not None:
             try:
-                return decoder.from_json(self.result)
+                return decoder.from_json(self.message[self.start : -1])  # self.result
             except ValueError:
                 pass
         return self.parse().decode(decoder)
