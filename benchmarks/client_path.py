@@ -6,7 +6,8 @@ each request it is sent with the small ``RobotStateQuery`` reply a srvwire serve
 replies to the requests of one turn of the loop arrive together at the next turn, in one
 callback, as one socket read would bring them: queued for the client's reader task, or with
 ``--push`` handed to the client one by one from that callback (``Connection.deliver_to``, as
-the picows transport does, where the client asks for it). What is measured is everything the
+the picows transport does, where the client asks for it). With ``--proxy`` the calls go
+through a :class:`~srvwire.client.ServiceProxy` made once. What is measured is everything the
 client does per call above the transport: ``Client.call``, the link, the session, writing the
 request, the deadline, routing and decoding the reply, asyncio's futures and timers.
 
@@ -44,7 +45,7 @@ PIPELINE = 64  # calls in flight in the pipelined shape, as W2
 TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 
-def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
+def measure(calls: int, shapes: list[str], push: bool, proxy: bool = False) -> dict[str, float]:
     """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call."""
     from srvwire.client import connect
     from srvwire.protocol import services_notification
@@ -154,11 +155,19 @@ def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
         request = RobotStateQuery.Request(**SMALL_REQUEST)
         figures: dict[str, float] = {}
         async with connect("ws://fake", transport=Fake(), timeout=TIMEOUT) as client:
+            proxied = client.proxy(SERVICE)
 
-            async def caller(n: int) -> None:
+            async def calling(n: int) -> None:
                 for _ in range(n):
                     reply = await client.call(SERVICE, request)
                     assert type(reply) is RobotStateQuery.Response
+
+            async def proxying(n: int) -> None:
+                for _ in range(n):
+                    reply = await proxied(request)
+                    assert type(reply) is RobotStateQuery.Response
+
+            caller = proxying if proxy else calling
 
             await caller(200)  # warm up: the type, the fingerprint check, caches
             for shape in shapes:
@@ -172,7 +181,14 @@ def measure(calls: int, shapes: list[str], push: bool) -> dict[str, float]:
     return asyncio.run(run())
 
 
-def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[str] = ()) -> Any:
+def child(
+    src: str,
+    calls: int,
+    shapes: list[str],
+    push: bool,
+    prefix: Sequence[str] = (),
+    proxy: bool = False,
+) -> Any:
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
     printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), str(HERE)]))
@@ -180,6 +196,8 @@ def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[
     command = [sys.executable, __file__, "--child", "--calls", str(calls)]
     if push:
         command.append("--push")
+    if proxy:
+        command.append("--proxy")
     done = subprocess.run(
         [*prefix, *command, "--shapes", ",".join(shapes)],
         env=env,
@@ -192,12 +210,12 @@ def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[
     return json.loads(done.stdout.splitlines()[-1]), done.stderr
 
 
-def instructions(src: str, calls: int, shape: str, push: bool) -> float:
+def instructions(src: str, calls: int, shape: str, push: bool, proxy: bool = False) -> float:
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], push, VALGRIND)
+        _, err = child(src, n, [shape], push, VALGRIND, proxy)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -227,25 +245,31 @@ def main() -> None:
         "asks for it (Connection.deliver_to, as the picows transport does), instead of "
         "queueing it for the client's reader task",
     )
+    parser.add_argument(
+        "--proxy",
+        action="store_true",
+        help="call through a ServiceProxy (client.proxy(name)(request)) instead of client.call",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     shapes = args.shapes.split(",")
     if args.child:
-        print(json.dumps(measure(args.calls, shapes, args.push)))
+        print(json.dumps(measure(args.calls, shapes, args.push, args.proxy)))
         return
     sources = args.src or [str(HERE.parent / "src")]
     if args.instructions:
         calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
         for shape in shapes:
             print(f"{shape} (instructions per call, valgrind)")
-            counts = [instructions(src, calls, shape, args.push) for src in sources]
+            counts = [instructions(src, calls, shape, args.push, args.proxy) for src in sources]
             for src, count in zip(sources, counts, strict=True):
                 print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
         return
     runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
     for _ in range(args.repeat):
         for src in sources:
-            for shape, value in child(src, args.calls, shapes, args.push)[0].items():
+            measured = child(src, args.calls, shapes, args.push, proxy=args.proxy)[0]
+            for shape, value in measured.items():
                 runs[src][shape].append(value)
     first = sources[0]
     for shape in shapes:

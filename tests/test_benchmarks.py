@@ -252,7 +252,7 @@ def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> N
         assert 0 < row["min_us"] <= row["median_us"]
 
 
-@pytest.mark.parametrize("push", [[], ["--push"]])
+@pytest.mark.parametrize("push", [[], ["--push"], ["--proxy"]])
 def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> None:
     # A smoke run of the in-process client benchmark, the same tree twice: every call got
     # its typed reply (the child asserts it), and each tree has a figure and a ratio.
