@@ -11,10 +11,13 @@ through a :class:`~srvwire.client.ServiceProxy` made once. What is measured is e
 client does per call above the transport: ``Client.call``, the link, the session, writing the
 request, the deadline, routing and decoding the reply, asyncio's futures and timers.
 
-Two shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
+Shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
 
 * **pipelined**: 64 tasks call in a loop, so 64 calls are in flight, as in the harness's W2;
-* **sequential**: one task calls in a loop, one call at a time, as in W1.
+* **sequential**: one task calls in a loop, one call at a time, as in W1;
+* **fan-in** (asked for with ``--shapes``): 100 connections, each with its own fake
+  connection, reader and caller calling one call at a time, as in W3 (here every connection's
+  reply arrives in the same loop turn, as if the server answered them all at once).
 
 Several source trees can be compared in the same run (``--src old/src --src src``): each is
 measured in a child process of its own, first on ``sys.path``, and the trees alternate within
@@ -36,12 +39,14 @@ import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
+from contextlib import AsyncExitStack
 from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
 PIPELINE = 64  # calls in flight in the pipelined shape, as W2
+FAN_IN = 100  # connections in the fan-in shape, as W3
 TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 
@@ -151,31 +156,43 @@ def measure(calls: int, shapes: list[str], push: bool, proxy: bool = False) -> d
         def check_url(self, url: str) -> None:
             return None
 
-    async def run() -> dict[str, float]:
+    def caller(client: Any) -> Callable[[int], Awaitable[None]]:
+        """``n`` calls one after the other on ``client``: ``client.call(SERVICE, request)``,
+        or the same through a ServiceProxy made once."""
         request = RobotStateQuery.Request(**SMALL_REQUEST)
+        proxied = client.proxy(SERVICE)
+
+        async def calling(n: int) -> None:
+            for _ in range(n):
+                reply = await client.call(SERVICE, request)
+                assert type(reply) is RobotStateQuery.Response
+
+        async def proxying(n: int) -> None:
+            for _ in range(n):
+                reply = await proxied(request)
+                assert type(reply) is RobotStateQuery.Response
+
+        return proxying if proxy else calling
+
+    async def run() -> dict[str, float]:
         figures: dict[str, float] = {}
-        async with connect("ws://fake", transport=Fake(), timeout=TIMEOUT) as client:
-            proxied = client.proxy(SERVICE)
-
-            async def calling(n: int) -> None:
-                for _ in range(n):
-                    reply = await client.call(SERVICE, request)
-                    assert type(reply) is RobotStateQuery.Response
-
-            async def proxying(n: int) -> None:
-                for _ in range(n):
-                    reply = await proxied(request)
-                    assert type(reply) is RobotStateQuery.Response
-
-            caller = proxying if proxy else calling
-
-            await caller(200)  # warm up: the type, the fingerprint check, caches
+        async with AsyncExitStack() as stack:
+            clients = []
+            for _ in range(FAN_IN if "fan-in" in shapes else 1):
+                opened = connect("ws://fake", transport=Fake(), timeout=TIMEOUT)
+                clients.append(await stack.enter_async_context(opened))
+            for client in clients:
+                await caller(client)(200)  # warm up: the type, the fingerprint check, caches
             for shape in shapes:
-                tasks = PIPELINE if shape == "pipelined" else 1
+                if shape == "fan-in":  # one caller per connection
+                    callers = [caller(client) for client in clients]
+                else:
+                    callers = [caller(clients[0])] * (PIPELINE if shape == "pipelined" else 1)
+                each = calls // len(callers)
                 started = time.process_time()
-                await asyncio.gather(*(caller(calls // tasks) for _ in range(tasks)))
+                await asyncio.gather(*(call(each) for call in callers))
                 spent = time.process_time() - started
-                figures[shape] = spent / (calls // tasks * tasks) * 1e6
+                figures[shape] = spent / (each * len(callers)) * 1e6
         return figures
 
     return asyncio.run(run())

@@ -252,14 +252,23 @@ def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> N
         assert 0 < row["min_us"] <= row["median_us"]
 
 
-@pytest.mark.parametrize("push", [[], ["--push"], ["--proxy"]])
-def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> None:
+@pytest.mark.parametrize(
+    ("options", "shapes"),
+    [
+        ([], ["pipelined", "sequential"]),
+        (["--push"], ["pipelined", "sequential"]),
+        (["--proxy", "--shapes", "sequential,fan-in"], ["sequential", "fan-in"]),
+    ],
+)
+def test_the_client_path_benchmark_compares_source_trees(
+    options: list[str], shapes: list[str]
+) -> None:
     # A smoke run of the in-process client benchmark, the same tree twice: every call got
     # its typed reply (the child asserts it), and each tree has a figure and a ratio.
     src = str(ROOT / "src")
-    sources = ["--repeat", "1", "--src", src, "--src", src, *push]
+    sources = ["--repeat", "1", "--src", src, "--src", src, *options]
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "640", *sources],
+        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "800", *sources],
         capture_output=True,
         text=True,
         timeout=scaled(120),
@@ -268,10 +277,7 @@ def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> Non
     )
     assert result.returncode == 0, result.stdout + result.stderr
     lines = result.stdout.splitlines()
-    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == [
-        "pipelined",
-        "sequential",
-    ]
+    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == shapes
     rows = [line.split() for line in lines if line.startswith(" ")]
     assert len(rows) == 4
     for row in rows:
