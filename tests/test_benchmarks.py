@@ -283,3 +283,25 @@ def test_the_client_path_benchmark_compares_source_trees(
     for row in rows:
         assert float(row[0]) > 0 and row[1] == "ratio" and row[3] == src
     assert rows[0][2] == rows[2][2] == "1.000"
+
+
+def test_the_deadline_cost_benchmark_measures_every_way_of_waiting() -> None:
+    # A smoke run: each way of waiting ran in its child (each awaited its future) and has a
+    # figure, the ones after the first beside what they cost more than awaiting alone.
+    options = ["--cpu", "--calls", "200", "--repeat", "1"]
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "deadline_cost.py"), *options],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    header, *lines = result.stdout.splitlines()
+    assert header.startswith("Python 3.") and "µs of CPU per await" in header
+    rows = [line.split() for line in lines]
+    assert [row[0] for row in rows] == ["await", "wait_for", "timeout", "timer", "wait_for-done"]
+    for row in rows:
+        assert float(row[1]) > 0 and row[2] == "extra"
+    assert float(rows[0][3]) == 0.0
