@@ -604,22 +604,43 @@ async def test_cancelling_the_caller_cancels_the_call_on_the_server(
     assert client.in_flight == 0
 
 
+class Routed(dict[int, Any]):
+    """A session's pending calls that call ``routed`` each time a call is taken out of them
+    (as the reader routes a reply to it, or as it is given up)."""
+
+    def __init__(self, pending: dict[int, Any], routed: Callable[[], None]) -> None:
+        super().__init__(pending)
+        self.routed = routed
+
+    def pop(self, key: int, default: Any = None) -> Any:
+        waiter = super().pop(key, None)
+        if waiter is None:
+            return default
+        self.routed()
+        return waiter
+
+
+def when_routed(client: Client, routed: Callable[[], None]) -> None:
+    """Call ``routed`` each time a call is taken out of the client's pending calls: when its
+    reply reaches the reader, just before the reader resolves the call (or as it is given
+    up)."""
+    session = client._link.session  # type: ignore[union-attr]
+    session.pending = Routed(session.pending, routed)
+
+
 def call_cancelled_as_answered(client: Client, monkeypatch: pytest.MonkeyPatch) -> Any:
     """Start ``client.call(ADD, a=1, b=2)`` in a task, cancelled in the step its reply arrives.
 
-    The reader resolves the call, then at once (before the call resumes) its task is cancelled.
+    The reader takes the call out of the pending calls, and at once (before it resolves the
+    call, so before the call resumes) the call's task is cancelled.
     """
-    session = client._link.session  # type: ignore[union-attr]
-    receive = session.receive
     call: asyncio.Task[Any] | None = None
 
-    def receive_then_cancel(data: str | bytes) -> Any:
-        events = receive(data)
-        if call is not None and client.in_flight == 0:
+    def cancel() -> None:
+        if call is not None and not call.done() and not call.cancelling():
             call.cancel()
-        return events
 
-    monkeypatch.setattr(session, "receive", receive_then_cancel)
+    when_routed(client, cancel)
     call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
     return call
 
@@ -1449,14 +1470,8 @@ def hold_sends_until_answered(
     assert link is not None
     conn = link.conn
     send = type(conn).send
-    receive = link.session.receive
     answered = asyncio.Event()
-
-    def receive_and_tell(data: str | bytes) -> Any:
-        events = receive(data)
-        if any(type(event) is tuple for event in events):  # a reply a call waits for
-            answered.set()
-        return events
+    when_routed(client, answered.set)
 
     async def send_then_wait(self: Any, message: str | bytes) -> None:
         await send(self, message)
@@ -1464,7 +1479,6 @@ def hold_sends_until_answered(
         if self is conn and f'"method":"{method}"'.encode() in data:
             await answered.wait()
 
-    monkeypatch.setattr(link.session, "receive", receive_and_tell)
     monkeypatch.setattr(type(conn), "send", send_then_wait)
     return answered
 

@@ -47,11 +47,13 @@ from srvwire.errors import (
 from srvwire.goals import FEEDBACK_METHOD, GOAL_METHOD, GoalNews, goal_news
 from srvwire.inline import Pending, finish_within, first_step
 from srvwire.protocol import (
+    REPLY_OPENING,
     ErrorResponse,
     ProtocolViolation,
     RawReply,
     Response,
     cancel_notification,
+    peek_reply,
 )
 from srvwire.session import (
     ClientSession,
@@ -281,6 +283,16 @@ class Link:
         if not self.live:
             return
         try:
+            if type(data) is str and data.startswith(REPLY_OPENING):
+                # The common case, a result written as a srvwire server writes it: straight to
+                # its call, as receive() would route it, without its list of events.
+                raw = peek_reply(data)
+                if raw is not None:
+                    future = self.session.pending.pop(raw.id, None)
+                    if future is not None:
+                        if not future.done():
+                            future.set_result(raw)
+                        return
             try:
                 events = self.session.receive(data)
             except ProtocolViolation as exc:

@@ -62,6 +62,7 @@ __all__ = [
     "CANCEL_METHOD",
     "DISCOVER_METHOD",
     "MAX_DEPTH",
+    "REPLY_OPENING",
     "SERVICES_METHOD",
     "CallWriter",
     "Decoder",
@@ -646,6 +647,9 @@ def parse_replies(data: str | bytes) -> list[Response | ErrorResponse | Notifica
 # The opening of the response a srvwire server writes for one of the client's calls (see
 # Response.serialize), up to its result: the id is one the client made, a positive integer.
 _RESULT_OPENING = re.compile(r'\{"jsonrpc":"2\.0","id":([1-9][0-9]{0,17}),"result":')
+
+REPLY_OPENING = '{"jsonrpc":"2.0","id":'
+"""How every message :func:`peek_reply` recognises begins (a cheap test before it)."""
 
 
 @dataclass(slots=True)
