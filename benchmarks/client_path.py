@@ -6,7 +6,8 @@ each request it is sent with the small ``RobotStateQuery`` reply a srvwire serve
 replies to the requests of one turn of the loop arrive together at the next turn, in one
 callback, as one socket read would bring them: queued for the client's reader task, or with
 ``--push`` handed to the client one by one from that callback (``Connection.deliver_to``, as
-both network transports do, where the client asks for it). What is measured is everything the
+both network transports do, where the client asks for it). With ``--proxy`` the calls go
+through a :class:`~srvwire.client.ServiceProxy` made once. What is measured is everything the
 client does per call above the transport: ``Client.call``, the link, the session, writing the
 request, the deadline, routing and decoding the reply, asyncio's futures and timers.
 
@@ -15,10 +16,13 @@ the harness's ``srvwire_server.py`` started in a process of its own (this checko
 not measured), over that transport on 127.0.0.1: what is measured is then the client's whole
 path, its transport's reading and writing included, as ``client.call`` pays it on a socket.
 
-Two shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
+Shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.process_time``):
 
 * **pipelined**: 64 tasks call in a loop, so 64 calls are in flight, as in the harness's W2;
-* **sequential**: one task calls in a loop, one call at a time, as in W1.
+* **sequential**: one task calls in a loop, one call at a time, as in W1;
+* **fan-in** (asked for with ``--shapes``): 100 connections, each with its own fake
+  connection, reader and caller calling one call at a time, as in W3 (here every connection's
+  reply arrives in the same loop turn, as if the server answered them all at once).
 
 Several source trees can be compared in the same run (``--src old/src --src src``): each is
 measured in a child process of its own, first on ``sys.path``, and the trees alternate within
@@ -42,17 +46,19 @@ import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Awaitable, Callable, Iterator, Sequence
+from contextlib import AsyncExitStack
 from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
 PIPELINE = 64  # calls in flight in the pipelined shape, as W2
+FAN_IN = 100  # connections in the fan-in shape, as W3
 TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 
 def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
-            transport: str = "websockets") -> dict[str, float]:  # fmt: skip
+            transport: str = "websockets", proxy: bool = False) -> dict[str, float]:  # fmt: skip
     """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call
     (``url``: of a real server, on ``transport``)."""
     from srvwire.client import connect
@@ -159,35 +165,61 @@ def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
         def check_url(self, url: str) -> None:
             return None
 
-    async def run() -> dict[str, float]:
+    def caller(client: Any) -> Callable[[int], Awaitable[None]]:
+        """``n`` calls one after the other on ``client``: ``client.call(SERVICE, request)``,
+        or the same through a ServiceProxy made once."""
         request = RobotStateQuery.Request(**SMALL_REQUEST)
+        proxied = client.proxy(SERVICE)
+
+        async def calling(n: int) -> None:
+            for _ in range(n):
+                reply = await client.call(SERVICE, request)
+                assert type(reply) is RobotStateQuery.Response
+
+        async def proxying(n: int) -> None:
+            for _ in range(n):
+                reply = await proxied(request)
+                assert type(reply) is RobotStateQuery.Response
+
+        return proxying if proxy else calling
+
+    async def run() -> dict[str, float]:
         figures: dict[str, float] = {}
-        opening = (
-            connect("ws://fake", transport=Fake(), timeout=TIMEOUT)
-            if url is None
-            else connect(url, transport=transport, timeout=TIMEOUT)
-        )
-        async with opening as client:
-
-            async def caller(n: int) -> None:
-                for _ in range(n):
-                    reply = await client.call(SERVICE, request)
-                    assert type(reply) is RobotStateQuery.Response
-
-            await caller(200)  # warm up: the type, the fingerprint check, caches
+        async with AsyncExitStack() as stack:
+            clients = []
+            for _ in range(FAN_IN if "fan-in" in shapes else 1):
+                opened = (
+                    connect("ws://fake", transport=Fake(), timeout=TIMEOUT)
+                    if url is None
+                    else connect(url, transport=transport, timeout=TIMEOUT)
+                )
+                clients.append(await stack.enter_async_context(opened))
+            for client in clients:
+                await caller(client)(200)  # warm up: the type, the fingerprint check, caches
             for shape in shapes:
-                tasks = PIPELINE if shape == "pipelined" else 1
+                if shape == "fan-in":  # one caller per connection
+                    callers = [caller(client) for client in clients]
+                else:
+                    callers = [caller(clients[0])] * (PIPELINE if shape == "pipelined" else 1)
+                each = calls // len(callers)
                 started = time.process_time()
-                await asyncio.gather(*(caller(calls // tasks) for _ in range(tasks)))
+                await asyncio.gather(*(call(each) for call in callers))
                 spent = time.process_time() - started
-                figures[shape] = spent / (calls // tasks * tasks) * 1e6
+                figures[shape] = spent / (each * len(callers)) * 1e6
         return figures
 
     return asyncio.run(run())
 
 
-def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[str] = (),
-          server: Sequence[str] = ()) -> Any:  # fmt: skip
+def child(
+    src: str,
+    calls: int,
+    shapes: list[str],
+    push: bool,
+    prefix: Sequence[str] = (),
+    server: Sequence[str] = (),
+    proxy: bool = False,
+) -> Any:
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
     printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under;
     ``server``: the options naming the real server, if any)."""
@@ -196,6 +228,8 @@ def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[
     command = [sys.executable, __file__, "--child", "--calls", str(calls)]
     if push:
         command.append("--push")
+    if proxy:
+        command.append("--proxy")
     done = subprocess.run(
         [*prefix, *command, "--shapes", ",".join(shapes), *server],
         env=env,
@@ -208,12 +242,13 @@ def child(src: str, calls: int, shapes: list[str], push: bool, prefix: Sequence[
     return json.loads(done.stdout.splitlines()[-1]), done.stderr
 
 
-def instructions(src: str, calls: int, shape: str, push: bool, server: Sequence[str]) -> float:
+def instructions(src: str, calls: int, shape: str, push: bool, server: Sequence[str],
+                 proxy: bool = False) -> float:  # fmt: skip
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], push, VALGRIND, server)
+        _, err = child(src, n, [shape], push, VALGRIND, server, proxy)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -268,13 +303,20 @@ def main() -> None:
         choices=["websockets", "picows"],
         help="call a real srvwire server on this transport instead of the fake connection",
     )
+    parser.add_argument(
+        "--proxy",
+        action="store_true",
+        help="call through a ServiceProxy (client.proxy(name)(request)) instead of client.call",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--url", help=argparse.SUPPRESS)
     parser.add_argument("--transport", default="websockets", help=argparse.SUPPRESS)
     args = parser.parse_args()
     shapes = args.shapes.split(",")
     if args.child:
-        print(json.dumps(measure(args.calls, shapes, args.push, args.url, args.transport)))
+        print(
+            json.dumps(measure(args.calls, shapes, args.push, args.url, args.transport, args.proxy))
+        )
         return
     with contextlib.ExitStack() as stack:
         server = [] if args.server is None else stack.enter_context(real_server(args.server))
@@ -290,14 +332,17 @@ def report(
         calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
         for shape in shapes:
             print(f"{shape} (instructions per call, valgrind)")
-            counts = [instructions(src, calls, shape, args.push, server) for src in sources]
+            counts = [
+                instructions(src, calls, shape, args.push, server, args.proxy) for src in sources
+            ]
             for src, count in zip(sources, counts, strict=True):
                 print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
         return
     runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
     for _ in range(args.repeat):
         for src in sources:
-            for shape, value in child(src, args.calls, shapes, args.push, (), server)[0].items():
+            measured = child(src, args.calls, shapes, args.push, (), server, args.proxy)[0]
+            for shape, value in measured.items():
                 runs[src][shape].append(value)
     first = sources[0]
     for shape in shapes:

@@ -1,8 +1,9 @@
 """The srvwire side's client: ``srvwire.client.connect`` and ``client.call``, as a user writes them.
 
 Each call passes a typed ``RobotStateQuery.Request`` (built once) and gets the typed
-``Response`` back, with the call's deadline enforced by the client. The only option changed
-from the defaults is ``max_message_size``, so W4's 1.7 MB replies are accepted.
+``Response`` back, with the call's deadline enforced by the client: the client's default,
+given once to ``connect``. The only option changed from the defaults is
+``max_message_size``, so W4's 1.7 MB replies are accepted.
 ``--transport picows`` connects on the native transport instead of ``websockets``;
 ``--keep-heap`` calls ``srvwire.keep_freed_heap()`` first.
 """
@@ -24,7 +25,7 @@ async def open_connection(url: str, stack: AsyncExitStack, transport: str) -> Ca
     client = await stack.enter_async_context(
         connect(url, timeout=CALL_TIMEOUT, max_message_size=MAX_MESSAGE, transport=transport)
     )
-    return functools.partial(client.call, SERVICE, timeout=CALL_TIMEOUT)
+    return functools.partial(client.call, SERVICE)  # the deadline: the client's, set above
 
 
 if __name__ == "__main__":

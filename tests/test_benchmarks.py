@@ -253,16 +253,25 @@ def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize(
-    "push", [[], ["--push"], ["--server", "websockets"]], ids=["recv", "push", "server"]
+    ("options", "shapes"),
+    [
+        ([], ["pipelined", "sequential"]),
+        (["--push"], ["pipelined", "sequential"]),
+        (["--proxy", "--shapes", "sequential,fan-in"], ["sequential", "fan-in"]),
+        (["--server", "websockets"], ["pipelined", "sequential"]),
+    ],
+    ids=["recv", "push", "proxy-fan-in", "server"],
 )
-def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> None:
+def test_the_client_path_benchmark_compares_source_trees(
+    options: list[str], shapes: list[str]
+) -> None:
     # A smoke run of the in-process client benchmark, the same tree twice: every call got
     # its typed reply (the child asserts it), and each tree has a figure and a ratio. With
     # --server, the calls go to a real server over the transport, which is stopped after.
     src = str(ROOT / "src")
-    sources = ["--repeat", "1", "--src", src, "--src", src, *push]
+    sources = ["--repeat", "1", "--src", src, "--src", src, *options]
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "640", *sources],
+        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "800", *sources],
         capture_output=True,
         text=True,
         timeout=scaled(120),
@@ -271,10 +280,7 @@ def test_the_client_path_benchmark_compares_source_trees(push: list[str]) -> Non
     )
     assert result.returncode == 0, result.stdout + result.stderr
     lines = result.stdout.splitlines()
-    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == [
-        "pipelined",
-        "sequential",
-    ]
+    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == shapes
     rows = [line.split() for line in lines if line.startswith(" ")]
     assert len(rows) == 4
     for row in rows:
@@ -303,3 +309,25 @@ def test_the_large_reply_steps_agree_both_ways_and_are_measured() -> None:
             ["read", "whole"],
         ]
         assert all(float(row[2]) >= 0 and float(row[3]) > 0 for row in rows)
+
+
+def test_the_deadline_cost_benchmark_measures_every_way_of_waiting() -> None:
+    # A smoke run: each way of waiting ran in its child (each awaited its future) and has a
+    # figure, the ones after the first beside what they cost more than awaiting alone.
+    options = ["--cpu", "--calls", "200", "--repeat", "1"]
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "deadline_cost.py"), *options],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    header, *lines = result.stdout.splitlines()
+    assert header.startswith("Python 3.") and "µs of CPU per await" in header
+    rows = [line.split() for line in lines]
+    assert [row[0] for row in rows] == ["await", "wait_for", "timeout", "timer", "wait_for-done"]
+    for row in rows:
+        assert float(row[1]) > 0 and row[2] == "extra"
+    assert float(rows[0][3]) == 0.0

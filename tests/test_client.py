@@ -604,22 +604,43 @@ async def test_cancelling_the_caller_cancels_the_call_on_the_server(
     assert client.in_flight == 0
 
 
+class Routed(dict[int, Any]):
+    """A session's pending calls that call ``routed`` each time a call is taken out of them
+    (as the reader routes a reply to it, or as it is given up)."""
+
+    def __init__(self, pending: dict[int, Any], routed: Callable[[], None]) -> None:
+        super().__init__(pending)
+        self.routed = routed
+
+    def pop(self, key: int, default: Any = None) -> Any:
+        waiter = super().pop(key, None)
+        if waiter is None:
+            return default
+        self.routed()
+        return waiter
+
+
+def when_routed(client: Client, routed: Callable[[], None]) -> None:
+    """Call ``routed`` each time a call is taken out of the client's pending calls: when its
+    reply reaches the reader, just before the reader resolves the call (or as it is given
+    up)."""
+    session = client._link.session  # type: ignore[union-attr]
+    session.pending = Routed(session.pending, routed)
+
+
 def call_cancelled_as_answered(client: Client, monkeypatch: pytest.MonkeyPatch) -> Any:
     """Start ``client.call(ADD, a=1, b=2)`` in a task, cancelled in the step its reply arrives.
 
-    The reader resolves the call, then at once (before the call resumes) its task is cancelled.
+    The reader takes the call out of the pending calls, and at once (before it resolves the
+    call, so before the call resumes) the call's task is cancelled.
     """
-    session = client._link.session  # type: ignore[union-attr]
-    receive = session.receive
     call: asyncio.Task[Any] | None = None
 
-    def receive_then_cancel(data: str | bytes) -> Any:
-        events = receive(data)
-        if call is not None and client.in_flight == 0:
+    def cancel() -> None:
+        if call is not None and not call.done() and not call.cancelling():
             call.cancel()
-        return events
 
-    monkeypatch.setattr(session, "receive", receive_then_cancel)
+    when_routed(client, cancel)
     call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
     return call
 
@@ -1438,6 +1459,63 @@ async def test_only_a_send_that_waits_is_bounded_by_a_timer(
     with pytest.raises(DeadlineExceeded):
         await client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(0.2))
     assert len(armed) == 1
+
+
+def hold_sends_until_answered(
+    client: Client, method: str, monkeypatch: pytest.MonkeyPatch
+) -> asyncio.Event:
+    """Make the client's sends of calls to ``method`` write, then wait, as backpressure holds a
+    send, until the reply has reached the client; return the event set as it does."""
+    link = client._link
+    assert link is not None
+    conn = link.conn
+    send = type(conn).send
+    answered = asyncio.Event()
+    when_routed(client, answered.set)
+
+    async def send_then_wait(self: Any, message: str | bytes) -> None:
+        await send(self, message)
+        data = message.encode() if isinstance(message, str) else message
+        if self is conn and f'"method":"{method}"'.encode() in data:
+            await answered.wait()
+
+    monkeypatch.setattr(type(conn), "send", send_then_wait)
+    return answered
+
+
+async def test_a_reply_that_arrives_while_the_send_waits_is_returned_at_once(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The send's wait is bounded by its own timer; the reply is there when it ends, so the
+    # call returns it without arming wait_for's timer and waiting a loop turn more.
+    peer.reply = answer_add
+    answered = hold_sends_until_answered(client, ADD, monkeypatch)
+    armed = record_calls(monkeypatch, srvwire.link, "finish_within")
+    waited = record_calls(monkeypatch, asyncio, "wait_for")
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
+    assert answered.is_set() and len(armed) == 1 and waited == []
+    assert client.in_flight == 0
+    monkeypatch.undo()
+    assert (await client.call(ADD, {"a": 2, "b": 2})).sum == 4  # a call that waits: wait_for
+    assert [(await peer.next())["method"] for _ in range(2)] == [ADD, ADD]  # no $/cancel
+
+
+async def test_an_error_that_arrives_while_the_send_waits_is_raised_at_once(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async def refuse(ws: ServerConnection, message: dict[str, Any]) -> None:
+        if "id" not in message:
+            return
+        error = {"code": -32602, "message": "no", "data": {"status": "INVALID_PARAMS"}}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "error": error}))
+
+    peer.reply = refuse
+    hold_sends_until_answered(client, ADD, monkeypatch)
+    waited = record_calls(monkeypatch, asyncio, "wait_for")
+    with pytest.raises(InvalidParams) as caught:
+        await client.call(ADD, {"a": 1, "b": 2})
+    assert (caught.value.message, caught.value.service) == ("no", ADD)
+    assert waited == [] and client.in_flight == 0
 
 
 # --- options and payload never share a namespace --------------------------------------------

@@ -74,6 +74,10 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/large_path\.py( .*)?": (
         "W4's two steps in one process, both ways: tests/test_benchmarks.py runs it small"
     ),
+    r"\.venv/bin/python benchmarks/deadline_cost\.py( .*)?": (
+        "what each way of awaiting a reply costs asyncio, counted by valgrind: a minute long; "
+        "tests/test_benchmarks.py runs it small"
+    ),
     r"MALLOC_TOP_PAD_=\d+ \.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness with the heap kept: minutes long; tests/test_benchmarks.py runs it"
     ),

@@ -1483,20 +1483,24 @@ class ServiceProxy(Generic[R]):
         self.timeout = None if timeout is None else check_timeout(timeout)
         self.wait_for_ready = wait_for_ready
 
-    async def __call__(
+    def __call__(
         self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
-    ) -> R:
-        """Call the service; see :meth:`Client.call`."""
+    ) -> Coroutine[Any, Any, R]:
+        """Call the service; see :meth:`Client.call`.
+
+        The call itself, to await: a proxy adds no coroutine of its own. Passing both a
+        request and fields raises ``TypeError`` at once.
+        """
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
-        response: R = await self.client.call(
+        call: Coroutine[Any, Any, R] = self.client.call(
             self.name,
             fields if request is None else request,
             timeout=self.timeout,
             srv_type=self.srv_type,
             wait_for_ready=self.wait_for_ready,
         )
-        return response
+        return call
 
     async def wait_for_service(
         self,

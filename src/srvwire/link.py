@@ -1,12 +1,12 @@
 """One open connection of a client: the transport's, its session, and its one reader task.
 
 A :class:`Link` lives as long as its connection. The reader is the only code that receives: it
-hands each message to the :class:`~srvwire.session.ClientSession`, resolves the future of the
-call a reply belongs to (a srvwire-shaped response unparsed), and tells its :class:`Owner`
-(the client) when the services change or the connection ends. On a transport that hands
-messages over as they arrive (picows), the reader takes them in the transport's read
-callback (:meth:`Link.take`), and its task only waits for the end. :meth:`Link.roundtrip` is one
-call's send and wait.
+resolves the future of the call a reply belongs to (a srvwire-shaped response unparsed, routed
+by its opening; anything else through the :class:`~srvwire.session.ClientSession`, which
+routes it the same way), and tells its :class:`Owner` (the client) when the services change
+or the connection ends. On a transport that hands messages over as they arrive (picows), the
+reader takes them in the transport's read callback (:meth:`Link.take`), and its task only
+waits for the end. :meth:`Link.roundtrip` is one call's send and wait.
 
 Invariants:
 
@@ -47,11 +47,13 @@ from srvwire.errors import (
 from srvwire.goals import FEEDBACK_METHOD, GOAL_METHOD, GoalNews, goal_news
 from srvwire.inline import Pending, finish_within, first_step
 from srvwire.protocol import (
+    REPLY_OPENING,
     ErrorResponse,
     ProtocolViolation,
     RawReply,
     Response,
     cancel_notification,
+    peek_reply,
 )
 from srvwire.session import (
     ClientSession,
@@ -281,6 +283,16 @@ class Link:
         if not self.live:
             return
         try:
+            if type(data) is str and data.startswith(REPLY_OPENING):
+                # The common case, a result written as a srvwire server writes it: straight to
+                # its call, as receive() would route it, without its list of events.
+                raw = peek_reply(data)
+                if raw is not None:
+                    future = self.session.pending.pop(raw.id, None)
+                    if future is not None:
+                        if not future.done():
+                            future.set_result(raw)
+                        return
             try:
                 events = self.session.receive(data)
             except ProtocolViolation as exc:
@@ -442,6 +454,10 @@ class Link:
             sending = first_step(self.conn.send(data))
             if isinstance(sending, Pending):
                 await finish_within(sending, deadline - loop.time())
+            if future.done():
+                # Answered (or failed) while the send waited: wait_for would return just this,
+                # after arming a timer and waiting a loop turn (Python 3.11's does not look).
+                return future.result()
             # On a future, wait_for creates no task: a timer and a done callback.
             reply = await asyncio.wait_for(future, deadline - loop.time())
             if task.cancelling() > cancelling:

@@ -62,6 +62,7 @@ __all__ = [
     "CANCEL_METHOD",
     "DISCOVER_METHOD",
     "MAX_DEPTH",
+    "REPLY_OPENING",
     "SERVICES_METHOD",
     "WHOLE_REPLY_SIZE",
     "CallWriter",
@@ -653,6 +654,9 @@ def parse_replies(data: str | bytes) -> list[Response | ErrorResponse | Notifica
 # Response.serialize), up to its result: the id is one the client made, a positive integer.
 _RESULT_OPENING = re.compile(r'\{"jsonrpc":"2\.0","id":([1-9][0-9]{0,17}),"result":')
 
+REPLY_OPENING = '{"jsonrpc":"2.0","id":'
+"""How every message :func:`peek_reply` recognises begins (a cheap test before it)."""
+
 
 @dataclass(slots=True)
 class RawReply:
@@ -708,7 +712,7 @@ class RawReply:
         if decoder is not None:
             try:
                 if len(self.message) < WHOLE_REPLY_SIZE:
-                    return decoder.from_json(self.result)
+                    return decoder.from_json(self.message[self.start : -1])  # self.result
                 return decoder.from_reply(self.message, self.id)  # not sliced out: no copy
             except ValueError:
                 pass
