@@ -396,6 +396,32 @@ async def test_sends_of_a_connection_that_hands_messages_over_go_out_at_the_end_
         assert len(writes) == 1
 
 
+async def test_the_first_send_after_a_read_of_one_message_writes_at_once() -> None:
+    """A peer calling one call at a time: its next call goes out in the send itself, not a
+    turn later; the sends after it in the same turn, and those after a read of several
+    messages (a pipelined peer's), are held to be written together."""
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        taker = Taker()
+        assert pair.client.deliver_to(taker)
+        writes = count_writes(pair.client)
+        await pair.server.send("reply 0")
+        await taker.until(1)
+        await pair.client.send("call 1")
+        assert len(writes) == 1  # at once
+        await pair.client.send("call 2")
+        await pair.client.send("call 3")
+        assert len(writes) == 1  # held
+        assert [await pair.server.recv() for _ in range(3)] == ["call 1", "call 2", "call 3"]
+        assert len(writes) == 2
+        await pair.server.send("reply 1")  # two messages in one write, so (on loopback) one read
+        await pair.server.send("reply 2")
+        await taker.until(3)
+        await pair.client.send("call 4")
+        assert len(writes) == 2  # held: the peer sent several at once
+        assert await pair.server.recv() == "call 4"
+        assert len(writes) == 3
+
+
 async def test_replies_made_in_the_receiver_leave_in_one_write_at_the_end_of_the_read(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

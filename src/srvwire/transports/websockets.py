@@ -35,7 +35,11 @@ message it took from one read has been handled, so the replies to all of them le
 together; with a receiver, when the read that handed the messages over ends), when what is
 held reaches :data:`CORK_LIMIT`, and at the end of the loop turn (``call_soon``; the calls
 many tasks made in one turn: what writes a client's calls, since its reader never waits in
-``recv`` for each reply). The limit is what keeps a pipelined
+``recv`` for each reply). One send writes at once instead: the first after a read that handed
+a receiver a single message, with nothing held. That is a peer calling one call at a time,
+whose next call would otherwise wait a loop turn for nothing to join it; after a read of
+several messages (a pipelined peer's replies) the sends they cause are held as above.
+:data:`CORK_LIMIT` is what keeps a pipelined
 peer busy: holding every reply to 64 calls until the last is made lets the peer start on none
 of them before, and two ends that each answer a whole window in one write settle into taking
 turns, each idle while the other works (measured: half the calls a second, at less CPU per
@@ -154,6 +158,7 @@ class _Watched(WebSocket):
         self.pushing: WebSocketsConnection | None = None  # the connection, while receive is
         self.fragments: list[Frame] = []  # a message not yet whole, while receive is set
         self.held_back = False  # srvwire paused reading (WebSocketsConnection.pause_reading)
+        self.handed = 0  # messages handed to the receiver by the read being processed
         self.closing: asyncio.TimerHandle | None = None  # drops a connection this side failed
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -171,6 +176,7 @@ class _Watched(WebSocket):
         if pushing is None:
             super().data_received(data)
             return
+        self.handed = 0
         pushing.read_begins()
         try:
             super().data_received(data)
@@ -213,6 +219,7 @@ class _Watched(WebSocket):
                 return
         else:
             message = data if type(data) is bytes else bytes(data)
+        self.handed += 1
         try:
             receive(message)
         except Exception as exc:  # as a handler that raises: 1011, and the error in the log
@@ -451,7 +458,15 @@ class _QuietLogger(_Redacting):
 class WebSocketsConnection(Connection):
     """One WebSocket connection, server or client side."""
 
-    __slots__ = ("_flushing", "_held", "_protocol", "_ws", "identity", "remote_address")
+    __slots__ = (
+        "_flushing",
+        "_held",
+        "_protocol",
+        "_single",
+        "_ws",
+        "identity",
+        "remote_address",
+    )
 
     def __init__(
         self,
@@ -463,6 +478,7 @@ class WebSocketsConnection(Connection):
         self._protocol = ws.protocol
         self._flushing = False  # a write of the held frames is scheduled
         self._held = 0  # bytes framed since the last write, at most (websockets may write them)
+        self._single = False  # the last read handed one message over, and nothing was sent since
         self.remote_address = ws.remote_address
         self.identity = identity
         ws.write_timeout = _write_timeout(options)
@@ -490,7 +506,8 @@ class WebSocketsConnection(Connection):
             and ws.transport.get_write_buffer_size() + size <= ws.write_limit_high
         ):
             self._protocol.send_text(message)
-            if size >= CORK_LIMIT:
+            if size >= CORK_LIMIT or (self._single and not self._flushing):
+                self._single = False  # the first send after a lone message writes at once
                 self.flush()
                 return
             self._held = size
@@ -549,6 +566,9 @@ class WebSocketsConnection(Connection):
 
     def read_ends(self) -> None:
         """Every message of a read was handed over: write what they made, in one write."""
+        handed = self._ws.handed
+        if handed:
+            self._single = handed == 1
         if self._held:
             self.flush()
         else:
