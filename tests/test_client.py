@@ -1628,3 +1628,49 @@ async def test_an_injected_resolver_gives_typed_replies_for_types_no_file_define
         assert type(reply) is made_here.Response and reply.twice == 42
         await client.call("/twice", {"x": 1})
     assert resolved == ["made_here/srv/Twice"]  # asked once, then kept
+
+
+async def test_a_proxy_given_to_a_server_as_its_handler_relays_on_the_event_loop() -> None:
+    # A proxy is a coroutine function to the server, so a relay needs no thread: it answers
+    # while the server's only handler thread is held by a blocking handler.
+    from concurrent.futures import ThreadPoolExecutor
+    from threading import Event
+
+    from conftest import Subtract, subtract
+
+    backend = Server()
+    backend.add_service("/subtract", Subtract, subtract)
+    release = Event()
+    started = asyncio.Event()
+    loop = asyncio.get_running_loop()
+
+    def block(request: Any) -> Any:
+        loop.call_soon_threadsafe(started.set)
+        release.wait()
+        return {"difference": 0}
+
+    with ThreadPoolExecutor(1) as threads:
+        front = Server(executor=threads)
+        front.add_service("/block", Subtract, block)
+        try:
+            async with (
+                serve(backend, "127.0.0.1", 0) as behind,
+                connect(behind.url) as relay,
+                serve(front, "127.0.0.1", 0) as running,
+                connect(running.url) as client,
+                asyncio.timeout(scaled(10)),
+            ):
+                front.add_service("/relay", Subtract, relay.proxy("/subtract", Subtract))
+                blocked = asyncio.create_task(
+                    client.call("/block", {"minuend": 0, "subtrahend": 0}, srv_type=Subtract)
+                )
+                await started.wait()
+                answer = await client.call(
+                    "/relay", {"minuend": 5, "subtrahend": 2}, srv_type=Subtract
+                )
+                assert answer.difference == 3
+                assert not blocked.done()  # the thread is still held: the relay did not need it
+                release.set()
+                assert (await blocked).difference == 0
+        finally:
+            release.set()

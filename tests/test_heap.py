@@ -61,8 +61,8 @@ def test_kept_heap_serves_large_messages_again_without_page_faults() -> None:
 
 def test_it_is_the_packages_own_and_refuses_a_size_the_c_library_cannot_take() -> None:
     assert srvwire.keep_freed_heap is keep_freed_heap
-    for size in (-1, 2**31):
-        with pytest.raises(ValueError, match="size must be between 0 and 2147483647 bytes"):
+    for size in (-1, 0, 2**20 - 1, 2**31):
+        with pytest.raises(ValueError, match="size must be between 1048576 and 2147483647 bytes"):
             keep_freed_heap(size)
 
 

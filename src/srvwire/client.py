@@ -5,7 +5,8 @@
 
 * the current :class:`~srvwire.link.Link`, one per open connection: the transport's
   connection, the :class:`~srvwire.session.ClientSession` that numbers requests and routes
-  replies, and the reader task that feeds it;
+  replies, and its reader (the transport's read callback, where the transport hands messages
+  over; else a task);
 * its :class:`~srvwire.calls.ServiceTypes`: the type of each service, from ``srv_type``, or
   by the advertised name from the local search path, else from the server's description
   (``rpc.discover``), and its decoder;
@@ -1483,24 +1484,24 @@ class ServiceProxy(Generic[R]):
         self.timeout = None if timeout is None else check_timeout(timeout)
         self.wait_for_ready = wait_for_ready
 
-    def __call__(
+    async def __call__(
         self, request: BaseModel | Mapping[str, Any] | None = None, /, **fields: Any
-    ) -> Coroutine[Any, Any, R]:
+    ) -> R:
         """Call the service; see :meth:`Client.call`.
 
-        The call itself, to await: a proxy adds no coroutine of its own. Passing both a
-        request and fields raises ``TypeError`` at once.
+        A coroutine function, as a handler a server can be given must be to run on the event
+        loop: a proxy registered as a handler relays calls without a thread.
         """
         if request is not None and fields:
             raise TypeError("pass the request object or keyword fields, not both")
-        call: Coroutine[Any, Any, R] = self.client.call(
+        response: R = await self.client.call(
             self.name,
             fields if request is None else request,
             timeout=self.timeout,
             srv_type=self.srv_type,
             wait_for_ready=self.wait_for_ready,
         )
-        return call
+        return response
 
     async def wait_for_service(
         self,

@@ -21,13 +21,15 @@ every large block by itself, and setting one turns off glibc's own adjustment of
 
 from __future__ import annotations
 
-import ctypes
 import platform
 
-__all__ = ["DEFAULT_KEPT_HEAP", "keep_freed_heap"]
+__all__ = ["DEFAULT_KEPT_HEAP", "MIN_KEPT_HEAP", "keep_freed_heap"]
 
 DEFAULT_KEPT_HEAP = 64 * 2**20
 """What :func:`keep_freed_heap` keeps by default: 64 MiB of freed heap."""
+MIN_KEPT_HEAP = 2**20
+"""The least :func:`keep_freed_heap` takes: 1 MiB. Below it the thresholds would be lower than
+glibc's own (an mmap threshold of 0 maps every block by itself, several times slower)."""
 
 _M_TRIM_THRESHOLD = -1  # glibc's <malloc.h>
 _M_MMAP_THRESHOLD = -3
@@ -41,14 +43,20 @@ def keep_freed_heap(size: int = DEFAULT_KEPT_HEAP) -> bool:
     Process-wide and lasting: memory freed at the top of the heap stays with the process, up
     to ``size`` bytes beyond what is in use, and is reused without page faults, so the resident
     memory stays at its high-water mark rather than shrinking after each large message; and a
-    block smaller than ``size`` (at most 32 MiB) comes from the heap, so it is kept too. Returns
-    False, and changes nothing, where the C library is not glibc (musl, macOS, Windows).
-    Raises ``ValueError`` for a size that is negative or does not fit a C ``int``.
+    block smaller than ``size`` (at most 32 MiB) comes from the heap, so it is kept too.
+    ``size`` must be more than what the process frees at once (a message and every copy made
+    of it, several times the message): smaller, the freed memory is still handed back, and
+    since this turns off glibc's own adjustment of its thresholds, a process can then take more
+    page faults than without the call. Returns False, and changes nothing, where the C library
+    is not glibc (musl, macOS, Windows). Raises ``ValueError`` for a size below
+    :data:`MIN_KEPT_HEAP` or one that does not fit a C ``int``.
     """
-    if not 0 <= size <= _INT_MAX:
-        raise ValueError(f"size must be between 0 and {_INT_MAX} bytes, not {size!r}")
+    if not MIN_KEPT_HEAP <= size <= _INT_MAX:
+        raise ValueError(f"size must be between {MIN_KEPT_HEAP} and {_INT_MAX} bytes, not {size!r}")
     if platform.libc_ver()[0] != "glibc":
         return False
+    import ctypes  # here, not at the top: srvwire imports without it
+
     try:
         mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):

@@ -4,9 +4,9 @@ A :class:`Link` lives as long as its connection. The reader is the only code tha
 resolves the future of the call a reply belongs to (a srvwire-shaped response unparsed, routed
 by its opening; anything else through the :class:`~srvwire.session.ClientSession`, which
 routes it the same way), and tells its :class:`Owner` (the client) when the services change
-or the connection ends. On a transport that hands messages over as they arrive (picows), the
-reader takes them in the transport's read callback (:meth:`Link.take`), and its task only
-waits for the end. :meth:`Link.roundtrip` is one call's send and wait.
+or the connection ends. On a transport that hands messages over as they arrive (both network
+transports do), the reader takes them in the transport's read callback (:meth:`Link.take`),
+and its task only waits for the end. :meth:`Link.roundtrip` is one call's send and wait.
 
 Invariants:
 

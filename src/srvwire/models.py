@@ -679,7 +679,9 @@ def reply_writer(
     """Write the JSON-RPC response whose result is an instance of exactly ``model``, whole.
 
     ``reply_writer(model, mode)(id, value)`` is the same bytes as
-    ``write_response(id, json_writer(model, mode)(value))``, but pydantic-core writes the
+    ``write_response(id, json_writer(model, mode)(value))`` for every id a request can carry (a
+    string, an integer, a finite number, null: a non-finite number is refused as an id before
+    anything is called, and this writer would write it in ``mode``), but pydantic-core writes the
     envelope, the id and the result into one buffer: the result is never a separate copy that
     the envelope copies again. For a reply of megabytes that is one fewer copy made, and alive
     at once, which is what decides whether the C library hands its heap back after each reply
