@@ -49,9 +49,12 @@ import functools
 import json
 import logging
 import time
+from asyncio.tasks import _enter_task, _leave_task
+from collections import deque
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from contextvars import copy_context
+from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, run_handler
@@ -85,8 +88,23 @@ DROP_LOG_INTERVAL = 1.0
 """Seconds: at most one line about dropped notifications per connection in this time; the
 drops in between are counted, and their number said when it ends (or the connection does)."""
 
+PUSH_HIGH_WATER = 64
+"""Pushed messages queued for the reader at which the transport is asked to read no more."""
+PUSH_LOW_WATER = 16
+"""Pushed messages still queued at which the transport is asked to read again."""
+
 Work: TypeAlias = Call[ServiceEntry] | NotificationCall[ServiceEntry]
 """What a connection runs: a call, or a notification."""
+
+
+@dataclass(frozen=True, slots=True)
+class Handed:
+    """A call whose first step ran in the transport's read callback, as the parked reader,
+    and has to wait: the reader took it over then (its deadline's ``timer`` armed); the
+    ``steps`` left are the reader's to finish."""
+
+    steps: Pending
+    timer: asyncio.TimerHandle | None
 
 
 class CallRunner:
@@ -765,11 +783,16 @@ class ServedConnection:
         "drops_level",
         "drops_logged",
         "drops_timer",
+        "ended",
         "expiry",
         "flushed",
+        "handed",
         "log",
         "loop",
         "outbox",
+        "parked",
+        "paused",
+        "queue",
         "reader",
         "reading",
         "runner",
@@ -853,6 +876,12 @@ class ServedConnection:
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
         self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
+        # Pushed messages (see the invariants): None while they are pulled.
+        self.queue: deque[str | bytes] | None = None  # pushed and not yet taken by the reader
+        self.paused = False  # whether the queue made the transport stop reading
+        self.parked: asyncio.Future[None] | None = None  # the reader waits here for messages
+        self.handed: Pending | Handed | None = None  # what the parked reader is to finish
+        self.ended: TransportClosed | None = None  # how the connection ended
 
     @property
     def peer(self) -> Any:
@@ -953,12 +982,21 @@ class ServedConnection:
     # --- reading ------------------------------------------------------------------------------
 
     async def serve(self) -> None:
-        """Read the connection until it ends, one reader task at a time (see :meth:`read`)."""
+        """Read the connection until it ends, one reader task at a time (see :meth:`read`):
+        pushed messages where the transport hands them over as they arrive, else pulled."""
+        self.queue = deque()
+        watcher: asyncio.Task[None] | None = None
+        if self.conn.deliver_to(self.receive):
+            watcher = asyncio.Task(self.watch_end(), loop=self.loop)
+        else:
+            self.queue = None
         self.start_reader()
         try:
             await self.reading
         finally:
             self.log_drops()
+            if watcher is not None:
+                watcher.cancel()
             if not self.reading.done():  # this handler was cancelled: stop reading too
                 self.reading.cancel()
                 if self.reader is not None:
@@ -975,8 +1013,14 @@ class ServedConnection:
         A call that has to wait keeps this task, and a new reader takes over; the call's
         deadline is armed then, and only then.
         """
+        task = asyncio.current_task()
+        assert task is not None
+        waiting: tuple[Work, Pending] | Handed | None
         try:
-            waiting = await self.read_until_a_call_waits()
+            if self.queue is None:
+                waiting = await self.read_until_a_call_waits()
+            else:
+                waiting = await self.take_pushed()
         except asyncio.CancelledError:
             self.reading.cancel()
             raise
@@ -990,10 +1034,22 @@ class ServedConnection:
             if not self.reading.done():
                 self.reading.set_result(None)
             return
-        work, steps = waiting
+        if isinstance(waiting, Handed):  # taken over as it was handed to this task
+            steps, timer = waiting.steps, waiting.timer
+        else:
+            work, steps = waiting
+            timer = self.take_over(work, task)
+        try:
+            await finish(steps)
+        finally:
+            if timer is not None:
+                timer.cancel()
+            self.runner.counted.discard(task)
+
+    def take_over(self, work: Work, task: asyncio.Task[Any]) -> asyncio.TimerHandle | None:
+        """Make ``task``, the reader a call's first step ran on, the call's own (counted, and
+        what cancels it), arm the call's deadline, and start a new reader; return the timer."""
         runner = self.runner
-        task = asyncio.current_task()
-        assert task is not None
         runner.counted.add(task)
         work.task = task
         if type(work) is Call:
@@ -1003,23 +1059,12 @@ class ServedConnection:
                 runner.cancel(work, context._cancel_error)
         timer = runner.arm(work)
         self.start_reader()
-        try:
-            await finish(steps)
-        finally:
-            if timer is not None:
-                timer.cancel()
-            runner.counted.discard(task)
+        return timer
 
-    async def read_until_a_call_waits(
-        self,
-    ) -> tuple[Work, Pending] | None:
-        """Answer messages; return a call or notification that has to wait, and its steps;
-        return None when the connection ended cleanly."""
+    async def read_until_a_call_waits(self) -> tuple[Work, Pending] | None:
+        """Pull messages and answer them; return a call or notification that has to wait, and
+        its steps; return None when the connection ended cleanly."""
         conn = self.conn
-        session = self.session
-        runner = self.runner
-        reader = asyncio.current_task(self.loop)
-        assert reader is not None
         while True:
             try:
                 if conn.congested:  # read nothing while what waits to be sent is past the budget
@@ -1029,50 +1074,189 @@ class ServedConnection:
                 if exc.clean:
                     return None
                 raise
-            for event in session.receive(data):
-                kind = type(event)
-                if kind is bytes:
-                    await self.send(event)
-                elif kind is Call:
-                    if event.batch is not None:
-                        runner.start_in_task(event)
-                        continue
-                    runner.begin(event)
-                    steps = first_step(runner.run_call(event), copy_context())
-                    if isinstance(steps, Pending):
-                        return event, steps
-                    if reader.cancelling():
-                        await self.ignore_cancellation(event.entry)
-                elif kind is NotificationCall:
-                    if event.in_batch:
-                        runner.start_in_task(event)
-                        continue
-                    runner.begin(event)
+            waiting = await self.handle(data)
+            if waiting is not None:
+                return waiting
+
+    # Pushed messages (see the module's invariants).
+
+    def receive(self, data: str | bytes) -> None:
+        """Take one message as the transport hands it over (:meth:`Connection.deliver_to`).
+
+        When the reader is parked with nothing queued and the connection is not congested, the
+        message is answered here, in the transport's read callback, as the reader: what would
+        wait is handed to the reader to finish. Otherwise it is queued for the reader.
+        """
+        parked = self.parked
+        loop = self.loop
+        if (
+            parked is None
+            or parked.done()
+            or self.queue
+            or self.conn.congested
+            or asyncio.current_task(loop) is not None
+        ):
+            self.hold(data)
+            return
+        reader = self.reader
+        assert reader is not None
+        _enter_task(loop, reader)
+        try:
+            waiting = first_step(self.handle(data))
+        except Exception as exc:  # a bug in srvwire: the reading ends with it, as a reader's would
+            if not self.reading.done():
+                self.reading.set_exception(exc)
+            reader.cancel()
+            return
+        finally:
+            _leave_task(loop, reader)
+        if waiting is None:
+            return
+        assert self.handed is None
+        if isinstance(waiting, Pending):  # answering the message waits (a send held back)
+            self.handed = waiting
+        else:  # a call that has to wait: the reader becomes its task
+            work, steps = waiting
+            self.handed = Handed(steps, self.take_over(work, reader))
+        if not parked.done():  # else cancelled meanwhile: the reader wakes all the same
+            parked.set_result(None)
+
+    def hold(self, data: str | bytes) -> None:
+        """Queue a pushed message for the reader, and wake it if it is parked; past
+        :data:`PUSH_HIGH_WATER` messages queued, read the network no further."""
+        queue = self.queue
+        if queue is None or self.reading.done():
+            return
+        queue.append(data)
+        if len(queue) >= PUSH_HIGH_WATER and not self.paused:
+            self.paused = True
+            self.conn.pause_reading()
+        parked = self.parked
+        if parked is not None and not parked.done():
+            parked.set_result(None)
+
+    async def take_pushed(self) -> tuple[Work, Pending] | Handed | None:
+        """Answer the queued messages, then park until one is handed over or queued; return a
+        call or notification that has to wait, and its steps (:class:`Handed` when it was
+        handed over already taken over); return None when the connection ended cleanly."""
+        conn = self.conn
+        queue = self.queue
+        assert queue is not None
+        loop = self.loop
+        task = asyncio.current_task(loop)
+        assert task is not None
+        waiting: tuple[Work, Pending] | None
+        while True:
+            while queue:
+                if conn.congested:  # read nothing while what waits to be sent is past the budget
                     try:
-                        steps = first_step(runner.run_notification(event), copy_context())
-                    except asyncio.CancelledError:  # only the handler can have cancelled it
-                        steps = None
-                    if isinstance(steps, Pending):
-                        return event, steps
-                    if reader.cancelling():
-                        await self.ignore_cancellation(None)
-                elif kind is CancelCall:
-                    canceling = runner.request_cancel(event.call, event.error)
-                    if canceling is not None:
-                        await self.send(canceling)
-                elif kind is Publish:
-                    await self.publish(event)
-                elif kind is SubscriptionDeadline:
-                    subscription = event.subscription
-                    subscription.timer = self.loop.call_later(
-                        event.timeout,
-                        self.writer.outbox.expire,
-                        subscription,
-                        event.timeout,
-                    )
-                else:
-                    assert kind is Dropped
-                    self.dropped(event)
+                        await conn.writable()
+                    except TransportClosed as exc:
+                        if exc.clean:
+                            return None
+                        raise
+                    continue
+                data = queue.popleft()
+                if self.paused and len(queue) <= PUSH_LOW_WATER:
+                    self.paused = False
+                    conn.resume_reading()
+                waiting = await self.handle(data)
+                if waiting is not None:
+                    return waiting
+            ended = self.ended
+            if ended is not None:
+                if ended.clean:
+                    return None
+                raise ended
+            parked = self.parked = loop.create_future()
+            try:
+                await parked
+            except asyncio.CancelledError:
+                if self.handed is None:
+                    raise
+                # Meant for what was handed over, which this task would have been running:
+                # requested again, it is delivered where that waits, as it would have been.
+                task.cancel()
+                task.uncancel()
+            finally:
+                if self.parked is parked:
+                    self.parked = None
+            handed, self.handed = self.handed, None
+            if isinstance(handed, Handed):
+                return handed
+            if handed is not None:
+                waiting = await finish(handed)
+                if waiting is not None:
+                    return waiting
+
+    async def watch_end(self) -> None:
+        """Wait for the end of a connection whose messages are pushed, and wake the reader to
+        finish what is queued and end the reading."""
+        try:
+            message = await self.conn.recv()
+        except TransportClosed as exc:
+            self.ended = exc
+        else:  # a transport that breaks deliver_to's rule: fail loudly, not silently
+            error = RuntimeError(f"{self.conn!r} returned {message!r} from recv after deliver_to")
+            if not self.reading.done():
+                self.reading.set_exception(error)
+            return
+        parked = self.parked
+        if parked is not None and not parked.done():
+            parked.set_result(None)
+
+    async def handle(self, data: str | bytes) -> tuple[Work, Pending] | None:
+        """Do what one message asks; return a call or notification that has to wait, and its
+        steps, before anything after it in the message."""
+        session = self.session
+        runner = self.runner
+        reader = asyncio.current_task(self.loop)
+        assert reader is not None
+        for event in session.receive(data):
+            kind = type(event)
+            if kind is bytes:
+                await self.send(event)
+            elif kind is Call:
+                if event.batch is not None:
+                    runner.start_in_task(event)
+                    continue
+                runner.begin(event)
+                steps = first_step(runner.run_call(event), copy_context())
+                if isinstance(steps, Pending):
+                    return event, steps
+                if reader.cancelling():
+                    await self.ignore_cancellation(event.entry)
+            elif kind is NotificationCall:
+                if event.in_batch:
+                    runner.start_in_task(event)
+                    continue
+                runner.begin(event)
+                try:
+                    steps = first_step(runner.run_notification(event), copy_context())
+                except asyncio.CancelledError:  # only the handler can have cancelled it
+                    steps = None
+                if isinstance(steps, Pending):
+                    return event, steps
+                if reader.cancelling():
+                    await self.ignore_cancellation(None)
+            elif kind is CancelCall:
+                canceling = runner.request_cancel(event.call, event.error)
+                if canceling is not None:
+                    await self.send(canceling)
+            elif kind is Publish:
+                await self.publish(event)
+            elif kind is SubscriptionDeadline:
+                subscription = event.subscription
+                subscription.timer = self.loop.call_later(
+                    event.timeout,
+                    self.writer.outbox.expire,
+                    subscription,
+                    event.timeout,
+                )
+            else:
+                assert kind is Dropped
+                self.dropped(event)
+        return None
 
     async def publish(self, event: Publish) -> None:
         """A message a client published: validate it, hand it to the server's handlers (an

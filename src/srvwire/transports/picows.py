@@ -315,6 +315,19 @@ class PicowsConnection(WSListener, Connection):
             self._ws.underlying_transport.resume_reading()
         return True
 
+    def pause_reading(self) -> None:
+        """Read the socket no more until :meth:`resume_reading` (a receiver's choice, see
+        :meth:`deliver_to`); once the closing handshake began, the socket is read to its end."""
+        ws = self._ws
+        if self._reading and ws is not None and self._ended is None and not ws.is_close_frame_sent:
+            self._reading = False
+            ws.underlying_transport.pause_reading()
+
+    def resume_reading(self) -> None:
+        if not self._reading and self._ws is not None:
+            self._reading = True
+            self._ws.underlying_transport.resume_reading()
+
     @property
     def congested(self) -> bool:
         """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
