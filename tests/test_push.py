@@ -17,11 +17,13 @@ from typing import Any
 import pytest
 
 from conftest import Echo, Hang, open_wire
+from srvwire.inline import Pending, first_step
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection
 from srvwire.transports.base import Connection, Transport
 from support import scaled
 from test_server import error, request
+from test_transports import connected
 
 real_transports = pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
 
@@ -255,3 +257,46 @@ async def test_shutdown_answers_a_waiting_call_and_ends_the_parked_reader(
     await asyncio.wait_for(asyncio.wait({conn.reading}), scaled(5))
     await asyncio.wait_for(asyncio.wait({reader}), scaled(5))
     assert conn.reading.done() and reader.done() and not conn.counted
+
+
+@pytest.mark.parametrize("transport", ["picows"], indirect=True)
+async def test_replies_made_in_the_read_callback_are_written_before_it_returns(
+    transport: Transport,
+) -> None:
+    # On picows the server corks what it sends while taking the frames of one read, and
+    # writes it all after the read's last frame: in that callback, not a loop turn later.
+    count = 40
+    async with connected(transport) as pair, asyncio.timeout(scaled(5)):
+        server: Any = pair.server
+        protocol = server._ws.underlying_transport.get_protocol()
+        underlying = server._ws.underlying_transport
+        reads: list[int] = []
+        writes: list[bool] = []  # for each write: whether it was made inside a read
+        read, write = protocol.buffer_updated, underlying.write
+
+        def buffer_updated(nbytes: int) -> None:
+            reads.append(nbytes)
+            try:
+                read(nbytes)
+            finally:
+                reads.append(0)
+
+        def counted_write(data: Any) -> None:
+            writes.append(bool(reads) and reads[-1] != 0)
+            write(data)
+
+        protocol.buffer_updated = buffer_updated
+        underlying.write = counted_write
+
+        def receive(message: str | bytes) -> None:
+            sending = first_step(server.send(f"re {message}"))
+            assert not isinstance(sending, Pending)
+
+        assert pair.server.deliver_to(receive)
+        for i in range(count):
+            await pair.client.send(f"up {i}")
+        assert [await pair.client.recv() for _ in range(count)] == [
+            f"re up {i}" for i in range(count)
+        ]
+        assert writes and all(writes)
+        assert len(writes) <= len(reads) // 2  # at most one write per read

@@ -14,6 +14,22 @@ Invariants:
   to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
   reader task takes over. A batch's calls run in tasks of their own, started once the whole
   batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
+* **Pushed or pulled, the same reader.** Where the connection hands each message over as it
+  arrives (:meth:`~srvwire.transports.base.Connection.deliver_to`), the reader task does not
+  wait for ``recv``: it *parks* on a future of its own, and a message that comes while it is
+  parked, with nothing queued and the connection not congested, is answered right there, in
+  the transport's read callback, *as the reader* (made the loop's current task for the time,
+  so handlers see the same ``asyncio.current_task()`` as when pulled): no wake-up, future or
+  loop turn per message. What has to wait there (a call, or a send held back) is *handed* to
+  the parked reader, which wakes to finish it exactly as it would have pulled it: a call keeps
+  it, taken over at once (counted, deadline armed, a new reader started), and a cancellation
+  of the reader thrown at its parking (``asyncio.timeout()``, a handler's own) is requested
+  again, so that it lands where the handed steps wait. Any other message (the reader not
+  parked: busy, new, or a task current) is queued and the reader takes it; past
+  :data:`PUSH_HIGH_WATER` queued, the transport is asked to read no more until the reader is
+  down to :data:`PUSH_LOW_WATER`. A task that only awaits ``recv`` learns of the end and
+  wakes the reader, which answers what is queued first. Elsewhere (the memory transport)
+  the reader pulls with ``recv``.
 * **The reader waits only to send, and while the connection is congested**, which is what
   pushes back on a client that writes faster than it reads: a reply held by such a client
   counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
