@@ -445,16 +445,25 @@ class PicowsConnection(WSListener, Connection):
 
     def _flush(self) -> None:
         """Write the frames ``send`` corked, in one write: on a server, every reply made while
-        draining one read goes out in one system call instead of one each."""
+        draining one read goes out in one system call instead of one each. A lone message goes
+        out through ``picows``' own ``send``, which frames it and makes the system call in C."""
         corked = self._corked
         if not corked:
             return
-        data = b"".join(corked)
-        corked.clear()
-        self._corked_size = 0
         ws = self._ws
         # Nothing may follow a close frame (picows itself may have sent one, on a bad frame).
-        if ws is not None and self._ended is None and not ws.is_close_frame_sent:
+        if ws is None or self._ended is not None or ws.is_close_frame_sent:
+            corked.clear()
+            self._corked_size = 0
+        elif len(corked) == 2:  # one frame: its header and its message
+            message = corked[1]
+            corked.clear()
+            self._corked_size = 0
+            ws.send(_TEXT, message)
+        else:
+            data = b"".join(corked)
+            corked.clear()
+            self._corked_size = 0
             ws.underlying_transport.write(data)
 
     def _send_close(self, code: int, reason: str) -> None:
