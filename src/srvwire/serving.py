@@ -28,8 +28,8 @@ Invariants:
   parked: busy, new, or a task current) is queued and the reader takes it; past
   :data:`PUSH_HIGH_WATER` queued, the transport is asked to read no more until the reader is
   down to :data:`PUSH_LOW_WATER`. A task that only awaits ``recv`` learns of the end and
-  wakes the reader, which answers what is queued first. Elsewhere (the memory transport)
-  the reader pulls with ``recv``.
+  wakes the reader, which answers what is queued first. Elsewhere (the memory transport, or
+  an asyncio without its private ``_enter_task``) the reader pulls with ``recv``.
 * **The reader waits only to send, and while the connection is congested**, which is what
   pushes back on a client that writes faster than it reads: a reply held by such a client
   counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
@@ -65,7 +65,6 @@ import functools
 import json
 import logging
 import time
-from asyncio.tasks import _enter_task, _leave_task
 from collections import deque
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
@@ -89,6 +88,13 @@ from srvwire.session import (
 )
 from srvwire.topics import Outbox, QoS, Subscription, Topic, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
+
+try:  # private: what asyncio makes a task current with around each of its steps (3.11-3.14)
+    from asyncio.tasks import _enter_task, _leave_task
+
+    CAN_PUSH = True
+except ImportError:  # pragma: no cover - a Python without them: messages are pulled
+    CAN_PUSH = False
 
 __all__ = [
     "AccessLog",
@@ -1002,7 +1008,7 @@ class ServedConnection:
         pushed messages where the transport hands them over as they arrive, else pulled."""
         self.queue = deque()
         watcher: asyncio.Task[None] | None = None
-        if self.conn.deliver_to(self.receive):
+        if CAN_PUSH and self.conn.deliver_to(self.receive):
             watcher = asyncio.Task(self.watch_end(), loop=self.loop)
         else:
             self.queue = None
