@@ -23,9 +23,10 @@ from conftest import Echo, Hang, open_wire
 from srvwire.inline import Pending, first_step
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection
+from srvwire.session import ServerSession
 from srvwire.transports.base import Connection, Transport
 from support import ROOT, scaled
-from test_server import error, request
+from test_server import closed_code, error, request
 from test_transports import connected
 
 real_transports = pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
@@ -49,7 +50,7 @@ async def test_a_picows_server_connection_is_read_by_push(
         w = await open_wire(running)
         assert (await w.request("echo", {"text": "a"}))["result"] == {"text": "a"}
         conn = served(running)
-        assert pushes(conn) and conn.queue is not None
+        assert pushes(conn) and conn.pushed
         await w.ws.close()
 
 
@@ -326,3 +327,27 @@ def test_the_servers_path_benchmark_pushes_messages_when_asked() -> None:
         "pipelined",
         "one-by-one",
     ]
+
+
+@real_transports
+async def test_a_failure_inside_srvwire_while_reading_ends_the_connection_with_1011(
+    server: Server, transport: Transport, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Not a handler's failure (those are answered INTERNAL) but srvwire's own: the reading
+    # ends with it, and the connection is closed as a handler that raises closes it.
+    receive = ServerSession.receive
+
+    def failing_receive(self: Any, data: str | bytes) -> Any:
+        if "breaks srvwire" in str(data):
+            raise RuntimeError("a bug in srvwire")
+        return receive(self, data)
+
+    monkeypatch.setattr(ServerSession, "receive", failing_receive)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        assert (await w.request("echo", {"text": "before"}, id=1))["result"] == {"text": "before"}
+        conn = served(running)
+        await w.send(request("echo", {"text": "breaks srvwire"}, id=2))
+        assert await closed_code(w) == 1011
+        await asyncio.wait_for(asyncio.wait({conn.reading}), scaled(5))
+        assert isinstance(conn.reading.exception(), RuntimeError)

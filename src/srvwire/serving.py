@@ -814,6 +814,7 @@ class ServedConnection:
         "outbox",
         "parked",
         "paused",
+        "pushed",
         "queue",
         "reader",
         "reading",
@@ -899,7 +900,8 @@ class ServedConnection:
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
         self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
         # Pushed messages (see the invariants): None while they are pulled.
-        self.queue: deque[str | bytes] | None = None  # pushed and not yet taken by the reader
+        self.pushed = False  # whether messages are pushed
+        self.queue: deque[str | bytes] | None = None  # pushed, not yet taken (made when needed)
         self.paused = False  # whether the queue made the transport stop reading
         self.parked: asyncio.Future[None] | None = None  # the reader waits here for messages
         self.handed: Pending | Handed | None = None  # what the parked reader is to finish
@@ -1006,19 +1008,17 @@ class ServedConnection:
     async def serve(self) -> None:
         """Read the connection until it ends, one reader task at a time (see :meth:`read`):
         pushed messages where the transport hands them over as they arrive, else pulled."""
-        self.queue = deque()
-        watcher: asyncio.Task[None] | None = None
-        if CAN_PUSH and self.conn.deliver_to(self.receive):
-            watcher = asyncio.Task(self.watch_end(), loop=self.loop)
-        else:
-            self.queue = None
+        self.pushed = CAN_PUSH  # before deliver_to, which hands over what it holds already
+        if CAN_PUSH and not self.conn.deliver_to(self.receive):
+            self.pushed = False
         self.start_reader()
         try:
+            if self.pushed:
+                self.reading.add_done_callback(self.reading_ended)
+                await self.watch_end()
             await self.reading
         finally:
             self.log_drops()
-            if watcher is not None:
-                watcher.cancel()
             if not self.reading.done():  # this handler was cancelled: stop reading too
                 self.reading.cancel()
                 if self.reader is not None:
@@ -1039,7 +1039,7 @@ class ServedConnection:
         assert task is not None
         waiting: tuple[Work, Pending] | Handed | None
         try:
-            if self.queue is None:
+            if not self.pushed:
                 waiting = await self.read_until_a_call_waits()
             else:
                 waiting = await self.take_pushed()
@@ -1122,14 +1122,19 @@ class ServedConnection:
             return
         reader = self.reader
         assert reader is not None
+        handling = self.handle(data)
         _enter_task(loop, reader)
         try:
-            waiting = first_step(self.handle(data))
+            waiting: tuple[Work, Pending] | Pending | None = handling.send(None)
+        except StopIteration as done:  # answered without waiting, or a call waits
+            waiting = done.value
         except Exception as exc:  # a bug in srvwire: the reading ends with it, as a reader's would
             if not self.reading.done():
                 self.reading.set_exception(exc)
             reader.cancel()
             return
+        else:  # answering it waits itself: a send held back, a cancellation taken back
+            waiting = Pending(handling, waiting, None)
         finally:
             _leave_task(loop, reader)
         if waiting is None:
@@ -1146,9 +1151,11 @@ class ServedConnection:
     def hold(self, data: str | bytes) -> None:
         """Queue a pushed message for the reader, and wake it if it is parked; past
         :data:`PUSH_HIGH_WATER` messages queued, read the network no further."""
-        queue = self.queue
-        if queue is None or self.reading.done():
+        if not self.pushed or self.reading.done():
             return
+        queue = self.queue
+        if queue is None:
+            queue = self.queue = deque()
         queue.append(data)
         if len(queue) >= PUSH_HIGH_WATER and not self.paused:
             self.paused = True
@@ -1162,14 +1169,12 @@ class ServedConnection:
         call or notification that has to wait, and its steps (:class:`Handed` when it was
         handed over already taken over); return None when the connection ended cleanly."""
         conn = self.conn
-        queue = self.queue
-        assert queue is not None
         loop = self.loop
         task = asyncio.current_task(loop)
         assert task is not None
         waiting: tuple[Work, Pending] | None
         while True:
-            while queue:
+            while queue := self.queue:
                 if conn.congested:  # read nothing while what waits to be sent is past the budget
                     try:
                         await conn.writable()
@@ -1212,8 +1217,8 @@ class ServedConnection:
                     return waiting
 
     async def watch_end(self) -> None:
-        """Wait for the end of a connection whose messages are pushed, and wake the reader to
-        finish what is queued and end the reading."""
+        """Wait for the end of a connection whose messages are pushed (what :meth:`serve`
+        does first), and wake the reader to finish what is queued and end the reading."""
         try:
             message = await self.conn.recv()
         except TransportClosed as exc:
@@ -1226,6 +1231,15 @@ class ServedConnection:
         parked = self.parked
         if parked is not None and not parked.done():
             parked.set_result(None)
+
+    def reading_ended(self, reading: asyncio.Future[None]) -> None:
+        """The reading of pushed messages failed (a bug in srvwire) before the connection
+        ended: end it, with 1011 as a handler that raises does, so that :meth:`serve` stops
+        waiting for the end and raises the failure."""
+        if self.ended is None and not reading.cancelled():
+            failure = reading.exception()
+            if failure is not None and not isinstance(failure, TransportClosed):
+                self.spawn(self.conn.close(1011))
 
     async def handle(self, data: str | bytes) -> tuple[Work, Pending] | None:
         """Do what one message asks; return a call or notification that has to wait, and its
