@@ -196,12 +196,12 @@ async def test_congestion_stops_the_reading_and_every_call_is_answered_in_order_
     # and once the client reads again answers everything, starting the calls in the order
     # they came (replies may pass each other when sends wait, as JSON-RPC allows).
     server = Server(max_queued_bytes=2**16, write_timeout=scaled(30))
-    text = "x" * 8000
+    large = "x" * 60_000  # 300 of them: more than the socket buffers of both ends hold
     started: list[int] = []
 
-    def echo(request: Any) -> Any:
-        started.append(int(request.text[:4]))
-        return {"text": request.text}
+    async def echo(request: Any) -> Any:  # async: its first step runs as the call starts
+        started.append(int(request.text))
+        return {"text": request.text + large}
 
     server.add_service("echo", Echo, echo)
     paused = asyncio.Event()
@@ -228,14 +228,14 @@ async def test_congestion_stops_the_reading_and_every_call_is_answered_in_order_
 
             monkeypatch.setattr(type(conn.conn), "resume_reading", resume_reading)
         for id in range(calls):
-            await w.send(request("echo", {"text": f"{id:04d}{text}"}, id=id))
+            await w.send(request("echo", {"text": str(id)}, id=id))
         if pushes(conn):
             await asyncio.wait_for(paused.wait(), scaled(10))  # queued only while congested
         replies = {}
         for _ in range(calls):
             reply = await w.recv_reply(within=10)
             replies[reply["id"]] = reply["result"]["text"]
-        assert replies == {id: f"{id:04d}{text}" for id in range(calls)}
+        assert replies == {id: f"{id}{large}" for id in range(calls)}
         assert started == list(range(calls))
         if pushes(conn):
             assert resumed.is_set() and not conn.paused and not conn.queue

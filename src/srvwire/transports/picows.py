@@ -175,8 +175,9 @@ class PicowsConnection(WSListener, Connection):
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
         self._corked: list[bytes] = []  # a server's frames not yet written (see _flush)
         self._corked_size = 0
-        self._in_frame = False  # whether on_ws_frame is running: it flushes at the read's end
-        self._flush_soon = False  # whether a _flush_later is scheduled
+        # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
+        # or on_ws_frame is running (it flushes after the read's last frame).
+        self._flush_due = False
         self._framing = False  # whether send frames here: on a server (no mask), once open
         self._received: tuple[int, str] | None = None  # the close frame received
         self._sent: tuple[int, str] | None = None  # the close frame sent
@@ -207,7 +208,8 @@ class PicowsConnection(WSListener, Connection):
 
     def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
         kind = frame.msg_type
-        self._in_frame = True
+        due = self._flush_due
+        self._flush_due = True
         try:
             if kind is _TEXT or kind is _BINARY:
                 if self._parts_size or self._parts:
@@ -235,12 +237,12 @@ class PicowsConnection(WSListener, Connection):
             elif kind is _PONG:
                 self._pong()
         finally:
-            self._in_frame = False
+            self._flush_due = due
         if self._corked:  # replies made while taking it (a server's, given a receiver)
             if frame.last_in_buffer:
                 self._flush()  # everything this read brought is answered: in one write
-            elif not self._flush_soon:
-                self._flush_soon = True
+            elif not due:
+                self._flush_due = True
                 self._loop.call_soon(self._flush_later)
 
     def on_ws_disconnected(self, transport: WSTransport) -> None:
@@ -307,8 +309,8 @@ class PicowsConnection(WSListener, Connection):
         data = message.encode() if isinstance(message, str) else message
         if self._framing:
             corked = self._corked
-            if not self._in_frame and not self._flush_soon:  # in a frame: flushed after it
-                self._flush_soon = True
+            if not self._flush_due:
+                self._flush_due = True
                 self._loop.call_soon(self._flush_later)
             size = len(data)
             corked.append(
@@ -440,7 +442,7 @@ class PicowsConnection(WSListener, Connection):
             waiter.set_result(None)
 
     def _flush_later(self) -> None:
-        self._flush_soon = False
+        self._flush_due = False
         self._flush()
 
     def _flush(self) -> None:
