@@ -351,3 +351,8 @@ async def test_a_failure_inside_srvwire_while_reading_ends_the_connection_with_1
         assert await closed_code(w) == 1011
         await asyncio.wait_for(asyncio.wait({conn.reading}), scaled(5))
         assert isinstance(conn.reading.exception(), RuntimeError)
+        reader = conn.reader
+        assert reader is not None
+        await asyncio.wait({reader})
+        if not reader.cancelled():  # a pulling reader failed with it: asyncio would log it
+            assert isinstance(reader.exception(), RuntimeError)
