@@ -821,6 +821,7 @@ class ServedConnection:
         "runner",
         "session",
         "tasks",
+        "waiting",
         "writer",
     )
 
@@ -905,6 +906,7 @@ class ServedConnection:
         self.paused = False  # whether the queue made the transport stop reading
         self.parked: asyncio.Future[None] | None = None  # the reader waits here for messages
         self.handed: Pending | Handed | None = None  # what the parked reader is to finish
+        self.waiting: tuple[Work, Pending] | None = None  # what handle() found has to wait
         self.ended: TransportClosed | None = None  # how the connection ended
 
     @property
@@ -1096,8 +1098,10 @@ class ServedConnection:
                 if exc.clean:
                     return None
                 raise
-            waiting = await self.handle(data)
+            await self.handle(data)
+            waiting = self.waiting
             if waiting is not None:
+                self.waiting = None
                 return waiting
 
     # Pushed messages (see the module's invariants).
@@ -1122,27 +1126,24 @@ class ServedConnection:
             return
         reader = self.reader
         assert reader is not None
-        handling = self.handle(data)
         _enter_task(loop, reader)
         try:
-            waiting: tuple[Work, Pending] | Pending | None = handling.send(None)
-        except StopIteration as done:  # answered without waiting, or a call waits
-            waiting = done.value
+            handling = first_step(self.handle(data))
         except Exception as exc:  # a bug in srvwire: the reading ends with it, as a reader's would
             if not self.reading.done():
                 self.reading.set_exception(exc)
             reader.cancel()
             return
-        else:  # answering it waits itself: a send held back, a cancellation taken back
-            waiting = Pending(handling, waiting, None)
         finally:
             _leave_task(loop, reader)
-        if waiting is None:
-            return
         assert self.handed is None
-        if isinstance(waiting, Pending):  # answering the message waits (a send held back)
-            self.handed = waiting
-        else:  # a call that has to wait: the reader becomes its task
+        if handling is not None:  # answering it waits itself: a send held back, say
+            self.handed = handling
+        else:
+            waiting = self.waiting
+            if waiting is None:
+                return  # answered
+            self.waiting = None  # a call that has to wait: the reader becomes its task
             work, steps = waiting
             self.handed = Handed(steps, self.take_over(work, reader))
         if not parked.done():  # else cancelled meanwhile: the reader wakes all the same
@@ -1187,8 +1188,10 @@ class ServedConnection:
                 if self.paused and len(queue) <= PUSH_LOW_WATER:
                     self.paused = False
                     conn.resume_reading()
-                waiting = await self.handle(data)
+                await self.handle(data)
+                waiting = self.waiting
                 if waiting is not None:
+                    self.waiting = None
                     return waiting
             ended = self.ended
             if ended is not None:
@@ -1212,8 +1215,10 @@ class ServedConnection:
             if isinstance(handed, Handed):
                 return handed
             if handed is not None:
-                waiting = await finish(handed)
+                await finish(handed)
+                waiting = self.waiting
                 if waiting is not None:
+                    self.waiting = None
                     return waiting
 
     async def watch_end(self) -> None:
@@ -1241,9 +1246,10 @@ class ServedConnection:
             if failure is not None and not isinstance(failure, TransportClosed):
                 self.spawn(self.conn.close(1011))
 
-    async def handle(self, data: str | bytes) -> tuple[Work, Pending] | None:
-        """Do what one message asks; return a call or notification that has to wait, and its
-        steps, before anything after it in the message."""
+    async def handle(self, data: str | bytes) -> None:
+        """Do what one message asks; a call or notification that has to wait is left in
+        :attr:`waiting` with its steps, before anything after it in the message (returning
+        nothing, a finished handling costs its caller no ``StopIteration``)."""
         session = self.session
         runner = self.runner
         reader = asyncio.current_task(self.loop)
@@ -1259,7 +1265,8 @@ class ServedConnection:
                 runner.begin(event)
                 steps = first_step(runner.run_call(event), copy_context())
                 if isinstance(steps, Pending):
-                    return event, steps
+                    self.waiting = (event, steps)
+                    return
                 if reader.cancelling():
                     await self.ignore_cancellation(event.entry)
             elif kind is NotificationCall:
@@ -1272,7 +1279,8 @@ class ServedConnection:
                 except asyncio.CancelledError:  # only the handler can have cancelled it
                     steps = None
                 if isinstance(steps, Pending):
-                    return event, steps
+                    self.waiting = (event, steps)
+                    return
                 if reader.cancelling():
                     await self.ignore_cancellation(None)
             elif kind is CancelCall:
@@ -1292,7 +1300,6 @@ class ServedConnection:
             else:
                 assert kind is Dropped
                 self.dropped(event)
-        return None
 
     async def publish(self, event: Publish) -> None:
         """A message a client published: validate it, hand it to the server's handlers (an
