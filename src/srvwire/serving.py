@@ -27,9 +27,11 @@ Invariants:
   again, so that it lands where the handed steps wait. Any other message (the reader not
   parked: busy, new, or a task current) is queued and the reader takes it; past
   :data:`PUSH_HIGH_WATER` queued, the transport is asked to read no more until the reader is
-  down to :data:`PUSH_LOW_WATER`. A task that only awaits ``recv`` learns of the end and
-  wakes the reader, which answers what is queued first. Elsewhere (the memory transport, or
-  an asyncio without its private ``_enter_task``) the reader pulls with ``recv``.
+  down to :data:`PUSH_LOW_WATER`. The connection's handler (:meth:`ServedConnection.serve`)
+  awaits only the end, from ``recv``, and wakes the reader, which answers what is queued
+  first; a failure of the reading inside srvwire ends the connection with 1011. Elsewhere
+  (the memory transport, or an asyncio without its private ``_enter_task``) the reader pulls
+  with ``recv``.
 * **The reader waits only to send, and while the connection is congested**, which is what
   pushes back on a client that writes faster than it reads: a reply held by such a client
   counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
@@ -900,7 +902,7 @@ class ServedConnection:
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
         self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
-        # Pushed messages (see the invariants): None while they are pulled.
+        # Pushed messages (see the invariants).
         self.pushed = False  # whether messages are pushed
         self.queue: deque[str | bytes] | None = None  # pushed, not yet taken (made when needed)
         self.paused = False  # whether the queue made the transport stop reading
