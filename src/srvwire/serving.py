@@ -1128,9 +1128,14 @@ class ServedConnection:
             return
         reader = self.reader
         assert reader is not None
+        handling = self.handle(data)
+        pending = None
         _enter_task(loop, reader)
         try:
-            handling = first_step(self.handle(data))
+            # Stepped as a for loop steps an iterator: one that ends raises no StopIteration.
+            for yielded in handling.__await__():
+                pending = Pending(handling, yielded, None)
+                break
         except Exception as exc:  # a bug in srvwire: the reading ends with it, as a reader's would
             if not self.reading.done():
                 self.reading.set_exception(exc)
@@ -1139,8 +1144,8 @@ class ServedConnection:
         finally:
             _leave_task(loop, reader)
         assert self.handed is None
-        if handling is not None:  # answering it waits itself: a send held back, say
-            self.handed = handling
+        if pending is not None:  # answering it waits itself: a send held back, say
+            self.handed = pending
         else:
             waiting = self.waiting
             if waiting is None:
