@@ -16,6 +16,11 @@ Two ways the messages arrive:
 * ``one-by-one`` (W3's shape): each message arrives in a loop callback of its own, as a read of
   a socket delivers it, so each call costs the reader a wake-up too.
 
+With ``--push`` the connection hands each message over as it arrives
+(:meth:`~srvwire.transports.base.Connection.deliver_to`, as the picows transport does), so a
+server that takes pushed messages answers it in that callback; pipelined, every message then
+arrives in one callback, as one read of a socket holding them all would deliver them.
+
 Run it with another checkout's ``src`` first on ``PYTHONPATH`` to compare two versions of
 srvwire, old and new alternating::
 
@@ -59,7 +64,7 @@ def request_text(id: int) -> str:
 class FakeConnection(Connection):
     """A connection whose peer's messages are in memory; what is sent is kept."""
 
-    def __init__(self, messages: list[str], one_by_one: bool) -> None:
+    def __init__(self, messages: list[str], one_by_one: bool, push: bool = False) -> None:
         self.remote_address = ("127.0.0.1", 1)
         self.identity = None
         self.loop = asyncio.get_running_loop()
@@ -68,19 +73,40 @@ class FakeConnection(Connection):
         self.waiter: asyncio.Future[None] | None = None
         self.sent: list[bytes] = []
         self.one_by_one = one_by_one
+        self.push = push
+        self.receive: Any = None  # what deliver_to was given
         self.done = self.loop.create_future()
         if one_by_one:
             self.loop.call_soon(self.arrive)
+        elif push:
+            self.loop.call_soon(self.arrive, len(self.pending))
         else:
             self.arrived.extend(self.pending)
             self.pending.clear()
 
-    def arrive(self) -> None:
-        """One message arrives, as a socket read would deliver it."""
-        self.arrived.append(self.pending.popleft())
+    def arrive(self, count: int = 1) -> None:
+        """``count`` messages arrive, as a socket read would deliver them."""
+        arrived = self.arrived
+        pending = self.pending
+        for _ in range(count):
+            arrived.append(pending.popleft())
+        receive = self.receive
+        if receive is not None:
+            while arrived:
+                receive(arrived.popleft())
+            if pending:
+                return  # recv waits only for the end
         waiter = self.waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
+
+    def deliver_to(self, receive: Any) -> bool:
+        if not self.push:
+            return False
+        while self.arrived:
+            receive(self.arrived.popleft())
+        self.receive = receive
+        return True
 
     async def recv(self) -> str | bytes:
         while not self.arrived:
@@ -119,12 +145,12 @@ class FakeConnection(Connection):
         return ""
 
 
-async def one_run(calls: int, one_by_one: bool) -> float:
+async def one_run(calls: int, one_by_one: bool, push: bool = False) -> float:
     """Serve ``calls`` calls on one connection; return the CPU time per call, in seconds."""
     registry = ServiceRegistry()
     registry.add(SERVICE, RobotStateQuery, get_robot_state)
     messages = [request_text(id) for id in range(1, calls + 1)]
-    conn = FakeConnection(messages, one_by_one)
+    conn = FakeConnection(messages, one_by_one, push)
     served = ServedConnection(
         conn, registry, max_in_flight=256, executor=None, logger=logging.getLogger("bench")
     )
@@ -149,12 +175,15 @@ def main() -> None:
     parser.add_argument("--mode", choices=["pipelined", "one-by-one", "both"], default="both")
     parser.add_argument("--loop", choices=["asyncio", "uvloop"], default="asyncio")
     parser.add_argument("--json", action="store_true", help="print one JSON line per mode")
+    parser.add_argument(
+        "--push", action="store_true", help="hand each message over as it arrives (deliver_to)"
+    )
     args = parser.parse_args()
     modes = ["pipelined", "one-by-one"] if args.mode == "both" else [args.mode]
     for mode in modes:
         runs = []
         for _ in range(args.repeat):
-            coroutine = one_run(args.calls, mode == "one-by-one")
+            coroutine = one_run(args.calls, mode == "one-by-one", args.push)
             if args.loop == "uvloop":
                 import uvloop
 

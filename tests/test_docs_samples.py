@@ -64,6 +64,14 @@ COMMANDS: dict[str, str] = {
         "benchmarks/server_path.py counted under callgrind: minutes long, and valgrind is no "
         "dependency; tests/test_benchmarks.py runs the script itself"
     ),
+    r"valgrind --tool=callgrind .* benchmarks/picows_path\.py .*": (
+        "benchmarks/picows_path.py counted under callgrind: minutes long, and valgrind is no "
+        "dependency; tests/test_push.py runs the script itself"
+    ),
+    r"\.venv/bin/py-spy record .* benchmarks/\w+\.py .*": (
+        "a sampling profile of a benchmark script: py-spy comes with the bench extra (make "
+        "bench), not with the tests' environment; tests/test_push.py runs the script itself"
+    ),
     r"\.venv/bin/python benchmarks/topics\.py( .*)?": (
         "the topic benchmark: minutes long; tests/test_benchmarks.py runs its --quick mode"
     ),

@@ -14,6 +14,24 @@ Invariants:
   to wait keeps the task it started on (so ``asyncio.current_task()`` stays its own), and a new
   reader task takes over. A batch's calls run in tasks of their own, started once the whole
   batch is read, so a ``$/cancel`` in the same batch reaches them before they start.
+* **Pushed or pulled, the same reader.** Where the connection hands each message over as it
+  arrives (:meth:`~srvwire.transports.base.Connection.deliver_to`), the reader task does not
+  wait for ``recv``: it *parks* on a future of its own, and a message that comes while it is
+  parked, with nothing queued and the connection not congested, is answered right there, in
+  the transport's read callback, *as the reader* (made the loop's current task for the time,
+  so handlers see the same ``asyncio.current_task()`` as when pulled): no wake-up, future or
+  loop turn per message. What has to wait there (a call, or a send held back) is *handed* to
+  the parked reader, which wakes to finish it exactly as it would have pulled it: a call keeps
+  it, taken over at once (counted, deadline armed, a new reader started), and a cancellation
+  of the reader thrown at its parking (``asyncio.timeout()``, a handler's own) is requested
+  again, so that it lands where the handed steps wait. Any other message (the reader not
+  parked: busy, new, or a task current) is queued and the reader takes it; past
+  :data:`PUSH_HIGH_WATER` queued, the transport is asked to read no more until the reader is
+  down to :data:`PUSH_LOW_WATER`. The connection's handler (:meth:`ServedConnection.serve`)
+  awaits only the end, from ``recv``, and wakes the reader, which answers what is queued
+  first; a failure of the reading inside srvwire ends the connection with 1011. Elsewhere
+  (the memory transport, or an asyncio without its private ``_enter_task``) the reader pulls
+  with ``recv``.
 * **The reader waits only to send, and while the connection is congested**, which is what
   pushes back on a client that writes faster than it reads: a reply held by such a client
   counts in flight until it is sent, so past ``max_in_flight`` the reader answers the next call
@@ -49,9 +67,11 @@ import functools
 import json
 import logging
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from contextvars import copy_context
+from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, run_handler
@@ -71,6 +91,13 @@ from srvwire.session import (
 from srvwire.topics import Outbox, QoS, Subscription, Topic, publish_ack
 from srvwire.transports.base import Connection, TransportClosed
 
+try:  # private: what asyncio makes a task current with around each of its steps (3.11-3.14)
+    from asyncio.tasks import _enter_task, _leave_task
+
+    CAN_PUSH = True
+except ImportError:  # pragma: no cover - a Python without them: messages are pulled
+    CAN_PUSH = False
+
 __all__ = [
     "AccessLog",
     "AccessLoggedOutbox",
@@ -85,8 +112,23 @@ DROP_LOG_INTERVAL = 1.0
 """Seconds: at most one line about dropped notifications per connection in this time; the
 drops in between are counted, and their number said when it ends (or the connection does)."""
 
+PUSH_HIGH_WATER = 64
+"""Pushed messages queued for the reader at which the transport is asked to read no more."""
+PUSH_LOW_WATER = 16
+"""Pushed messages still queued at which the transport is asked to read again."""
+
 Work: TypeAlias = Call[ServiceEntry] | NotificationCall[ServiceEntry]
 """What a connection runs: a call, or a notification."""
+
+
+@dataclass(frozen=True, slots=True)
+class Handed:
+    """A call whose first step ran in the transport's read callback, as the parked reader,
+    and has to wait: the reader took it over then (its deadline's ``timer`` armed); the
+    ``steps`` left are the reader's to finish."""
+
+    steps: Pending
+    timer: asyncio.TimerHandle | None
 
 
 class CallRunner:
@@ -772,16 +814,23 @@ class ServedConnection:
         "drops_level",
         "drops_logged",
         "drops_timer",
+        "ended",
         "expiry",
         "flushed",
+        "handed",
         "log",
         "loop",
         "outbox",
+        "parked",
+        "paused",
+        "pushed",
+        "queue",
         "reader",
         "reading",
         "runner",
         "session",
         "tasks",
+        "waiting",
         "writer",
     )
 
@@ -860,6 +909,14 @@ class ServedConnection:
         self.tasks: set[asyncio.Task[Any]] = set()  # other tasks: announcements
         self.reader: asyncio.Task[None] | None = None  # the task reading the socket now
         self.reading: asyncio.Future[None] = self.loop.create_future()  # done: reading ended
+        # Pushed messages (see the invariants).
+        self.pushed = False  # whether messages are pushed
+        self.queue: deque[str | bytes] | None = None  # pushed, not yet taken (made when needed)
+        self.paused = False  # whether the queue made the transport stop reading
+        self.parked: asyncio.Future[None] | None = None  # the reader waits here for messages
+        self.handed: Pending | Handed | None = None  # what the parked reader is to finish
+        self.waiting: tuple[Work, Pending] | None = None  # what handle() found has to wait
+        self.ended: TransportClosed | None = None  # how the connection ended
 
     @property
     def peer(self) -> Any:
@@ -960,9 +1017,16 @@ class ServedConnection:
     # --- reading ------------------------------------------------------------------------------
 
     async def serve(self) -> None:
-        """Read the connection until it ends, one reader task at a time (see :meth:`read`)."""
+        """Read the connection until it ends, one reader task at a time (see :meth:`read`):
+        pushed messages where the transport hands them over as they arrive, else pulled."""
+        self.pushed = CAN_PUSH  # before deliver_to, which hands over what it holds already
+        if CAN_PUSH and not self.conn.deliver_to(self.receive):
+            self.pushed = False
         self.start_reader()
         try:
+            if self.pushed:
+                self.reading.add_done_callback(self.reading_ended)
+                await self.watch_end()
             await self.reading
         finally:
             self.log_drops()
@@ -982,8 +1046,14 @@ class ServedConnection:
         A call that has to wait keeps this task, and a new reader takes over; the call's
         deadline is armed then, and only then.
         """
+        task = asyncio.current_task()
+        assert task is not None
+        waiting: tuple[Work, Pending] | Handed | None
         try:
-            waiting = await self.read_until_a_call_waits()
+            if not self.pushed:
+                waiting = await self.read_until_a_call_waits()
+            else:
+                waiting = await self.take_pushed()
         except asyncio.CancelledError:
             self.reading.cancel()
             raise
@@ -997,10 +1067,22 @@ class ServedConnection:
             if not self.reading.done():
                 self.reading.set_result(None)
             return
-        work, steps = waiting
+        if isinstance(waiting, Handed):  # taken over as it was handed to this task
+            steps, timer = waiting.steps, waiting.timer
+        else:
+            work, steps = waiting
+            timer = self.take_over(work, task)
+        try:
+            await finish(steps)
+        finally:
+            if timer is not None:
+                timer.cancel()
+            self.runner.counted.discard(task)
+
+    def take_over(self, work: Work, task: asyncio.Task[Any]) -> asyncio.TimerHandle | None:
+        """Make ``task``, the reader a call's first step ran on, the call's own (counted, and
+        what cancels it), arm the call's deadline, and start a new reader; return the timer."""
         runner = self.runner
-        task = asyncio.current_task()
-        assert task is not None
         runner.counted.add(task)
         work.task = task
         if type(work) is Call:
@@ -1010,23 +1092,12 @@ class ServedConnection:
                 runner.cancel(work, context._cancel_error)
         timer = runner.arm(work)
         self.start_reader()
-        try:
-            await finish(steps)
-        finally:
-            if timer is not None:
-                timer.cancel()
-            runner.counted.discard(task)
+        return timer
 
-    async def read_until_a_call_waits(
-        self,
-    ) -> tuple[Work, Pending] | None:
-        """Answer messages; return a call or notification that has to wait, and its steps;
-        return None when the connection ended cleanly."""
+    async def read_until_a_call_waits(self) -> tuple[Work, Pending] | None:
+        """Pull messages and answer them; return a call or notification that has to wait, and
+        its steps; return None when the connection ended cleanly."""
         conn = self.conn
-        session = self.session
-        runner = self.runner
-        reader = asyncio.current_task(self.loop)
-        assert reader is not None
         while True:
             try:
                 if conn.congested:  # read nothing while what waits to be sent is past the budget
@@ -1036,50 +1107,213 @@ class ServedConnection:
                 if exc.clean:
                     return None
                 raise
-            for event in session.receive(data):
-                kind = type(event)
-                if kind is bytes:
-                    await self.send(event)
-                elif kind is Call:
-                    if event.batch is not None:
-                        runner.start_in_task(event)
-                        continue
-                    runner.begin(event)
-                    steps = first_step(runner.run_call(event), copy_context())
-                    if isinstance(steps, Pending):
-                        return event, steps
-                    if reader.cancelling():
-                        await self.ignore_cancellation(event.entry)
-                elif kind is NotificationCall:
-                    if event.in_batch:
-                        runner.start_in_task(event)
-                        continue
-                    runner.begin(event)
+            await self.handle(data)
+            waiting = self.waiting
+            if waiting is not None:
+                self.waiting = None
+                return waiting
+
+    # Pushed messages (see the module's invariants).
+
+    def receive(self, data: str | bytes) -> None:
+        """Take one message as the transport hands it over (:meth:`Connection.deliver_to`).
+
+        When the reader is parked with nothing queued and the connection is not congested, the
+        message is answered here, in the transport's read callback, as the reader: what would
+        wait is handed to the reader to finish. Otherwise it is queued for the reader.
+        """
+        parked = self.parked
+        loop = self.loop
+        if (
+            parked is None
+            or parked.done()
+            or self.queue
+            or self.conn.congested
+            or asyncio.current_task(loop) is not None
+        ):
+            self.hold(data)
+            return
+        reader = self.reader
+        assert reader is not None
+        handling = self.handle(data)
+        pending = None
+        _enter_task(loop, reader)
+        try:
+            # Stepped as a for loop steps an iterator: one that ends raises no StopIteration.
+            for yielded in handling.__await__():
+                pending = Pending(handling, yielded, None)
+                break
+        except Exception as exc:  # a bug in srvwire: the reading ends with it, as a reader's would
+            if not self.reading.done():
+                self.reading.set_exception(exc)
+            reader.cancel()
+            return
+        finally:
+            _leave_task(loop, reader)
+        assert self.handed is None
+        if pending is not None:  # answering it waits itself: a send held back, say
+            self.handed = pending
+        else:
+            waiting = self.waiting
+            if waiting is None:
+                return  # answered
+            self.waiting = None  # a call that has to wait: the reader becomes its task
+            work, steps = waiting
+            self.handed = Handed(steps, self.take_over(work, reader))
+        if not parked.done():  # else cancelled meanwhile: the reader wakes all the same
+            parked.set_result(None)
+
+    def hold(self, data: str | bytes) -> None:
+        """Queue a pushed message for the reader, and wake it if it is parked; past
+        :data:`PUSH_HIGH_WATER` messages queued, read the network no further."""
+        if not self.pushed or self.reading.done():
+            return
+        queue = self.queue
+        if queue is None:
+            queue = self.queue = deque()
+        queue.append(data)
+        if len(queue) >= PUSH_HIGH_WATER and not self.paused:
+            self.paused = True
+            self.conn.pause_reading()
+        parked = self.parked
+        if parked is not None and not parked.done():
+            parked.set_result(None)
+
+    async def take_pushed(self) -> tuple[Work, Pending] | Handed | None:
+        """Answer the queued messages, then park until one is handed over or queued; return a
+        call or notification that has to wait, and its steps (:class:`Handed` when it was
+        handed over already taken over); return None when the connection ended cleanly."""
+        conn = self.conn
+        loop = self.loop
+        task = asyncio.current_task(loop)
+        assert task is not None
+        waiting: tuple[Work, Pending] | None
+        while True:
+            while queue := self.queue:
+                if conn.congested:  # read nothing while what waits to be sent is past the budget
                     try:
-                        steps = first_step(runner.run_notification(event), copy_context())
-                    except asyncio.CancelledError:  # only the handler can have cancelled it
-                        steps = None
-                    if isinstance(steps, Pending):
-                        return event, steps
-                    if reader.cancelling():
-                        await self.ignore_cancellation(None)
-                elif kind is CancelCall:
-                    canceling = runner.request_cancel(event.call, event.error)
-                    if canceling is not None:
-                        await self.send(canceling)
-                elif kind is Publish:
-                    await self.publish(event)
-                elif kind is SubscriptionDeadline:
-                    subscription = event.subscription
-                    subscription.timer = self.loop.call_later(
-                        event.timeout,
-                        self.writer.outbox.expire,
-                        subscription,
-                        event.timeout,
-                    )
-                else:
-                    assert kind is Dropped
-                    self.dropped(event)
+                        await conn.writable()
+                    except TransportClosed as exc:
+                        if exc.clean:
+                            return None
+                        raise
+                    continue
+                data = queue.popleft()
+                if self.paused and len(queue) <= PUSH_LOW_WATER:
+                    self.paused = False
+                    conn.resume_reading()
+                await self.handle(data)
+                waiting = self.waiting
+                if waiting is not None:
+                    self.waiting = None
+                    return waiting
+            ended = self.ended
+            if ended is not None:
+                if ended.clean:
+                    return None
+                raise ended
+            parked = self.parked = loop.create_future()
+            try:
+                await parked
+            except asyncio.CancelledError:
+                if self.handed is None:
+                    raise
+                # Meant for what was handed over, which this task would have been running:
+                # requested again, it is delivered where that waits, as it would have been.
+                task.cancel()
+                task.uncancel()
+            finally:
+                if self.parked is parked:
+                    self.parked = None
+            handed, self.handed = self.handed, None
+            if isinstance(handed, Handed):
+                return handed
+            if handed is not None:
+                await finish(handed)
+                waiting = self.waiting
+                if waiting is not None:
+                    self.waiting = None
+                    return waiting
+
+    async def watch_end(self) -> None:
+        """Wait for the end of a connection whose messages are pushed (what :meth:`serve`
+        does first), and wake the reader to finish what is queued and end the reading."""
+        try:
+            message = await self.conn.recv()
+        except TransportClosed as exc:
+            self.ended = exc
+        else:  # a transport that breaks deliver_to's rule: fail loudly, not silently
+            error = RuntimeError(f"{self.conn!r} returned {message!r} from recv after deliver_to")
+            if not self.reading.done():
+                self.reading.set_exception(error)
+            return
+        parked = self.parked
+        if parked is not None and not parked.done():
+            parked.set_result(None)
+
+    def reading_ended(self, reading: asyncio.Future[None]) -> None:
+        """The reading of pushed messages failed (a bug in srvwire) before the connection
+        ended: end it, with 1011 as a handler that raises does, so that :meth:`serve` stops
+        waiting for the end and raises the failure."""
+        if self.ended is None and not reading.cancelled():
+            failure = reading.exception()
+            if failure is not None and not isinstance(failure, TransportClosed):
+                self.spawn(self.conn.close(1011))
+
+    async def handle(self, data: str | bytes) -> None:
+        """Do what one message asks; a call or notification that has to wait is left in
+        :attr:`waiting` with its steps, before anything after it in the message (returning
+        nothing, a finished handling costs its caller no ``StopIteration``)."""
+        session = self.session
+        runner = self.runner
+        reader = asyncio.current_task(self.loop)
+        assert reader is not None
+        for event in session.receive(data):
+            kind = type(event)
+            if kind is bytes:
+                await self.send(event)
+            elif kind is Call:
+                if event.batch is not None:
+                    runner.start_in_task(event)
+                    continue
+                runner.begin(event)
+                steps = first_step(runner.run_call(event), copy_context())
+                if isinstance(steps, Pending):
+                    self.waiting = (event, steps)
+                    return
+                if reader.cancelling():
+                    await self.ignore_cancellation(event.entry)
+            elif kind is NotificationCall:
+                if event.in_batch:
+                    runner.start_in_task(event)
+                    continue
+                runner.begin(event)
+                try:
+                    steps = first_step(runner.run_notification(event), copy_context())
+                except asyncio.CancelledError:  # only the handler can have cancelled it
+                    steps = None
+                if isinstance(steps, Pending):
+                    self.waiting = (event, steps)
+                    return
+                if reader.cancelling():
+                    await self.ignore_cancellation(None)
+            elif kind is CancelCall:
+                canceling = runner.request_cancel(event.call, event.error)
+                if canceling is not None:
+                    await self.send(canceling)
+            elif kind is Publish:
+                await self.publish(event)
+            elif kind is SubscriptionDeadline:
+                subscription = event.subscription
+                subscription.timer = self.loop.call_later(
+                    event.timeout,
+                    self.writer.outbox.expire,
+                    subscription,
+                    event.timeout,
+                )
+            else:
+                assert kind is Dropped
+                self.dropped(event)
 
     async def publish(self, event: Publish) -> None:
         """A message a client published: validate it, hand it to the server's handlers (an

@@ -249,6 +249,16 @@ class Connection(abc.ABC):
         """
         return False
 
+    def pause_reading(self) -> None:
+        """Read no more from the network until :meth:`resume_reading`: what a receiver given
+        to :meth:`deliver_to` calls when it holds more messages than it means to; where the
+        transport cannot, nothing (by default)."""
+        return None
+
+    def resume_reading(self) -> None:
+        """Read from the network again after :meth:`pause_reading`; nothing by default."""
+        return None
+
     @property
     @abc.abstractmethod
     def congested(self) -> bool:

@@ -18,16 +18,19 @@ leaves to its user:
   only while ``picows`` says the socket's buffer is past its high-water mark
   (``pause_writing``/``resume_writing``). A client's message is framed and written by ``picows``
   at once (it masks it). A server frames its own messages (unmasked: a header and the bytes)
-  and *corks* them: the replies made while draining one read go out in one write, when
-  ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
-  comes first. The budget (``max_queued_bytes``) is the socket buffer's high-water mark: a
-  ``send`` that finds the connection congested waits before it queues anything, and a
+  and *corks* them: the replies made while draining one read go out in one write, after
+  the last frame the read brought (the replies made in ``on_ws_frame``), when ``recv`` finds
+  nothing more to read, at the loop's next turn, or past the budget, whichever comes first.
+  The budget (``max_queued_bytes``) is the socket buffer's high-water mark: a ``send`` that
+  finds the connection congested waits before it queues anything, and a
   connection congested for ``write_timeout`` (or a ping period, when sooner) is dropped at once
   and ends with :class:`~srvwire.transports.base.WriteTimedOut`. Messages not yet received
   are held in a queue; past :data:`READ_HIGH_WATER` of them the socket is not read until
   ``recv`` has taken them down to :data:`READ_LOW_WATER`. Once given a receiver
-  (:meth:`PicowsConnection.deliver_to`, what a client's link does), a connection hands it
-  each message from ``on_ws_frame`` instead, and queues nothing.
+  (:meth:`PicowsConnection.deliver_to`, what a client's link and a server's connection do), a
+  connection hands it each message from ``on_ws_frame`` instead, and queues nothing; the
+  receiver stops and restarts the reading of the socket itself (``pause_reading``,
+  ``resume_reading``).
 * **Keepalive** as ``websockets`` does it: a ping every ``ping_interval``; no pong within
   ``ping_timeout`` fails the connection with 1011 ``keepalive ping timeout``.
 * **Closing.** A close frame received is answered with the same code, then the TCP connection
@@ -172,6 +175,9 @@ class PicowsConnection(WSListener, Connection):
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
         self._corked: list[bytes] = []  # a server's frames not yet written (see _flush)
         self._corked_size = 0
+        # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
+        # or on_ws_frame is running (it flushes after the read's last frame).
+        self._flush_due = False
         self._framing = False  # whether send frames here: on a server (no mask), once open
         self._received: tuple[int, str] | None = None  # the close frame received
         self._sent: tuple[int, str] | None = None  # the close frame sent
@@ -202,31 +208,42 @@ class PicowsConnection(WSListener, Connection):
 
     def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
         kind = frame.msg_type
-        if kind is _TEXT or kind is _BINARY:
-            if self._parts_size or self._parts:
-                self._fail(1002, "a new message began before the last one ended")
-            elif frame.fin:
-                self._deliver(frame.get_payload_as_bytes(), kind is _TEXT)
-            else:
-                self._parts_text = kind is _TEXT
-                self._add_part(frame.get_payload_as_bytes())
-        elif kind is _CONTINUATION:
-            if not self._parts:
-                self._fail(1002, "a continuation frame without a message to continue")
-            elif self._add_part(frame.get_payload_as_bytes()) and frame.fin:
-                payload = b"".join(self._parts)
-                self._parts = []
-                self._parts_size = 0
-                self._deliver(payload, self._parts_text)
-        elif kind is _CLOSE:
-            code = _code(frame.get_close_code())
-            # A close frame without a code is 1005 (RFC 6455, section 7.1.5).
-            self._received = (code or 1005, frame.get_close_reason() or "")
-            if not transport.is_close_frame_sent:
-                self._send_close(code or 1000, self._received[1] if code else "")
-            transport.disconnect()
-        elif kind is _PONG:
-            self._pong()
+        due = self._flush_due
+        self._flush_due = True
+        try:
+            if kind is _TEXT or kind is _BINARY:
+                if self._parts_size or self._parts:
+                    self._fail(1002, "a new message began before the last one ended")
+                elif frame.fin:
+                    self._deliver(frame.get_payload_as_bytes(), kind is _TEXT)
+                else:
+                    self._parts_text = kind is _TEXT
+                    self._add_part(frame.get_payload_as_bytes())
+            elif kind is _CONTINUATION:
+                if not self._parts:
+                    self._fail(1002, "a continuation frame without a message to continue")
+                elif self._add_part(frame.get_payload_as_bytes()) and frame.fin:
+                    payload = b"".join(self._parts)
+                    self._parts = []
+                    self._parts_size = 0
+                    self._deliver(payload, self._parts_text)
+            elif kind is _CLOSE:
+                code = _code(frame.get_close_code())
+                # A close frame without a code is 1005 (RFC 6455, section 7.1.5).
+                self._received = (code or 1005, frame.get_close_reason() or "")
+                if not transport.is_close_frame_sent:
+                    self._send_close(code or 1000, self._received[1] if code else "")
+                transport.disconnect()
+            elif kind is _PONG:
+                self._pong()
+        finally:
+            self._flush_due = due
+        if self._corked:  # replies made while taking it (a server's, given a receiver)
+            if frame.last_in_buffer:
+                self._flush()  # everything this read brought is answered: in one write
+            elif not due:
+                self._flush_due = True
+                self._loop.call_soon(self._flush_later)
 
     def on_ws_disconnected(self, transport: WSTransport) -> None:
         if self._sent is None:
@@ -292,8 +309,9 @@ class PicowsConnection(WSListener, Connection):
         data = message.encode() if isinstance(message, str) else message
         if self._framing:
             corked = self._corked
-            if not corked:
-                self._loop.call_soon(self._flush)
+            if not self._flush_due:
+                self._flush_due = True
+                self._loop.call_soon(self._flush_later)
             size = len(data)
             corked.append(
                 _HEADER[size] if size < 126 else _header(size)  # a text frame, unmasked
@@ -314,6 +332,19 @@ class PicowsConnection(WSListener, Connection):
             self._reading = True
             self._ws.underlying_transport.resume_reading()
         return True
+
+    def pause_reading(self) -> None:
+        """Read the socket no more until :meth:`resume_reading` (a receiver's choice, see
+        :meth:`deliver_to`); once the closing handshake began, the socket is read to its end."""
+        ws = self._ws
+        if self._reading and ws is not None and self._ended is None and not ws.is_close_frame_sent:
+            self._reading = False
+            ws.underlying_transport.pause_reading()
+
+    def resume_reading(self) -> None:
+        if not self._reading and self._ws is not None:
+            self._reading = True
+            self._ws.underlying_transport.resume_reading()
 
     @property
     def congested(self) -> bool:
@@ -410,18 +441,31 @@ class PicowsConnection(WSListener, Connection):
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
 
+    def _flush_later(self) -> None:
+        self._flush_due = False
+        self._flush()
+
     def _flush(self) -> None:
         """Write the frames ``send`` corked, in one write: on a server, every reply made while
-        draining one read goes out in one system call instead of one each."""
+        draining one read goes out in one system call instead of one each. A lone message goes
+        out through ``picows``' own ``send``, which frames it and makes the system call in C."""
         corked = self._corked
         if not corked:
             return
-        data = b"".join(corked)
-        corked.clear()
-        self._corked_size = 0
         ws = self._ws
         # Nothing may follow a close frame (picows itself may have sent one, on a bad frame).
-        if ws is not None and self._ended is None and not ws.is_close_frame_sent:
+        if ws is None or self._ended is not None or ws.is_close_frame_sent:
+            corked.clear()
+            self._corked_size = 0
+        elif len(corked) == 2:  # one frame: its header and its message
+            message = corked[1]
+            corked.clear()
+            self._corked_size = 0
+            ws.send(_TEXT, message)
+        else:
+            data = b"".join(corked)
+            corked.clear()
+            self._corked_size = 0
             ws.underlying_transport.write(data)
 
     def _send_close(self, code: int, reason: str) -> None:
