@@ -648,7 +648,7 @@ def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
     """
     serializer = type(value).__pydantic_serializer__
     if strict:
-        return _write_checked(functools.partial(serializer.to_json, by_alias=True), value)
+        return _write_checked(serializer.to_json, value)
     return serializer.to_json(value, by_alias=True)
 
 
@@ -666,18 +666,20 @@ def json_writer(
             raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
         schema = _with_inf_nan(model.__pydantic_core_schema__, inf_nan)
         serializer = SchemaSerializer(schema, {"ser_json_inf_nan": inf_nan}, _use_prebuilt=False)
+    if strict:  # one partial without keywords: a partial's keywords cost a dict per call
+        checked: Callable[[M], bytes] = functools.partial(_write_checked, serializer.to_json)
+        return checked
     write: Callable[[M], bytes] = functools.partial(serializer.to_json, by_alias=True)
-    if strict:
-        write = functools.partial(_write_checked, write)
     return write
 
 
-def _write_checked(write: Callable[[Any], bytes], value: Any) -> bytes:
+def _write_checked(to_json: Callable[..., bytes], value: Any) -> bytes:
+    """``to_json(value, by_alias=True)``, a pydantic serializer's, with its warnings errors."""
     filters = warnings.filters
     if not filters or filters[0] != _CHECKED_FILTER:
         _raise_serializer_warnings()
     try:
-        return write(value)  # _CHECKED_LINE: the serializer's warnings from here are errors
+        return to_json(value, by_alias=True)  # _CHECKED_LINE: its warnings from here are errors
     except UserWarning as exc:
         raise PydanticSerializationError(str(exc)) from None
 
@@ -688,7 +690,7 @@ def _write_checked(write: Callable[[Any], bytes], value: Any) -> bytes:
 # serializer in _write_checked turns that warning, and no other, into the error. The filter is
 # put back in front before a write whenever something else (pytest, the application) went
 # before it since.
-_CHECKED_LINE = _write_checked.__code__.co_firstlineno + 5
+_CHECKED_LINE = _write_checked.__code__.co_firstlineno + 6
 _SERIALIZER_WARNING = "Pydantic serializer warnings"
 _CHECKED_MODULE = r"srvwire\.models\Z"
 

@@ -541,7 +541,12 @@ class ServerSession(Generic[E]):
 
     def reply(self, call: Call[E], result: bytes) -> bytes | None:
         """Write the reply to ``call`` with ``result`` (its JSON); None while its batch waits."""
-        return self._answer(call, write_response(call.id, result))
+        id = call.id
+        if call.batch is None and id is not None:  # most replies: _answer's steps, inline
+            if self.calls.get(id) is call:
+                del self.calls[id]
+            return write_response(id, result)
+        return self._answer(call, write_response(id, result))
 
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
         """Write the error reply to ``call``; None while its batch waits."""
