@@ -23,7 +23,26 @@ async def waits_for(future: asyncio.Future[int]) -> int:
 
 
 async def test_a_coroutine_that_does_not_wait_finishes_in_its_first_step() -> None:
-    assert first_step(answers(21)) == 42
+    done: list[int] = []
+
+    async def records(value: int) -> None:
+        done.append(await answers(value))
+
+    assert first_step(records(21)) is None
+    assert done == [42]
+
+
+async def test_a_first_step_that_yields_none_is_not_taken_for_the_end() -> None:
+    done: list[str] = []
+
+    async def yields_none_first() -> None:
+        await asyncio.sleep(0)  # yields None to its task
+        done.append("finished")
+
+    steps = first_step(yields_none_first())
+    assert isinstance(steps, Pending) and steps.yielded is None
+    await finish(steps)
+    assert done == ["finished"]
 
 
 async def test_a_coroutine_that_waits_is_finished_in_the_same_task() -> None:
