@@ -753,13 +753,14 @@ class CallReader:
     ``requests`` maps each service's name to its ``Request`` class. The one validator is a
     union tagged by ``method`` (each name with and without its leading ``/``) of envelopes:
     ``jsonrpc`` exactly ``"2.0"``, an integer or string ``id``, and ``params``, an object that
-    is that service's ``Request`` with ``_meta`` let through (the rest of the request's rules
-    unchanged). :meth:`read` returns the :class:`~srvwire.protocol.Request` whose ``params`` is
-    the request built, ``_meta`` taken out of it and read into ``timeout``, or None for
-    anything else: a notification, a batch, another method, an invalid message, params that do
-    not validate, a member the request does not have besides ``_meta``, a ``_meta`` that is not
-    an object with a valid ``timeout``. None means "parse it the full way", which then says
-    what is wrong exactly as it always does.
+    is that service's ``Request`` with ``_meta`` as one more field, an object or absent (the
+    rest of the request's rules unchanged). :meth:`read` returns the
+    :class:`~srvwire.protocol.Request` whose ``params`` is the request built, ``_meta`` taken
+    out of it and read into ``timeout``, or None for anything else: a notification, a batch,
+    another method, an invalid message, params that do not validate, a member the request does
+    not have besides ``_meta``, a ``_meta`` that is not an object with a valid ``timeout``.
+    None means "parse it the full way", which then says what is wrong exactly as it always
+    does.
 
     Only classes srvwire builds (:class:`Message`, no validators of their own) are read so:
     JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``),
@@ -812,21 +813,15 @@ class CallReader:
         except Exception:  # refused (a ValidationError), or a validator's own failure: the
             return None  # full parse says which, as it always did
         request: pydantic.BaseModel = envelope["params"]
-        extra = request.__pydantic_extra__
+        meta = request.__dict__.pop(_META)
         timeout = None
-        if extra:
-            if len(extra) != 1 or "_meta" not in extra:  # the full parse names the member
-                return None
-            meta = extra["_meta"]
-            if type(meta) is not dict:
-                return None
+        if meta is not None:
             raw = meta.get("timeout")
             if raw is not None:
                 timeout = timeout_seconds(raw)
                 if timeout is None:
                     return None
-            request.__pydantic_fields_set__.discard("_meta")
-        object.__setattr__(request, "__pydantic_extra__", None)  # as the class makes it
+            request.__pydantic_fields_set__.discard(_META)
         if self.floats and type(request) in self.floats:
             if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
                 return None
@@ -837,7 +832,7 @@ class CallReader:
 def _params_schema(
     model: type[pydantic.BaseModel], definitions: dict[str, Any]
 ) -> dict[str, Any] | None:
-    """``model``'s core schema with ``_meta`` let through (extra members kept aside), its
+    """``model``'s core schema with ``_meta`` as one more field (an object, or absent), its
     definitions added to ``definitions``; None for a class not read in one pass."""
     if not _as_built(model) or model.__pydantic_custom_init__:
         return None
@@ -858,11 +853,19 @@ def _params_schema(
         return None
     if not all(_as_built(nested) for nested in _model_classes(schema)):
         return None
-    fields = {**schema["schema"], "extra_behavior": "allow"}
-    params = {**schema, "schema": fields, "config": {**schema.get("config", {})}}
-    params["config"]["extra_fields_behavior"] = "allow"
+    fields = {**schema["schema"]["fields"], _META: _META_FIELD}
+    params = {**schema, "schema": {**schema["schema"], "fields": fields}}
     params.pop("ref", None)  # another schema than the class's own
     return params
+
+
+# ``_meta`` as one more field of a request read in one pass: an object, or absent (None). It
+# lands in the instance's fields, where the reader takes it out; any other member the class
+# does not have is refused by the class's own rule, and the full parse names it.
+_META = "_meta"
+_META_FIELD = core_schema.model_field(
+    core_schema.with_default_schema(core_schema.dict_schema(), default=None)
+)
 
 
 def _as_built(model: Any) -> bool:
