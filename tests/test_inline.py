@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
-from collections.abc import Coroutine
+import types
+from collections.abc import Coroutine, Generator
 from typing import Any
 
 import pytest
@@ -30,6 +31,22 @@ async def test_a_coroutine_that_does_not_wait_finishes_in_its_first_step() -> No
 
     assert first_step(records(21)) is None
     assert done == [42]
+
+
+async def test_a_generator_based_coroutine_is_stepped_too() -> None:
+    future: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    done: list[int] = []
+
+    @types.coroutine
+    def generator_based(wait: bool) -> Generator[Any, Any, None]:
+        done.append((yield from future) if wait else 0)
+
+    assert first_step(generator_based(False)) is None
+    steps = first_step(generator_based(True))
+    assert isinstance(steps, Pending) and steps.yielded is future
+    future.set_result(7)
+    await finish(steps)
+    assert done == [0, 7]
 
 
 async def test_a_first_step_that_yields_none_is_not_taken_for_the_end() -> None:

@@ -61,11 +61,22 @@ def first_step(
     dropped (srvwire's return None), since it is stepped as a ``for`` loop steps an iterator,
     which raises no ``StopIteration`` when it ends (``send`` raises one, which costs about a
     third of a small coroutine's run). One that waits returns its result from :func:`finish`.
+    Any other kind of coroutine (a generator-based one, an object with ``send``) is stepped by
+    its ``send``.
     """
-    steps = coroutine.__await__()
-    yielded = next(steps, _DONE) if context is None else context.run(next, steps, _DONE)
-    if yielded is _DONE:
-        return None
+    if type(coroutine) is types.CoroutineType:
+        steps = coroutine.__await__()
+        yielded = next(steps, _DONE) if context is None else context.run(next, steps, _DONE)
+        if yielded is _DONE:
+            return None
+    else:
+        try:
+            if context is None:
+                yielded = coroutine.send(None)
+            else:
+                yielded = context.run(coroutine.send, None)
+        except StopIteration:
+            return None
     return Pending(coroutine, yielded, context)
 
 
