@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
-from collections.abc import Coroutine
+import types
+from collections.abc import Coroutine, Generator
 from typing import Any
 
 import pytest
@@ -23,7 +24,42 @@ async def waits_for(future: asyncio.Future[int]) -> int:
 
 
 async def test_a_coroutine_that_does_not_wait_finishes_in_its_first_step() -> None:
-    assert first_step(answers(21)) == 42
+    done: list[int] = []
+
+    async def records(value: int) -> None:
+        done.append(await answers(value))
+
+    assert first_step(records(21)) is None
+    assert done == [42]
+
+
+async def test_a_generator_based_coroutine_is_stepped_too() -> None:
+    future: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    done: list[int] = []
+
+    @types.coroutine
+    def generator_based(wait: bool) -> Generator[Any, Any, None]:
+        done.append((yield from future) if wait else 0)
+
+    assert first_step(generator_based(False)) is None
+    steps = first_step(generator_based(True))
+    assert isinstance(steps, Pending) and steps.yielded is future
+    future.set_result(7)
+    await finish(steps)
+    assert done == [0, 7]
+
+
+async def test_a_first_step_that_yields_none_is_not_taken_for_the_end() -> None:
+    done: list[str] = []
+
+    async def yields_none_first() -> None:
+        await asyncio.sleep(0)  # yields None to its task
+        done.append("finished")
+
+    steps = first_step(yields_none_first())
+    assert isinstance(steps, Pending) and steps.yielded is None
+    await finish(steps)
+    assert done == ["finished"]
 
 
 async def test_a_coroutine_that_waits_is_finished_in_the_same_task() -> None:

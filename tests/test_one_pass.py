@@ -96,6 +96,7 @@ def test_random_valid_requests_read_alike_in_one_pass_and_in_full(
         assert type(request) is cls and conformance.same(request, expected)
         assert request.model_fields_set == expected.model_fields_set
         assert request.__pydantic_extra__ is expected.__pydantic_extra__ is None
+        assert list(request.__dict__) == list(expected.__dict__)  # no _meta left among them
 
     check()
     assert in_one_pass > 0  # what srvwire writes is read in one pass

@@ -940,13 +940,17 @@ async def run_handler(
     try:
         if deadline is not None and deadline <= time.monotonic():
             raise _deadline_exceeded(entry, context_of(work))
-        if limit is None:
-            handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
-            result = await handler
-        else:
+        if limit is not None:
             result, prebuilt = await _limited(
                 entry, limit, request, context_of, work, executor, logger
             )
+        elif entry.is_async and not entry.takes_response and not entry.context_param:
+            prebuilt = None  # the usual handler, ``async def f(request)``: _invoke's steps here
+            handler = entry.handler(request)
+            result = await (handler if type(handler) is CoroutineType else _await(handler))
+        else:
+            handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
+            result = await handler
     except RPCError as exc:
         if exc.service is None:
             exc.service = entry.name
@@ -960,6 +964,13 @@ async def run_handler(
         raise _handler_raised(entry, context_of(work), exc, logger) from None
     except Exception as exc:
         raise _handler_raised(entry, context_of(work), exc, logger) from None
+    if type(result) is entry.response_model:  # most handlers: written as _encode_response would
+        try:
+            if reply_id is _Alone.RESULT:
+                return entry.write_response(result)
+            return entry.write_reply(reply_id, result)
+        except PydanticSerializationError:
+            pass  # _encode_response says why, writing it once more
     return _encode_response(entry, result, prebuilt, logger, reply_id)
 
 

@@ -649,7 +649,7 @@ def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
     """
     serializer = type(value).__pydantic_serializer__
     if strict:
-        return _write_checked(functools.partial(serializer.to_json, by_alias=True), value)
+        return _write_checked(serializer.to_json, value)
     return serializer.to_json(value, by_alias=True)
 
 
@@ -667,9 +667,10 @@ def json_writer(
             raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
         schema = _with_inf_nan(model.__pydantic_core_schema__, inf_nan)
         serializer = SchemaSerializer(schema, {"ser_json_inf_nan": inf_nan}, _use_prebuilt=False)
+    if strict:  # one partial without keywords: a partial's keywords cost a dict per call
+        checked: Callable[[M], bytes] = functools.partial(_write_checked, serializer.to_json)
+        return checked
     write: Callable[[M], bytes] = functools.partial(serializer.to_json, by_alias=True)
-    if strict:
-        write = functools.partial(_write_checked, write)
     return write
 
 
@@ -708,25 +709,24 @@ def reply_writer(
     if definitions:
         envelope = core_schema.definitions_schema(envelope, definitions)
     config: Any = {} if inf_nan is None else {"ser_json_inf_nan": inf_nan}
-    whole = functools.partial(
-        SchemaSerializer(envelope, config, _use_prebuilt=False).to_json, by_alias=True
-    )
+    to_json = SchemaSerializer(envelope, config, _use_prebuilt=False).to_json
 
     def write(id: Id, value: M) -> bytes:
-        return whole({"jsonrpc": "2.0", "id": id, "result": value})
+        return to_json({"jsonrpc": "2.0", "id": id, "result": value}, by_alias=True)
 
     def write_checked(id: Id, value: M) -> bytes:
-        return _write_checked(whole, {"jsonrpc": "2.0", "id": id, "result": value})
+        return _write_checked(to_json, {"jsonrpc": "2.0", "id": id, "result": value})
 
     return write_checked if strict else write
 
 
-def _write_checked(write: Callable[[Any], bytes], value: Any) -> bytes:
+def _write_checked(to_json: Callable[..., bytes], value: Any) -> bytes:
+    """``to_json(value, by_alias=True)``, a pydantic serializer's, with its warnings errors."""
     filters = warnings.filters
     if not filters or filters[0] != _CHECKED_FILTER:
         _raise_serializer_warnings()
     try:
-        return write(value)  # _CHECKED_LINE: the serializer's warnings from here are errors
+        return to_json(value, by_alias=True)  # _CHECKED_LINE: its warnings from here are errors
     except UserWarning as exc:
         raise PydanticSerializationError(str(exc)) from None
 
@@ -737,7 +737,7 @@ def _write_checked(write: Callable[[Any], bytes], value: Any) -> bytes:
 # serializer in _write_checked turns that warning, and no other, into the error. The filter is
 # put back in front before a write whenever something else (pytest, the application) went
 # before it since.
-_CHECKED_LINE = _write_checked.__code__.co_firstlineno + 5
+_CHECKED_LINE = _write_checked.__code__.co_firstlineno + 6
 _SERIALIZER_WARNING = "Pydantic serializer warnings"
 _CHECKED_MODULE = r"srvwire\.models\Z"
 
@@ -842,13 +842,14 @@ class CallReader:
     ``requests`` maps each service's name to its ``Request`` class. The one validator is a
     union tagged by ``method`` (each name with and without its leading ``/``) of envelopes:
     ``jsonrpc`` exactly ``"2.0"``, an integer or string ``id``, and ``params``, an object that
-    is that service's ``Request`` with ``_meta`` let through (the rest of the request's rules
-    unchanged). :meth:`read` returns the :class:`~srvwire.protocol.Request` whose ``params`` is
-    the request built, ``_meta`` taken out of it and read into ``timeout``, or None for
-    anything else: a notification, a batch, another method, an invalid message, params that do
-    not validate, a member the request does not have besides ``_meta``, a ``_meta`` that is not
-    an object with a valid ``timeout``. None means "parse it the full way", which then says
-    what is wrong exactly as it always does.
+    is that service's ``Request`` with ``_meta`` as one more field, an object or absent (the
+    rest of the request's rules unchanged). :meth:`read` returns the
+    :class:`~srvwire.protocol.Request` whose ``params`` is the request built, ``_meta`` taken
+    out of it and read into ``timeout``, or None for anything else: a notification, a batch,
+    another method, an invalid message, params that do not validate, a member the request does
+    not have besides ``_meta``, a ``_meta`` that is not an object with a valid ``timeout``.
+    None means "parse it the full way", which then says what is wrong exactly as it always
+    does.
 
     Only classes srvwire builds (:class:`Message`, no validators of their own) are read so:
     JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``),
@@ -901,21 +902,15 @@ class CallReader:
         except Exception:  # refused (a ValidationError), or a validator's own failure: the
             return None  # full parse says which, as it always did
         request: pydantic.BaseModel = envelope["params"]
-        extra = request.__pydantic_extra__
+        meta = request.__dict__.pop(_META)
         timeout = None
-        if extra:
-            if len(extra) != 1 or "_meta" not in extra:  # the full parse names the member
-                return None
-            meta = extra["_meta"]
-            if type(meta) is not dict:
-                return None
+        if meta is not None:
             raw = meta.get("timeout")
             if raw is not None:
                 timeout = timeout_seconds(raw)
                 if timeout is None:
                     return None
-            request.__pydantic_fields_set__.discard("_meta")
-        object.__setattr__(request, "__pydantic_extra__", None)  # as the class makes it
+            request.__pydantic_fields_set__.discard(_META)
         if self.floats and type(request) in self.floats:
             if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
                 return None
@@ -926,7 +921,7 @@ class CallReader:
 def _params_schema(
     model: type[pydantic.BaseModel], definitions: dict[str, Any]
 ) -> dict[str, Any] | None:
-    """``model``'s core schema with ``_meta`` let through (extra members kept aside), its
+    """``model``'s core schema with ``_meta`` as one more field (an object, or absent), its
     definitions added to ``definitions``; None for a class not read in one pass."""
     if not _as_built(model) or model.__pydantic_custom_init__:
         return None
@@ -947,11 +942,19 @@ def _params_schema(
         return None
     if not all(_as_built(nested) for nested in _model_classes(schema)):
         return None
-    fields = {**schema["schema"], "extra_behavior": "allow"}
-    params = {**schema, "schema": fields, "config": {**schema.get("config", {})}}
-    params["config"]["extra_fields_behavior"] = "allow"
+    fields = {**schema["schema"]["fields"], _META: _META_FIELD}
+    params = {**schema, "schema": {**schema["schema"], "fields": fields}}
     params.pop("ref", None)  # another schema than the class's own
     return params
+
+
+# ``_meta`` as one more field of a request read in one pass: an object, or absent (None). It
+# lands in the instance's fields, where the reader takes it out; any other member the class
+# does not have is refused by the class's own rule, and the full parse names it.
+_META = "_meta"
+_META_FIELD = core_schema.model_field(
+    core_schema.with_default_schema(core_schema.dict_schema(), default=None)
+)
 
 
 def _as_built(model: Any) -> bool:

@@ -402,9 +402,9 @@ def write_response(id: Id, result: bytes) -> bytes:
     The same bytes as ``Response(id, RawJSON(result)).serialize()``, which calls this; the
     server writes the replies of its calls with it, without the two objects.
     """
-    return b"".join(
-        (b'{"jsonrpc":"2.0","id":', _encode_id(id).encode(), b',"result":', result, b"}")
-    )
+    if type(id) is int:  # what clients send: formatted in one step
+        return b'{"jsonrpc":"2.0","id":%d,"result":%b}' % (id, result)
+    return b'{"jsonrpc":"2.0","id":%b,"result":%b}' % (_encode_id(id).encode(), result)
 
 
 @dataclass(slots=True)

@@ -542,7 +542,12 @@ class ServerSession(Generic[E]):
     def reply(self, call: Call[E], result: bytes, whole: bool = False) -> bytes | None:
         """Write the reply to ``call`` with ``result`` (its JSON, or with ``whole`` the whole
         response already written); None while its batch waits."""
-        return self._answer(call, result if whole else write_response(call.id, result))
+        id = call.id
+        if call.batch is None and id is not None:  # most replies: _answer's steps, inline
+            if self.calls.get(id) is call:
+                del self.calls[id]
+            return result if whole else write_response(id, result)
+        return self._answer(call, result if whole else write_response(id, result))
 
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
         """Write the error reply to ``call``; None while its batch waits."""
