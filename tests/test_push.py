@@ -356,3 +356,30 @@ async def test_a_failure_inside_srvwire_while_reading_ends_the_connection_with_1
         await asyncio.wait({reader})
         if not reader.cancelled():  # a pulling reader failed with it: asyncio would log it
             assert isinstance(reader.exception(), RuntimeError)
+
+
+@real_transports
+async def test_a_handler_that_cancels_the_reader_later_ends_the_connection_with_1011(
+    server: Server, transport: Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A handler answered on the reader, kept it as its current task, and cancels it later:
+    # the connection ends, with 1011 and a line that says why, as a pulling reader's would;
+    # it is not left open and deaf.
+    kept: list[asyncio.Task[Any]] = []
+
+    async def keeps_its_task(request: Any) -> Any:
+        task = asyncio.current_task()
+        assert task is not None
+        kept.append(task)
+        return {"text": request.text}
+
+    server.add_service("/keeps_its_task", Echo, keeps_its_task)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.request("/keeps_its_task", {"text": "a"}, id=1)
+        assert reply["result"] == {"text": "a"}
+        assert served(running).pushed
+        with caplog.at_level(logging.ERROR, logger="srvwire.server"):
+            kept[0].cancel()
+            assert await closed_code(w) == 1011
+        assert "was cancelled by a handler that had answered on it" in caplog.text

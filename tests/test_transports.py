@@ -1165,3 +1165,81 @@ async def test_once_open_a_picows_servers_reads_go_straight_to_picows() -> None:
             assert await pair.server.recv() == f"call {i}"
             await pair.server.send(f"reply {i}".encode())
             assert await pair.client.recv() == f"reply {i}"
+
+
+async def test_a_receiver_that_pauses_picows_reading_as_it_takes_the_queue_keeps_it_paused() -> (
+    None
+):
+    # picows stopped reading the socket for its own queue; deliver_to reads again before it
+    # hands that queue over, so a receiver that pauses the reading meanwhile (a server whose
+    # own queue is full) keeps it paused, and the peer is held back.
+    from srvwire.transports.picows import READ_HIGH_WATER, PicowsConnection
+
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        server = pair.server
+        assert isinstance(server, PicowsConnection)
+        arrived = asyncio.Event()
+        deliver = server._deliver
+        count = 0
+
+        def counting(payload: bytes, text: bool) -> None:
+            nonlocal count
+            deliver(payload, text)
+            count += 1
+            if count == READ_HIGH_WATER:
+                arrived.set()
+
+        server._deliver = counting  # type: ignore[method-assign]
+        for i in range(READ_HIGH_WATER + 6):
+            await pair.client.send(str(i))
+        await arrived.wait()
+        assert not server._reading  # paused for its queue
+        taken: list[str | bytes] = []
+
+        def receive(message: str | bytes) -> None:
+            taken.append(message)
+            server.pause_reading()
+
+        assert server.deliver_to(receive)
+        assert taken[:READ_HIGH_WATER] == [str(i) for i in range(READ_HIGH_WATER)]
+        assert not server._reading  # the receiver's pause holds
+        server.resume_reading()
+        assert server._reading
+
+
+@pytest.mark.parametrize("size", [8192, 8193, 60_000])
+async def test_a_lone_reply_goes_through_picows_send_only_when_picows_copies_it(size: int) -> None:
+    # Over 8 KiB picows' send writes the header as a view of a buffer it reuses, which asyncio
+    # may keep unsent (writelines, Python 3.12+): the next frame would overwrite it. So a
+    # larger lone reply is framed here and written as one copy, as several replies are.
+    from srvwire.transports.picows import PICOWS_COPIES, PicowsConnection, _header
+
+    class Underlying:
+        def __init__(self) -> None:
+            self.written: list[bytes] = []
+
+        def write(self, data: bytes) -> None:
+            self.written.append(bytes(data))
+
+    class FakeWS:
+        is_close_frame_sent = False
+
+        def __init__(self) -> None:
+            self.underlying_transport = Underlying()
+            self.sent: list[bytes] = []
+
+        def send(self, kind: Any, message: bytes) -> None:
+            self.sent.append(message)
+
+    assert PICOWS_COPIES == 8192  # the sizes straddle it
+    conn = PicowsConnection(Options())
+    ws = FakeWS()
+    conn._ws = ws  # type: ignore[assignment]
+    message = b"x" * size
+    conn._corked = [_header(size), message]
+    conn._corked_size = size
+    conn._flush()
+    if size <= PICOWS_COPIES:
+        assert (ws.sent, ws.underlying_transport.written) == ([message], [])
+    else:
+        assert (ws.sent, ws.underlying_transport.written) == ([], [_header(size) + message])

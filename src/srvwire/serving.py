@@ -29,7 +29,10 @@ Invariants:
   :data:`PUSH_HIGH_WATER` queued, the transport is asked to read no more until the reader is
   down to :data:`PUSH_LOW_WATER`. The connection's handler (:meth:`ServedConnection.serve`)
   awaits only the end, from ``recv``, and wakes the reader, which answers what is queued
-  first; a failure of the reading inside srvwire ends the connection with 1011. Elsewhere
+  first; a failure of the reading inside srvwire, or a cancellation of the parked reader
+  by anything but :meth:`~ServedConnection.serve` (a handler that answered on it, kept it as
+  its ``current_task()`` and cancelled it later), ends the connection with 1011, as a pulling
+  reader's end ends it. Elsewhere
   (the memory transport, or an asyncio without its private ``_enter_task``) the reader pulls
   with ``recv``.
 * **The reader waits only to send, and while the connection is congested**, which is what
@@ -1031,6 +1034,7 @@ class ServedConnection:
         finally:
             self.log_drops()
             if not self.reading.done():  # this handler was cancelled: stop reading too
+                self.reading.remove_done_callback(self.reading_ended)
                 self.reading.cancel()
                 if self.reader is not None:
                     self.reader.cancel()
@@ -1172,7 +1176,7 @@ class ServedConnection:
         if queue is None:
             queue = self.queue = deque()
         queue.append(data)
-        if len(queue) >= PUSH_HIGH_WATER and not self.paused:
+        if len(queue) >= PUSH_HIGH_WATER:  # every time: a transport may have resumed meanwhile
             self.paused = True
             self.conn.pause_reading()
         parked = self.parked
@@ -1252,13 +1256,24 @@ class ServedConnection:
             parked.set_result(None)
 
     def reading_ended(self, reading: asyncio.Future[None]) -> None:
-        """The reading of pushed messages failed (a bug in srvwire) before the connection
-        ended: end it, with 1011 as a handler that raises does, so that :meth:`serve` stops
-        waiting for the end and raises the failure."""
-        if self.ended is None and not reading.cancelled():
-            failure = reading.exception()
-            if failure is not None and not isinstance(failure, TransportClosed):
-                self.spawn(self.conn.close(1011))
+        """The reading of pushed messages failed (a bug in srvwire) or was cancelled (by a
+        handler that answered inline, kept ``asyncio.current_task()`` and cancelled it later;
+        :meth:`serve` takes this callback off before it stops the reading itself) before the
+        connection ended: end it, with 1011 as a handler that raises does, so that
+        :meth:`serve` stops waiting for the end, as a pulling reader's end stops it."""
+        if self.ended is not None:
+            return
+        if reading.cancelled():
+            self.log.error(
+                "the reader of the connection from %s was cancelled by a handler that had "
+                "answered on it; closing the connection",
+                self.peer,
+            )
+            self.spawn(self.conn.close(1011))
+            return
+        failure = reading.exception()
+        if failure is not None and not isinstance(failure, TransportClosed):
+            self.spawn(self.conn.close(1011))
 
     async def handle(self, data: str | bytes) -> None:
         """Do what one message asks; a call or notification that has to wait is left in

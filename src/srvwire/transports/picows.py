@@ -111,6 +111,11 @@ DEFAULT_BUDGET = 2**16
 buffer's high-water mark (its low one is a quarter). A server writes its corked frames at
 once past a quarter of it, instead of at the end of the read (see
 :meth:`PicowsConnection._flush`), so at most the budget and a quarter wait, plus one message."""
+PICOWS_COPIES = 8192
+"""The largest message ``picows``' ``send`` copies into its own buffer with its header. A larger
+one is written as two parts, the header a view of a buffer ``picows`` reuses for the next
+frame; where asyncio keeps such a view unsent (``writelines`` from Python 3.12), the next frame
+would overwrite the header. So a larger lone message is framed and written here, as a copy."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
@@ -324,13 +329,15 @@ class PicowsConnection(WSListener, Connection):
             ws.send(_TEXT, data)
 
     def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
+        # Reading paused for the queue resumes first: nothing is queued once this returns, and a
+        # receiver that pauses reading while it takes the queued messages must find it reading.
+        if not self._reading and self._ws is not None:
+            self._reading = True
+            self._ws.underlying_transport.resume_reading()
         messages = self._messages
         while messages:
             receive(messages.popleft())
         self._receive = receive
-        if not self._reading and self._ws is not None:  # nothing is queued any more
-            self._reading = True
-            self._ws.underlying_transport.resume_reading()
         return True
 
     def pause_reading(self) -> None:
@@ -447,8 +454,9 @@ class PicowsConnection(WSListener, Connection):
 
     def _flush(self) -> None:
         """Write the frames ``send`` corked, in one write: on a server, every reply made while
-        draining one read goes out in one system call instead of one each. A lone message goes
-        out through ``picows``' own ``send``, which frames it and makes the system call in C."""
+        draining one read goes out in one system call instead of one each. A lone message of at
+        most :data:`PICOWS_COPIES` bytes goes out through ``picows``' own ``send``, which frames
+        it and makes the system call in C."""
         corked = self._corked
         if not corked:
             return
@@ -457,7 +465,7 @@ class PicowsConnection(WSListener, Connection):
         if ws is None or self._ended is not None or ws.is_close_frame_sent:
             corked.clear()
             self._corked_size = 0
-        elif len(corked) == 2:  # one frame: its header and its message
+        elif len(corked) == 2 and len(corked[1]) <= PICOWS_COPIES:  # one frame, small
             message = corked[1]
             corked.clear()
             self._corked_size = 0

@@ -52,8 +52,9 @@ sent, so a peer that does not read still holds the sender back at the same point
 the connection is not open.
 
 **Messages can be handed over in the read callback.** Given a receiver
-(:meth:`WebSocketsConnection.deliver_to`, as a client's link asks), a connection takes each
-data frame from websockets' protocol in ``process_event`` instead of queueing it for ``recv``,
+(:meth:`WebSocketsConnection.deliver_to`, as a client's link and a server ask), a connection
+takes each data frame from websockets' protocol in ``process_event`` instead of queueing it for
+``recv``,
 which saves the reading task's wake-up per message. The protocol has already bounded the
 message (``max_size``: 1009, named as above), answered pings and closes, and checked the order
 of fragments; here fragments are joined (more than websockets' ``MAX_FRAGMENTS``: 1009), text
