@@ -831,6 +831,7 @@ class ServedConnection:
         "reader",
         "reading",
         "runner",
+        "serving",
         "session",
         "tasks",
         "waiting",
@@ -920,6 +921,7 @@ class ServedConnection:
         self.handed: Pending | Handed | None = None  # what the parked reader is to finish
         self.waiting: tuple[Work, Pending] | None = None  # what handle() found has to wait
         self.ended: TransportClosed | None = None  # how the connection ended
+        self.serving: asyncio.Task[Any] | None = None  # the task running serve()
 
     @property
     def peer(self) -> Any:
@@ -1022,6 +1024,7 @@ class ServedConnection:
     async def serve(self) -> None:
         """Read the connection until it ends, one reader task at a time (see :meth:`read`):
         pushed messages where the transport hands them over as they arrive, else pulled."""
+        self.serving = asyncio.current_task()
         self.pushed = CAN_PUSH  # before deliver_to, which hands over what it holds already
         if CAN_PUSH and not self.conn.deliver_to(self.receive):
             self.pushed = False
@@ -1264,6 +1267,9 @@ class ServedConnection:
         if self.ended is not None:
             return
         if reading.cancelled():
+            serving = self.serving
+            if serving is None or serving.done() or serving.cancelling():
+                return  # serve() is being stopped too (an event loop that ends cancels all)
             self.log.error(
                 "the reader of the connection from %s was cancelled by a handler that had "
                 "answered on it; closing the connection",
