@@ -30,9 +30,9 @@ Invariants:
   down to :data:`PUSH_LOW_WATER`. The connection's handler (:meth:`ServedConnection.serve`)
   awaits only the end, from ``recv``, and wakes the reader, which answers what is queued
   first; a failure of the reading inside srvwire, or a cancellation of the parked reader
-  by anything but :meth:`~ServedConnection.serve` (a handler that answered on it, kept it as
-  its ``current_task()`` and cancelled it later), ends the connection with 1011, as a pulling
-  reader's end ends it. Elsewhere
+  while :meth:`~ServedConnection.serve` runs on (a handler that answered on it, kept it as its
+  ``current_task()`` and cancelled it later; not serve's own stop, nor the end of the event
+  loop), ends the connection with 1011, as a pulling reader's end ends it. Elsewhere
   (the memory transport, or an asyncio without its private ``_enter_task``) the reader pulls
   with ``recv``.
 * **The reader waits only to send, and while the connection is congested**, which is what
