@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -51,3 +53,18 @@ def record_calls(monkeypatch: pytest.MonkeyPatch, module: ModuleType, name: str)
 
     monkeypatch.setattr(module, name, recording)
     return calls
+
+
+def run_benchmark(script: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """Run a benchmark script with ``args`` as a smoke test does: from the project's root, its
+    output captured, within two (scaled) minutes; fail with that output unless it exits 0."""
+    result = subprocess.run(
+        [sys.executable, str(script), *args],
+        capture_output=True,
+        text=True,
+        timeout=scaled(120),
+        cwd=ROOT,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from support import ROOT, scaled
+from support import ROOT, run_benchmark, scaled
 
 RUN = ROOT / "benchmarks" / "run.py"
 
@@ -153,15 +153,7 @@ def test_a_bad_choice_is_refused_before_anything_runs() -> None:
 def test_the_topic_benchmark_runs_both_sides() -> None:
     # A smoke run: both sides deliver every message to 1 and to 10 subscribers (srvwire's
     # side asserts that none was dropped); the figures themselves are not judged here.
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "topics.py"), "--quick"],
-        capture_output=True,
-        text=True,
-        timeout=scaled(120),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_benchmark(ROOT / "benchmarks" / "topics.py", "--quick")
     lines = result.stdout.splitlines()
     rows = [line.split() for line in lines[2:4]]
     assert [row[0] for row in rows] == ["1", "10"], result.stdout
@@ -237,15 +229,7 @@ def test_the_blocking_client_benchmark_measures_each_way_of_calling(tmp_path: Pa
 def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> None:
     # A smoke run of both modes; the script itself exits unless every call got its reply.
     script = ROOT / "benchmarks" / "server_path.py"
-    result = subprocess.run(
-        [sys.executable, str(script), "--calls", "300", "--repeat", "2", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=scaled(120),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_benchmark(script, "--calls", "300", "--repeat", "2", "--json")
     rows = [json.loads(line) for line in result.stdout.splitlines()]
     assert [row["mode"] for row in rows] == ["pipelined", "one-by-one"]
     for row in rows:
@@ -270,15 +254,7 @@ def test_the_client_path_benchmark_compares_source_trees(
     # --server, the calls go to a real server over the transport, which is stopped after.
     src = str(ROOT / "src")
     sources = ["--repeat", "1", "--src", src, "--src", src, *options]
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "client_path.py"), "--calls", "800", *sources],
-        capture_output=True,
-        text=True,
-        timeout=scaled(120),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_benchmark(ROOT / "benchmarks" / "client_path.py", "--calls", "800", *sources)
     lines = result.stdout.splitlines()
     assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == shapes
     rows = [line.split() for line in lines if line.startswith(" ")]
@@ -292,15 +268,7 @@ def test_the_large_reply_steps_agree_both_ways_and_are_measured() -> None:
     # Each way runs in a process of its own, which exits unless both ways make the same.
     script = ROOT / "benchmarks" / "large_path.py"
     for keep in ([], ["--keep-heap"]):
-        result = subprocess.run(
-            [sys.executable, str(script), "--calls", "2", *keep],
-            capture_output=True,
-            text=True,
-            timeout=scaled(120),
-            cwd=ROOT,
-            check=False,
-        )
-        assert result.returncode == 0, result.stdout + result.stderr
+        result = run_benchmark(script, "--calls", "2", *keep)
         rows = [line.split() for line in result.stdout.splitlines()[2:]]
         assert [row[:2] for row in rows] == [
             ["write", "two-step"],
@@ -315,15 +283,7 @@ def test_the_deadline_cost_benchmark_measures_every_way_of_waiting() -> None:
     # A smoke run: each way of waiting ran in its child (each awaited its future) and has a
     # figure, the ones after the first beside what they cost more than awaiting alone.
     options = ["--cpu", "--calls", "200", "--repeat", "1"]
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "deadline_cost.py"), *options],
-        capture_output=True,
-        text=True,
-        timeout=scaled(120),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_benchmark(ROOT / "benchmarks" / "deadline_cost.py", *options)
     header, *lines = result.stdout.splitlines()
     assert header.startswith("Python 3.") and "µs of CPU per await" in header
     rows = [line.split() for line in lines]

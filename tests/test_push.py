@@ -25,7 +25,7 @@ from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection
 from srvwire.session import ServerSession
 from srvwire.transports.base import Connection, Transport
-from support import ROOT, scaled
+from support import ROOT, run_benchmark, scaled
 from test_server import closed_code, error, request
 from test_transports import connected
 
@@ -299,30 +299,14 @@ async def test_replies_made_in_the_read_callback_are_written_before_it_returns(
 def test_the_picows_path_benchmark_answers_every_call(shape: str) -> None:
     # A smoke run; the script exits unless every call got its typed reply.
     script = ROOT / "benchmarks" / "picows_path.py"
-    result = subprocess.run(
-        [sys.executable, str(script), "--shape", shape, "--calls", "256", "--connections", "4"],
-        capture_output=True,
-        text=True,
-        timeout=scaled(120),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_benchmark(script, "--shape", shape, "--calls", "256", "--connections", "4")
     assert result.stdout.startswith(f"{shape}: ") and "µs of CPU per call" in result.stdout
 
 
 def test_the_servers_path_benchmark_pushes_messages_when_asked() -> None:
     # --push hands each message over as it arrives; the script checks every reply.
     script = ROOT / "benchmarks" / "server_path.py"
-    result = subprocess.run(
-        [sys.executable, str(script), "--calls", "300", "--repeat", "1", "--json", "--push"],
-        capture_output=True,
-        text=True,
-        timeout=scaled(120),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_benchmark(script, "--calls", "300", "--repeat", "1", "--json", "--push")
     assert [json.loads(line)["mode"] for line in result.stdout.splitlines()] == [
         "pipelined",
         "one-by-one",

@@ -13,6 +13,7 @@ import contextlib
 import logging
 import ssl
 from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 import trustme
@@ -68,6 +69,27 @@ async def accept(accepted: asyncio.Queue[Connection]) -> WebSocketsConnection:
     return server
 
 
+async def fill_the_queue(pair: Any, prefix: str) -> WebSocketsConnection:
+    """Send the client of ``pair`` 100 messages (``prefix 0``, ``prefix 1``, ...), and return
+    it once websockets' queue is full and has stopped reading the socket."""
+    client = pair.client
+    assert isinstance(client, WebSocketsConnection)
+    queue = client._ws.recv_messages
+    paused = asyncio.get_running_loop().create_future()
+    pause = queue.pause
+
+    def pausing() -> None:
+        pause()
+        if not paused.done():
+            paused.set_result(None)
+
+    queue.pause = pausing
+    for i in range(100):
+        await pair.server.send(f"{prefix} {i}")
+    await paused
+    return client
+
+
 # Messages
 
 
@@ -92,21 +114,8 @@ async def test_messages_queued_while_reading_was_paused_go_first_and_reading_res
     """websockets' queue stopped reading the socket when it filled up; handing its messages
     over empties it, so reading resumes and the later messages follow in order."""
     async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
-        client = pair.client
-        assert isinstance(client, WebSocketsConnection)
+        client = await fill_the_queue(pair, "before")  # and the socket is no longer read
         queue = client._ws.recv_messages
-        paused = asyncio.get_running_loop().create_future()
-        pause = queue.pause
-
-        def pausing() -> None:
-            pause()
-            if not paused.done():
-                paused.set_result(None)
-
-        queue.pause = pausing
-        for i in range(100):
-            await pair.server.send(f"before {i}")
-        await paused  # the queue is full and the socket is no longer read
         taker = Taker()
         assert client.deliver_to(taker)
         assert len(queue.frames) == 0
@@ -344,21 +353,8 @@ async def test_websockets_queue_does_not_resume_reading_that_srvwire_paused() ->
     drains it, except while srvwire holds reading back; and srvwire's resume leaves a full
     queue paused."""
     async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
-        client = pair.client
-        assert isinstance(client, WebSocketsConnection)
+        client = await fill_the_queue(pair, "m")
         queue = client._ws.recv_messages
-        paused = asyncio.get_running_loop().create_future()
-        pause = queue.pause
-
-        def pausing() -> None:
-            pause()
-            if not paused.done():
-                paused.set_result(None)
-
-        queue.pause = pausing
-        for i in range(100):
-            await pair.server.send(f"m {i}")
-        await paused
         client.pause_reading()
         client.resume_reading()  # the queue is still full: it stays paused
         assert not client._ws.transport.is_reading()
