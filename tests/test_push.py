@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from conftest import Echo, Hang, open_wire
+from srvwire import serving
 from srvwire.inline import Pending, first_step
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection
@@ -40,6 +41,17 @@ def pushes(conn: ServedConnection) -> bool:
 def served(running: RunningServer) -> ServedConnection:
     (conn,) = running._connections
     return conn
+
+
+async def test_the_read_callback_sees_the_current_task_as_asyncio_does() -> None:
+    """A message is answered in the read callback only when no task is current: the check
+    reads the task asyncio's own ``current_task()`` reads, inside a task and outside one."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None and serving._current_task(loop) is task
+    outside: asyncio.Future[Any] = loop.create_future()
+    loop.call_soon(lambda: outside.set_result((serving._current_task(loop), "checked")))
+    assert await outside == (None, "checked")
 
 
 @pytest.mark.parametrize("transport", ["picows"], indirect=True)

@@ -30,7 +30,9 @@ from srvwire.loader import InterfaceLoader
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import CallRunner, ServedConnection
 from srvwire.transports.base import Options, Transport, TransportClosed
-from srvwire.transports.memory import MemoryTransport
+from srvwire.transports.memory import MemoryConnection, MemoryTransport
+from srvwire.transports.picows import PicowsConnection
+from srvwire.transports.websockets import WebSocketsConnection
 from srvwire.typeregistry import fingerprint, full_definition
 from support import ROOT, scaled
 
@@ -1387,15 +1389,20 @@ async def test_a_call_cancelled_twice_has_its_task_cancelled_once(
     hangs = Hang()
     server.add_service("/hangs", Echo, hangs)
     cancelling: list[int] = []
-    send = ServedConnection.send
 
-    async def recording_send(self: ServedConnection, text: str | bytes) -> None:
-        task = asyncio.current_task()
-        assert task is not None
-        cancelling.append(task.cancelling())
-        await send(self, text)
+    def recording(send: Any) -> Any:
+        async def recording_send(self: Any, text: str | bytes) -> None:
+            if b'"error"' in (text if isinstance(text, bytes) else text.encode()):  # the reply
+                task = asyncio.current_task()
+                assert task is not None
+                cancelling.append(task.cancelling())
+            await send(self, text)
 
-    monkeypatch.setattr(ServedConnection, "send", recording_send)
+        return recording_send
+
+    # What the server's connection sends its replies through, on each transport.
+    for connection in (MemoryConnection, WebSocketsConnection, PicowsConnection):
+        monkeypatch.setattr(connection, "send", recording(connection.send))
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         await w.send(request("hangs", id=1))

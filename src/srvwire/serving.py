@@ -70,8 +70,9 @@ import functools
 import json
 import logging
 import time
+import types
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from concurrent.futures import Executor
 from contextvars import copy_context
 from dataclasses import dataclass
@@ -100,6 +101,12 @@ try:  # private: what asyncio makes a task current with around each of its steps
     CAN_PUSH = True
 except ImportError:  # pragma: no cover - a Python without them: messages are pulled
     CAN_PUSH = False
+_current_task: Callable[[asyncio.AbstractEventLoop], asyncio.Task[Any] | None]
+_current_task = asyncio.current_task  # compiled from 3.12 on
+if type(_current_task) is types.FunctionType:  # 3.11's, in Python: the dict it reads, itself
+    _current_tasks = getattr(asyncio.tasks, "_current_tasks", None)  # private, as _enter_task
+    if type(_current_tasks) is dict:
+        _current_task = _current_tasks.get
 
 __all__ = [
     "AccessLog",
@@ -137,8 +144,9 @@ class Handed:
 class CallRunner:
     """Runs the calls and notifications of one connection, under their deadlines.
 
-    ``send`` sends a reply on the connection; a call answers through the session, which writes
-    the reply (or, for the last call of a batch, the batch's).
+    A call answers through the session, which writes the reply (or, for the last call of a
+    batch, the batch's); the runner sends it on ``conn`` itself, as
+    :meth:`ServedConnection.send` sends, ahead of the data ``outbox`` holds.
     """
 
     __slots__ = (
@@ -150,15 +158,15 @@ class CallRunner:
         "log",
         "loop",
         "notification_timeout",
+        "outbox",
         "peer",
-        "send",
         "session",
     )
 
     def __init__(
         self,
         session: ServerSession[ServiceEntry],
-        send: Callable[[bytes], Awaitable[None]],
+        outbox: Outbox,
         *,
         conn: Connection,
         peer: Any,
@@ -169,7 +177,7 @@ class CallRunner:
         channel: Any = None,
     ) -> None:
         self.session = session
-        self.send = send
+        self.outbox = outbox
         self.channel = channel  # what an action's goal sends its states and feedback through
         self.conn = conn
         self.peer = peer
@@ -377,8 +385,14 @@ class CallRunner:
                 InternalError(f"the server failed to answer {entry.name}", service=entry.name),
             )
         try:
-            if reply is not None:
-                await self.send(reply)
+            if reply is not None:  # sent here, not through ServedConnection.send: a step less
+                try:
+                    await self.conn.send(reply)
+                except TransportClosed:
+                    pass  # the caller left; its calls are being cancelled
+                else:
+                    if self.outbox.queued:
+                        self.outbox.fit()
         finally:
             session.sent(call)  # until now it counted: a reply the client does not read holds
 
@@ -889,7 +903,7 @@ class ServedConnection:
             self.access = self.session
         self.runner = CallRunner(
             self.session,
-            self.send,
+            self.outbox,
             conn=conn,
             peer=conn.remote_address,
             executor=executor,
@@ -1058,7 +1072,7 @@ class ServedConnection:
         waiting: tuple[Work, Pending] | Handed | None
         try:
             if not self.pushed:
-                waiting = await self.read_until_a_call_waits()
+                waiting = await self.read_until_a_call_waits(task)
             else:
                 waiting = await self.take_pushed()
         except asyncio.CancelledError:
@@ -1101,9 +1115,9 @@ class ServedConnection:
         self.start_reader()
         return timer
 
-    async def read_until_a_call_waits(self) -> tuple[Work, Pending] | None:
-        """Pull messages and answer them; return a call or notification that has to wait, and
-        its steps; return None when the connection ended cleanly."""
+    async def read_until_a_call_waits(self, task: asyncio.Task[Any]) -> tuple[Work, Pending] | None:
+        """Pull messages and answer them, as ``task``; return a call or notification that has
+        to wait, and its steps; return None when the connection ended cleanly."""
         conn = self.conn
         while True:
             try:
@@ -1114,7 +1128,7 @@ class ServedConnection:
                 if exc.clean:
                     return None
                 raise
-            await self.handle(data)
+            await self.handle(data, task)
             waiting = self.waiting
             if waiting is not None:
                 self.waiting = None
@@ -1136,13 +1150,13 @@ class ServedConnection:
             or parked.done()
             or self.queue
             or self.conn.congested
-            or asyncio.current_task(loop) is not None
+            or _current_task(loop) is not None
         ):
             self.hold(data)
             return
         reader = self.reader
         assert reader is not None
-        handling = self.handle(data)
+        handling = self.handle(data, reader)
         pending = None
         _enter_task(loop, reader)
         try:
@@ -1209,7 +1223,7 @@ class ServedConnection:
                 if self.paused and len(queue) <= PUSH_LOW_WATER:
                     self.paused = False
                     conn.resume_reading()
-                await self.handle(data)
+                await self.handle(data, task)
                 waiting = self.waiting
                 if waiting is not None:
                     self.waiting = None
@@ -1281,14 +1295,13 @@ class ServedConnection:
         if failure is not None and not isinstance(failure, TransportClosed):
             self.spawn(self.conn.close(1011))
 
-    async def handle(self, data: str | bytes) -> None:
-        """Do what one message asks; a call or notification that has to wait is left in
-        :attr:`waiting` with its steps, before anything after it in the message (returning
-        nothing, a finished handling costs its caller no ``StopIteration``)."""
+    async def handle(self, data: str | bytes, reader: asyncio.Task[Any]) -> None:
+        """Do what one message asks, as ``reader`` (the task current while it runs); a call or
+        notification that has to wait is left in :attr:`waiting` with its steps, before
+        anything after it in the message (returning nothing, a finished handling costs its
+        caller no ``StopIteration``)."""
         session = self.session
         runner = self.runner
-        reader = asyncio.current_task(self.loop)
-        assert reader is not None
         for event in session.receive(data):
             kind = type(event)
             if kind is bytes:
@@ -1297,7 +1310,9 @@ class ServedConnection:
                 if event.batch is not None:
                     runner.start_in_task(event)
                     continue
-                runner.begin(event)
+                timeout = event.timeout  # its deadline, as runner.begin sets it (no context yet)
+                if timeout is not None:
+                    event.deadline = time.monotonic() + timeout
                 steps = first_step(runner.run_call(event), copy_context())
                 if isinstance(steps, Pending):
                     self.waiting = (event, steps)
