@@ -107,6 +107,28 @@ async def test_the_access_log_has_a_line_per_call_with_its_outcome_and_duration(
         await w.ws.close()
 
 
+async def test_a_call_admission_refuses_is_logged_with_its_status_and_no_duration(
+    access: Records, transport: Transport
+) -> None:
+    """Calls read in one pass, refused when admitted: the line says why, as for any other."""
+    server = access_server()
+    server.max_in_flight = 2
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send(call("hang", 1, text="x"))
+        reply = await w.call(call("hang", 1, text="x"))  # the id of a call in flight
+        assert reply["error"]["data"]["status"] == "INVALID_REQUEST"
+        await w.send(call("hang", 2, text="x"))
+        reply = await w.call(call("subtract", 3, minuend=1))  # a third call in flight
+        assert reply["error"]["data"]["status"] == "RESOURCE_EXHAUSTED"
+        lines = await access.messages(2)
+        assert [line.split(" ", 1)[1] for line in lines] == [
+            "hang INVALID_REQUEST -",  # as the caller named it
+            "subtract RESOURCE_EXHAUSTED -",
+        ]
+        await w.ws.close()
+
+
 async def test_a_call_whose_connection_went_away_is_logged_closed(
     access: Records, transport: Transport
 ) -> None:

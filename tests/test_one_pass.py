@@ -26,7 +26,7 @@ from srvwire.dispatch import ServiceRegistry
 from srvwire.errors import InvalidParams
 from srvwire.loader import InterfaceLoader
 from srvwire.models import CallReader, Message, validate_python
-from srvwire.protocol import Request, parse_incoming
+from srvwire.protocol import ReadRequest, Request, parse_incoming
 from srvwire.server import Server, serve
 from srvwire.transports.base import Transport
 
@@ -62,7 +62,7 @@ def in_full(cls: type[Message], text: str) -> Message | list[tuple[Any, ...]] | 
 
 def read(reader: CallReader, text: str) -> Message | None:
     result = reader.read(text)
-    return None if result is None else result.params  # type: ignore[no-any-return]
+    return None if result is None else result[2]  # type: ignore[no-any-return]
 
 
 # --- the one pass and the full parse agree on every type ---------------------------------------
@@ -91,8 +91,8 @@ def test_random_valid_requests_read_alike_in_one_pass_and_in_full(
         if result is None:
             return
         in_one_pass += 1
-        request = result.params
-        assert (result.id, result.method, result.timeout) == (7, "/s", 2.5 if meta else None)
+        id, method, request, timeout = result
+        assert (id, method, timeout) == (7, "/s", 2.5 if meta else None)
         assert type(request) is cls and conformance.same(request, expected)
         assert request.model_fields_set == expected.model_fields_set
         assert request.__pydantic_extra__ is expected.__pydantic_extra__ is None
@@ -231,7 +231,7 @@ def test_the_registry_reads_a_call_and_its_meta_in_one_pass() -> None:
     services = ServiceRegistry()
     services.add("/subtract", Subtract, lambda request: None)
     text = envelope('{"_meta":{"timeout":3},"minuend":2}', id='"x"', method="subtract")
-    assert services.read_call(text) == Request("x", "subtract", Subtract.Request(minuend=2), 3.0)
+    assert services.read_call(text) == ("x", "subtract", Subtract.Request(minuend=2), 3.0)
     # A bad _meta is the full parse's to answer.
     assert services.read_call(text.replace('{"timeout":3}', '{"timeout":-3}')) is None
     assert services.read_call(text.replace('{"timeout":3}', "[]")) is None
@@ -337,9 +337,9 @@ async def test_every_message_is_answered_alike_with_and_without_the_one_pass(
     read_call = CallReader.read
     taken: list[str | bytes] = []
 
-    def recording(self: CallReader, data: str | bytes) -> Request | None:
+    def recording(self: CallReader, data: str | bytes) -> ReadRequest | None:
         request = read_call(self, data)
-        if request is not None and not str(request.id).startswith("marker"):
+        if request is not None and not str(request[0]).startswith("marker"):
             taken.append(data if isinstance(data, str) else bytes(data).decode())
         return request
 

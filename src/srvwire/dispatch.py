@@ -91,7 +91,7 @@ from srvwire.models import (
     validate_python,
     validation_errors,
 )
-from srvwire.protocol import Id, Request, canonical_name, encode_json, write_response
+from srvwire.protocol import Id, ReadRequest, canonical_name, encode_json, write_response
 from srvwire.threads import ConcurrencyLimit, SlotJob
 from srvwire.topics import TopicBoard
 from srvwire.typeregistry import TypeRegistry, fingerprint, full_definition, process_types
@@ -535,11 +535,12 @@ class ServiceRegistry:
         self.topics: TopicBoard[Any] = TopicBoard()
         """The server's topics (their entries are :class:`srvwire.pubsub.TopicEntry`)."""
         self.types = process_types() if types is None else types
-        self.read_call: Callable[[str | bytes], Request | None] = self._read_call
+        self.read_call: Callable[[str | bytes], ReadRequest | None] = self._read_call
         """Read a request to one of these services in one pass; None: parse it in full.
 
-        The request's ``params`` is then its service's ``Request``, already validated, with
-        ``_meta`` taken out of it and read into :attr:`~srvwire.protocol.Request.timeout`.
+        What it returns is the request's ``id``, ``method``, ``params`` and ``timeout``
+        (:data:`~srvwire.protocol.ReadRequest`): the ``params`` are its service's ``Request``,
+        already validated, with ``_meta`` taken out and read into the ``timeout``.
         Only a request that the full parse would read the same way, and whose params would
         validate to an equal instance, is read so; anything else (notifications, batches,
         protocol methods, an invalid message or ``_meta``, params that do not validate, a
@@ -653,7 +654,7 @@ class ServiceRegistry:
             return entry
         raise service_not_found(name, self._entries)
 
-    def _read_call(self, data: str | bytes) -> Request | None:
+    def _read_call(self, data: str | bytes) -> ReadRequest | None:
         """:attr:`read_call` before its reader is built: build it, then read."""
         requests = {entry.name: entry.request_model for entry in self._entries.values()}
         try:

@@ -107,7 +107,7 @@ from srvwire.primitives import (
     UInt64,
     WString,
 )
-from srvwire.protocol import Id, Request, timeout_seconds
+from srvwire.protocol import Id, ReadRequest, timeout_seconds
 
 __all__ = [
     "FLOAT32_MAX",
@@ -843,9 +843,9 @@ class CallReader:
     union tagged by ``method`` (each name with and without its leading ``/``) of envelopes:
     ``jsonrpc`` exactly ``"2.0"``, an integer or string ``id``, and ``params``, an object that
     is that service's ``Request`` with ``_meta`` as one more field, an object or absent (the
-    rest of the request's rules unchanged). :meth:`read` returns the
-    :class:`~srvwire.protocol.Request` whose ``params`` is the request built, ``_meta`` taken
-    out of it and read into ``timeout``, or None for anything else: a notification, a batch,
+    rest of the request's rules unchanged). :meth:`read` returns the request's fields
+    (:data:`~srvwire.protocol.ReadRequest`) whose ``params`` is the request built, ``_meta``
+    taken out of it and read into ``timeout``, or None for anything else: a notification, a batch,
     another method, an invalid message, params that do not validate, a member the request does
     not have besides ``_meta``, a ``_meta`` that is not an object with a valid ``timeout``.
     None means "parse it the full way", which then says what is wrong exactly as it always
@@ -892,7 +892,7 @@ class CallReader:
             # Not the classes' own validators: their params refuse _meta.
             self.validate = SchemaValidator(schema, _use_prebuilt=False).validate_json
 
-    def read(self, data: str | bytes) -> Request | None:
+    def read(self, data: str | bytes) -> ReadRequest | None:
         """Return the request read in one pass, its params validated; else None."""
         validate = self.validate
         if validate is None:
@@ -914,8 +914,7 @@ class CallReader:
         if self.floats and type(request) in self.floats:
             if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
                 return None
-        validated: Any = request  # the params of a request read in one pass
-        return Request(envelope["id"], envelope["method"], validated, timeout)
+        return envelope["id"], envelope["method"], request, timeout
 
 
 def _params_schema(

@@ -75,6 +75,7 @@ __all__ = [
     "ProtocolViolation",
     "RawJSON",
     "RawReply",
+    "ReadRequest",
     "Reply",
     "Request",
     "Response",
@@ -430,6 +431,10 @@ class ErrorResponse:
 
 
 Reply: TypeAlias = Response | ErrorResponse
+ReadRequest: TypeAlias = tuple[Id, str, Any, float | None]
+"""A request read in one pass (:class:`srvwire.models.CallReader`): a :class:`Request`'s
+``id``, ``method``, ``params`` and ``timeout``, without the object, which a call the server
+admits at once never needs."""
 Message: TypeAlias = Request | Notification | Response | ErrorResponse
 
 

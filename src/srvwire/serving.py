@@ -82,7 +82,7 @@ from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, run_handler
 from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError, ServiceError
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
-from srvwire.protocol import PUBLISH_METHOD, SUBSCRIBE_METHOD, Id, Request
+from srvwire.protocol import PUBLISH_METHOD, SUBSCRIBE_METHOD, Id
 from srvwire.session import (
     Call,
     CancelCall,
@@ -697,16 +697,21 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         self.published: dict[str, list[Any]] = {}
 
     def _admit(
-        self, request: Request, batch: Any, events: list[Any]
+        self,
+        id: Id,
+        method: str,
+        params: Any,
+        timeout: float | None,
+        batch: Any,
+        events: list[Any],
     ) -> bytes | Call[ServiceEntry] | None:
         self.refused = None
-        admitted = super()._admit(request, batch, events)
+        admitted = super()._admit(id, method, params, timeout, batch, events)
         if type(admitted) is bytes:
             refused = self.refused
-            method = request.method
             if method == SUBSCRIBE_METHOD or method == PUBLISH_METHOD:
                 # Refused by the topics, whose error replies do not pass through _refuse.
-                self.line(method, _status_of(admitted), topic=_topic_param(request.params))
+                self.line(method, _status_of(admitted), topic=_topic_param(params))
             else:
                 self.line(_method(method), "OK" if refused is None else _outcome(refused))
         elif admitted is not None:  # None: a subscription, or a publish, answered later
@@ -714,9 +719,9 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
             self.admitted[admitted] = time.perf_counter()
         return admitted
 
-    def _refuse(self, request: Request, error: RPCError) -> bytes:
+    def _refuse(self, id: Id, error: RPCError) -> bytes:
         self.refused = error
-        return super()._refuse(request, error)
+        return super()._refuse(id, error)
 
     def _publish(self, params: Any, id: Id) -> Publish | bytes:
         publish = super()._publish(params, id)

@@ -329,10 +329,11 @@ class ServerSession(Generic[E]):
         parsed in full, so every answer is the one the full parse gives.
         """
         if self._one_pass:
-            request = self.services.read_call(data)  # type: ignore[attr-defined]
-            if request is not None:
+            read = self.services.read_call(data)  # type: ignore[attr-defined]
+            if read is not None:
+                id, method, params, timeout = read
                 events: list[Any] = []
-                admitted = self._admit(request, None, events)
+                admitted = self._admit(id, method, params, timeout, None, events)
                 if admitted is not None:  # always: it is a call to a service
                     events.append(admitted)
                 return events
@@ -342,7 +343,9 @@ class ServerSession(Generic[E]):
             item = items[0]
             if type(item) is Request:
                 events = []
-                admitted = self._admit(item, None, events)
+                admitted = self._admit(
+                    item.id, item.method, item.params, item.timeout, None, events
+                )
                 if admitted is not None:  # None: a subscription, which answers later
                     events.append(admitted)
                 return events
@@ -363,7 +366,9 @@ class ServerSession(Generic[E]):
             if type(item) is Request:
                 index = len(batch.replies)
                 batch.replies.append(None)
-                admitted = self._admit(item, batch, events)
+                admitted = self._admit(
+                    item.id, item.method, item.params, item.timeout, batch, events
+                )
                 assert admitted is not None  # a batch's $/subscribe is answered at once
                 if isinstance(admitted, bytes):
                     batch.replies[index] = admitted
@@ -385,17 +390,24 @@ class ServerSession(Generic[E]):
         return events
 
     def _admit(
-        self, request: Request, batch: _Batch | None, events: list[Any]
+        self,
+        id: Id,
+        method: str,
+        params: Any,
+        timeout: float | None,
+        batch: _Batch | None,
+        events: list[Any],
     ) -> bytes | Call[E] | None:
-        """Admit a call, or return its reply; a ``$/cancel`` adds its event to ``events``."""
-        id = request.id
+        """Admit a call (a :class:`~srvwire.protocol.Request`'s fields, so that a request read
+        in one pass needs no object of its own), or return its reply; a ``$/cancel`` adds its
+        event to ``events``."""
         if self.closing:
-            return self._refuse(request, ServiceUnavailable("the server is shutting down"))
+            return self._refuse(id, ServiceUnavailable("the server is shutting down"))
         if self.expired:
-            return self._refuse(request, _expired())
-        entry = self.services.get(request.method)
+            return self._refuse(id, _expired())
+        entry = self.services.get(method)
         if entry is None:
-            return self._special(request, batch, events)
+            return self._special(Request(id, method, params, timeout), batch, events)
         if not entry.scopes <= self.scopes:
             return ErrorResponse(id, self._denied(entry)).serialize()
         if self.in_flight >= self.max_in_flight:
@@ -404,15 +416,15 @@ class ServerSession(Generic[E]):
                 {"limit": self.max_in_flight},
                 service=entry.name,
             )
-            return self._refuse(request, exhausted)
+            return self._refuse(id, exhausted)
         if id is not None and (id in self.calls or id in self.outbox.subscriptions):
             duplicate = InvalidRequest(
                 f"Invalid Request: id {id!r} is already used by a call in flight on this "
                 "connection",
                 service=entry.name,
             )
-            return self._refuse(request, duplicate)
-        call = Call(id, entry, request.params, request.timeout)
+            return self._refuse(id, duplicate)
+        call = Call(id, entry, params, timeout)
         call.batch = batch
         if id is not None:
             self.calls[id] = call
@@ -430,7 +442,7 @@ class ServerSession(Generic[E]):
                     again = InvalidRequest(
                         "Invalid Request: rpc.discover is answered once per batch"
                     )
-                    return self._refuse(request, again)
+                    return self._refuse(request.id, again)
                 batch.discovered = True
             document = self.services.discover_json(self.scopes)
             return Response(request.id, RawJSON(document)).serialize()
@@ -444,7 +456,7 @@ class ServerSession(Generic[E]):
         try:
             self.services.resolve(request.method)
         except RPCError as exc:
-            return self._refuse(request, exc)
+            return self._refuse(request.id, exc)
         raise AssertionError("unreachable: resolve() found what get() did not")  # pragma: no cover
 
     def _topic_request(
@@ -457,12 +469,12 @@ class ServerSession(Generic[E]):
             refused = InvalidRequest(
                 f"Invalid Request: {request.method} is read only on its own, with an id"
             )
-            return self._refuse(request, refused)
+            return self._refuse(request.id, refused)
         if id in self.calls or id in self.outbox.subscriptions:
             duplicate = InvalidRequest(
                 f"Invalid Request: id {id!r} is already used by a call in flight on this connection"
             )
-            return self._refuse(request, duplicate)
+            return self._refuse(request.id, duplicate)
         if request.method == SUBSCRIBE_METHOD:
             subscribed = self.topics.subscribe(self.outbox, id, request.params, self.scopes)
             if type(subscribed) is bytes:
@@ -489,9 +501,9 @@ class ServerSession(Generic[E]):
             return ErrorResponse(id, exc).serialize()
         return Publish(topic, id, params["message"])
 
-    def _refuse(self, request: Request, error: RPCError) -> bytes:
-        """The error reply to a request answered at once, without running anything."""
-        return ErrorResponse(request.id, error).serialize()
+    def _refuse(self, id: Id, error: RPCError) -> bytes:
+        """The error reply to the request ``id``, answered at once, without running anything."""
+        return ErrorResponse(id, error).serialize()
 
     def _notification(self, note: Notification) -> Any:
         method = note.method
