@@ -72,7 +72,7 @@ import logging
 import time
 import types
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from concurrent.futures import Executor
 from contextvars import copy_context
 from dataclasses import dataclass
@@ -1133,7 +1133,9 @@ class ServedConnection:
                 if exc.clean:
                     return None
                 raise
-            await self.handle(data, task)
+            rest = self.handle(data, task)
+            if rest is not None:
+                await rest
             waiting = self.waiting
             if waiting is not None:
                 self.waiting = None
@@ -1161,14 +1163,15 @@ class ServedConnection:
             return
         reader = self.reader
         assert reader is not None
-        handling = self.handle(data, reader)
         pending = None
         _enter_task(loop, reader)
         try:
+            handling = self.handle(data, reader)
             # Stepped as a for loop steps an iterator: one that ends raises no StopIteration.
-            for yielded in handling.__await__():
-                pending = Pending(handling, yielded, None)
-                break
+            if handling is not None:
+                for yielded in handling.__await__():
+                    pending = Pending(handling, yielded, None)
+                    break
         except Exception as exc:  # a bug in srvwire: the reading ends with it, as a reader's would
             if not self.reading.done():
                 self.reading.set_exception(exc)
@@ -1228,7 +1231,9 @@ class ServedConnection:
                 if self.paused and len(queue) <= PUSH_LOW_WATER:
                     self.paused = False
                     conn.resume_reading()
-                await self.handle(data, task)
+                rest = self.handle(data, task)
+                if rest is not None:
+                    await rest
                 waiting = self.waiting
                 if waiting is not None:
                     self.waiting = None
@@ -1300,14 +1305,37 @@ class ServedConnection:
         if failure is not None and not isinstance(failure, TransportClosed):
             self.spawn(self.conn.close(1011))
 
-    async def handle(self, data: str | bytes, reader: asyncio.Task[Any]) -> None:
-        """Do what one message asks, as ``reader`` (the task current while it runs); a call or
-        notification that has to wait is left in :attr:`waiting` with its steps, before
-        anything after it in the message (returning nothing, a finished handling costs its
-        caller no ``StopIteration``)."""
-        session = self.session
+    def handle(
+        self, data: str | bytes, reader: asyncio.Task[Any]
+    ) -> Coroutine[Any, Any, None] | None:
+        """Do what one message asks, as ``reader`` (the task current while it runs); return
+        what is left to await, None when nothing is. A call or notification that has to wait
+        is left in :attr:`waiting` with its steps, before anything after it in the message.
+
+        A lone call, the usual message, is started here, with no coroutine of its own (what
+        a call needs of one, its steps, are :meth:`CallRunner.run_call`'s); any other message
+        is :meth:`handle_events`'s.
+        """
+        events = self.session.receive(data)
+        if len(events) == 1:
+            call = events[0]
+            if type(call) is Call and call.batch is None:  # as handle_events starts it
+                timeout = call.timeout  # its deadline, as runner.begin sets it (no context yet)
+                if timeout is not None:
+                    call.deadline = time.monotonic() + timeout
+                steps = first_step(self.runner.run_call(call), copy_context())
+                if steps is not None:
+                    self.waiting = (call, steps)
+                elif reader.cancelling():
+                    return self.ignore_cancellation(call.entry)
+                return None
+        return self.handle_events(events, reader)
+
+    async def handle_events(self, events: list[Any], reader: asyncio.Task[Any]) -> None:
+        """Do what :meth:`handle` leaves to a coroutine: the events of one message, in order
+        (returning nothing, a finished handling costs its caller no ``StopIteration``)."""
         runner = self.runner
-        for event in session.receive(data):
+        for event in events:
             kind = type(event)
             if kind is bytes:
                 await self.send(event)
