@@ -930,6 +930,58 @@ async def test_text_is_counted_in_bytes_against_the_cork_limit() -> None:
         assert await pair.client.recv() == text
 
 
+async def test_a_server_frames_what_it_holds_as_websockets_frames_it() -> None:
+    """The bytes a server writes for held messages of every header length are the frames
+    websockets' own ``send_text`` writes; the client's are websockets' (they are masked)."""
+    from websockets.frames import Frame, Opcode
+    from websockets.protocol import Protocol, Side
+
+    from srvwire.transports.websockets import CORK_LIMIT
+
+    framed: list[Any] = []
+    send_text = Protocol.send_text
+
+    def recording(self: Protocol, data: bytes, fin: bool = True) -> None:
+        framed.append(self.side)
+        send_text(self, data, fin)
+
+    lengths = [0, 1, 125, 126, 127, 1000, CORK_LIMIT - 1, CORK_LIMIT]
+    messages = [f"{n:05d}".encode()[:n] + b"x" * max(0, n - 5) for n in lengths]
+    messages.append("é→€".encode() * 100)  # a str is sent as its UTF-8 bytes
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        Protocol.send_text = recording  # type: ignore[method-assign]
+        try:
+            writes = count_writes(pair.server)
+            for message in messages:
+                await pair.server.send(message)
+                await pair.server.send("é→€" * 100)
+            await pair.client.send("a call")
+        finally:
+            Protocol.send_text = send_text  # type: ignore[method-assign]
+        expected = []
+        for message in messages:
+            expected.append(Frame(Opcode.TEXT, message).serialize(mask=False))
+            expected.append(Frame(Opcode.TEXT, "é→€".encode() * 100).serialize(mask=False))
+        received = [await pair.client.recv() for _ in range(2 * len(messages))]
+        assert b"".join(writes) == b"".join(expected)
+        assert received[::2] == [m.decode() for m in messages]
+        assert received[1::2] == ["é→€" * 100] * len(messages)
+        assert framed == [Side.CLIENT]  # only the client's call went through send_text
+        assert await pair.server.recv() == "a call"
+
+
+async def test_a_server_with_compression_on_leaves_its_frames_to_websockets() -> None:
+    deflate = Options(compression="deflate")
+    async with connected(WebSocketsTransport(), deflate) as pair, asyncio.timeout(scaled(5)):
+        writes = count_writes(pair.server)
+        for i in range(3):
+            await pair.server.send(f"reply {i} " + "x" * 1000)
+        assert [await pair.client.recv() for _ in range(3)] == [
+            f"reply {i} " + "x" * 1000 for i in range(3)
+        ]
+        assert 0 < len(b"".join(writes)) < 1000  # compressed, by websockets
+
+
 async def test_messages_past_the_cork_limit_write_through_in_order() -> None:
     from srvwire.transports.websockets import CORK_LIMIT
 

@@ -38,7 +38,11 @@ many tasks made in one turn: what writes a client's calls, since its reader neve
 ``recv`` for each reply). One send writes at once instead: the first after a read that handed
 a receiver a single message, with nothing held. That is a peer calling one call at a time,
 whose next call would otherwise wait a loop turn for nothing to join it; after a read of
-several messages (a pipelined peer's replies) the sends they cause are held as above.
+several messages (a pipelined peer's replies) the sends they cause are held as above. A
+server frames a message it holds itself, the two or four bytes of a final text frame's header
+before it, where websockets' ``send_text`` builds a ``Frame`` and serializes it in Python (a
+server's frames are not masked; with compression on, or websockets' debug log of frames, its
+own ``send_text`` frames them): a quarter of its instructions, and the same bytes.
 :data:`CORK_LIMIT` is what keeps a pipelined
 peer busy: holding every reply to 64 calls until the last is made lets the peer start on none
 of them before, and two ends that each answer a whole window in one write settle into taking
@@ -138,6 +142,13 @@ a larger message writes through (see the module's docstring)."""
 
 DEFAULT_WRITE_LIMIT = 2**15
 """websockets' own high-water mark, for ``max_queued_bytes=None``."""
+
+# The header of a final, unmasked text frame (RFC 6455, 5.2): FIN and the opcode, then the
+# length in the second byte under 126, else 126 and the length in two bytes (CORK_LIMIT is
+# below 65536, the next step).
+_SHORT_TEXT = [bytes((0x81, length)) for length in range(126)]
+_TEXT_126 = bytes((0x81, 126))
+_LENGTH = struct.Struct("!H").pack
 
 
 class _Watched(WebSocket):
@@ -461,6 +472,7 @@ class WebSocketsConnection(Connection):
 
     __slots__ = (
         "_flushing",
+        "_frames",
         "_held",
         "_protocol",
         "_single",
@@ -480,6 +492,12 @@ class WebSocketsConnection(Connection):
         self._flushing = False  # a write of the held frames is scheduled
         self._held = 0  # bytes framed since the last write, at most (websockets may write them)
         self._single = False  # the last read handed one message over, and nothing was sent since
+        protocol = ws.protocol
+        # Whether a held message is framed here (see the module): a server's frames go out
+        # unmasked and, without extensions, as they are; websockets' log of frames stays its own.
+        self._frames = (
+            protocol.side is Side.SERVER and not protocol.extensions and not protocol.debug
+        )
         self.remote_address = ws.remote_address
         self.identity = identity
         ws.write_timeout = _write_timeout(options)
@@ -506,7 +524,11 @@ class WebSocketsConnection(Connection):
             and self._protocol.state is OPEN
             and ws.transport.get_write_buffer_size() + size <= ws.write_limit_high
         ):
-            self._protocol.send_text(message)
+            if self._frames:  # a server's text frame, as websockets' send_text frames it
+                header = _SHORT_TEXT[length] if length < 126 else _TEXT_126 + _LENGTH(length)
+                self._protocol.writes.append(header + message)
+            else:
+                self._protocol.send_text(message)
             if size >= CORK_LIMIT or (self._single and not self._flushing):
                 self._single = False  # the first send after a lone message writes at once
                 self.flush()
