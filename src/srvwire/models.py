@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import functools
 import keyword
+import math
 import re
 import types
 import warnings
@@ -906,7 +907,9 @@ class CallReader:
         timeout = None
         if meta is not None:
             raw = meta.get("timeout")
-            if raw is not None:
+            if type(raw) is float and 0.0 <= raw < math.inf:  # what clients send
+                timeout = raw
+            elif raw is not None:  # anything else, by the full parse's rules
                 timeout = timeout_seconds(raw)
                 if timeout is None:
                     return None

@@ -357,7 +357,7 @@ class CallRunner:
                 else:
                     if log.isEnabledFor(logging.DEBUG):
                         log.debug("%s id %r from %s: ok", entry.name, call.id, self.peer)
-                    reply = session.reply(call, result, whole=True)
+                    reply = session.reply(call, result, True)  # whole
                 del result  # not held through the send: a large result would be held twice
         except RPCError as exc:
             if log.isEnabledFor(logging.DEBUG):
