@@ -894,7 +894,12 @@ async def test_a_failure_inside_srvwire_is_still_answered(
     async def broken_run_handler(*args: Any, **kwargs: Any) -> bytes:
         raise RuntimeError("a bug in srvwire")
 
+    def broken_write_result(*args: Any, **kwargs: Any) -> bytes:
+        raise RuntimeError("a bug in srvwire")
+
+    # Both ways the runner runs a handler: run_handler, and the usual handler's own steps.
     monkeypatch.setattr("srvwire.serving.run_handler", broken_run_handler)
+    monkeypatch.setattr("srvwire.serving.write_result", broken_write_result)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
         reply = await w.call(request("echo", {"text": "hi"}, id=7))
@@ -903,6 +908,75 @@ async def test_a_failure_inside_srvwire_is_still_answered(
         batch = await w.call([request("echo", id=8), request("echo", id=9)])
         assert [error(r) for r in batch] == [(8, -32603, "INTERNAL"), (9, -32603, "INTERNAL")]
     assert any(r.exc_info and str(r.exc_info[1]) == "a bug in srvwire" for r in caplog.records)
+
+
+async def test_the_usual_handler_is_answered_as_any_other_for_every_outcome(
+    transport: Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``async def f(request)`` runs on the runner's own steps, any other handler through
+    run_handler: the same answer, and the same log, for whatever the handler does."""
+    from srvwire.errors import InvalidParams
+
+    async def outcome(request: Any) -> Any:
+        text = request.text
+        if text == "typed":
+            return Echo.Response(text="ok")
+        if text == "dict":
+            return {"text": "from a dict"}
+        if text == "none":
+            return None
+        if text == "application":
+            raise ServiceError(4001, "battery too low", {"left": 3})
+        if text == "rpc":
+            raise InvalidParams("no such mode")
+        if text == "raises":
+            raise ValueError("a bug in the handler")
+        if text == "cancelled under it":
+            future = asyncio.get_running_loop().create_future()
+            asyncio.get_running_loop().call_soon(future.cancel)
+            return await future
+        if text == "wrong type":
+            return 42
+        if text == "unwritable":
+            return Echo.Response.model_construct(text=object())
+        await asyncio.sleep(0)  # answers after waiting
+        return Echo.Response(text="waited")
+
+    async def usual(request: Any) -> Any:
+        return await outcome(request)
+
+    async def with_context(request: Any, context: Context) -> Any:
+        return await outcome(request)
+
+    texts = ["typed", "dict", "none", "application", "rpc", "raises", "cancelled under it"]
+    texts += ["wrong type", "unwritable", "waits"]
+    caplog.set_level(logging.ERROR, logger="srvwire")
+    transcripts = []
+    for handler in (usual, with_context):
+        server = Server()
+        server.add_service("/outcome", Echo, handler)
+        entry = server.registry.get("/outcome")
+        assert entry is not None and entry.usual is (handler is usual)
+        caplog.clear()
+        async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+            w = await open_wire(running)
+            replies = [
+                await w.call(request("outcome", {"text": text}, id=i))
+                for i, text in enumerate(texts)
+            ]
+            await w.ws.close()
+        transcripts.append((replies, [record.getMessage() for record in caplog.records]))
+    assert transcripts[0] == transcripts[1]
+    replies, logged = transcripts[0]
+    assert [reply.get("result") for reply in replies] == [
+        {"text": "ok"}, {"text": "from a dict"}, *[None] * 7, {"text": "waited"},
+    ]  # fmt: skip
+    assert [reply["error"]["code"] for reply in replies[2:9]] == [
+        -32603, 4001, -32602, -32603, -32603, -32603, -32603,
+    ]  # fmt: skip
+    assert replies[3]["error"]["data"] == {"left": 3}
+    assert logged.count("handler for /outcome raised an exception (request id 5)") == 1
+    assert logged.count("handler for /outcome raised an exception (request id 6)") == 1
 
 
 # --- services and discovery ----------------------------------------------------------------------

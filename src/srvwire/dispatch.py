@@ -104,9 +104,11 @@ __all__ = [
     "ServiceRegistry",
     "definitions",
     "dispatch",
+    "handler_error",
     "normalize_name",
     "run_handler",
     "service_not_found",
+    "write_result",
 ]
 
 QUEUE_WARNING_FRACTION = 0.5
@@ -321,6 +323,9 @@ class ServiceEntry:
     _description: dict[str, Any] = field(default_factory=dict, repr=False)
     limit: ConcurrencyLimit | None = None
     """How many of its handlers may run at once (``max_concurrency``); None for no limit."""
+    usual: bool = False
+    """Whether its handler is the usual one, ``async def f(request)``, with no limit: what
+    :func:`run_handler` calls with no step of its own, and the server's runner itself."""
     _queue_warned: list[float] = field(  # when it was last said, and the calls since
         default_factory=lambda: [-QUEUE_WARNING_INTERVAL, 0], repr=False
     )
@@ -620,6 +625,7 @@ class ServiceRegistry:
             write_reply=reply_writer(response_model, self.inf_nan, strict=True),
             inf_nan=self.inf_nan,
             limit=None if max_concurrency is None else ConcurrencyLimit(max_concurrency),
+            usual=is_async and not takes_response and not context_param and max_concurrency is None,
         )
         self._entries[canonical] = entry
         definition = full_definition(srv_type)
@@ -945,26 +951,18 @@ async def run_handler(
             result, prebuilt = await _limited(
                 entry, limit, request, context_of, work, executor, logger
             )
-        elif entry.is_async and not entry.takes_response and not entry.context_param:
+        elif entry.usual:
             prebuilt = None  # the usual handler, ``async def f(request)``: _invoke's steps here
             handler = entry.handler(request)
             result = await (handler if type(handler) is CoroutineType else _await(handler))
         else:
             handler, prebuilt = _invoke(entry, request, context_of, work, executor, logger)
             result = await handler
-    except RPCError as exc:
-        if exc.service is None:
-            exc.service = entry.name
-        raise
-    except asyncio.CancelledError as exc:
-        if _being_cancelled():
-            context_of(work)._mark_cancelled()
+    except (Exception, asyncio.CancelledError) as exc:
+        error = handler_error(entry, exc, context_of, work, logger)
+        if error is exc:
             raise
-        # Nobody cancelled this task: the handler awaited something that was cancelled under
-        # it. Re-raising would end the call without a reply, so it is the handler's failure.
-        raise _handler_raised(entry, context_of(work), exc, logger) from None
-    except Exception as exc:
-        raise _handler_raised(entry, context_of(work), exc, logger) from None
+        raise error from None
     if type(result) is entry.response_model:  # most handlers: written as _encode_response would
         try:
             if reply_id is _Alone.RESULT:
@@ -973,6 +971,42 @@ async def run_handler(
         except PydanticSerializationError:
             pass  # _encode_response says why, writing it once more
     return _encode_response(entry, result, prebuilt, logger, reply_id)
+
+
+def handler_error(
+    entry: ServiceEntry,
+    exc: Exception | asyncio.CancelledError,
+    context_of: ContextOf,
+    work: Any,
+    logger: logging.Logger | None,
+) -> BaseException:
+    """What a handler's exception, raised while it ran, is to its call: an :class:`RPCError`
+    itself, named after the service; the cancellation of the running task itself, the call's
+    context marked cancelled; anything else (a cancellation nobody asked of this task
+    included: the handler awaited something cancelled under it, and re-raising it would end
+    the call without a reply) an ``InternalError``, logged with its traceback.
+    """
+    if isinstance(exc, RPCError):
+        if exc.service is None:
+            exc.service = entry.name
+        return exc
+    if isinstance(exc, asyncio.CancelledError) and _being_cancelled():
+        context_of(work)._mark_cancelled()
+        return exc
+    return _handler_raised(entry, context_of(work), exc, logger)
+
+
+def write_result(
+    entry: ServiceEntry, result: Any, logger: logging.Logger | None, reply_id: Id
+) -> bytes:
+    """The whole response to ``reply_id`` with what the usual handler returned, as
+    :func:`run_handler` writes it."""
+    if type(result) is entry.response_model:
+        try:
+            return entry.write_reply(reply_id, result)
+        except PydanticSerializationError:
+            pass  # _encode_response says why, writing it once more
+    return _encode_response(entry, result, None, logger, reply_id)
 
 
 async def _limited(

@@ -78,7 +78,14 @@ from contextvars import copy_context
 from dataclasses import dataclass
 from typing import Any, TypeAlias
 
-from srvwire.dispatch import Context, ServiceEntry, ServiceRegistry, run_handler
+from srvwire.dispatch import (
+    Context,
+    ServiceEntry,
+    ServiceRegistry,
+    handler_error,
+    run_handler,
+    write_result,
+)
 from srvwire.errors import Cancelled, DeadlineExceeded, InternalError, RPCError, ServiceError
 from srvwire.goals import FeedbackOutbox
 from srvwire.inline import Pending, finish, first_step
@@ -337,16 +344,26 @@ class CallRunner:
                     except TransportClosed:  # nobody to answer: do not run it
                         session.forget(call)
                         return
-                result = await run_handler(  # the whole response, written in one pass
-                    entry,
-                    call.params,
-                    call.deadline,
-                    self.context_of,
-                    call,
-                    self.executor,
-                    log,
-                    call.id,
-                )
+                params = call.params
+                deadline = call.deadline
+                if (
+                    entry.usual
+                    and type(params) is entry.request_model  # read in one pass: validated
+                    and (deadline is None or deadline > time.monotonic())
+                ):
+                    # run_handler's steps for the usual handler, without a coroutine of its own
+                    try:
+                        result = await entry.handler(params)
+                    except (Exception, asyncio.CancelledError) as exc:
+                        mapped = handler_error(entry, exc, self.context_of, call, log)
+                        if mapped is exc:
+                            raise
+                        raise mapped from None
+                    result = write_result(entry, result, log, call.id)
+                else:
+                    result = await run_handler(  # the whole response, written in one pass
+                        entry, params, deadline, self.context_of, call, self.executor, log, call.id
+                    )
                 if call.task_cancelled:  # cancelled meanwhile, and the handler finished anyway
                     await self.take_back_cancellation()
                     context = self.context_of(call)
