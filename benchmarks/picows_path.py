@@ -11,8 +11,9 @@ divided by the difference, are the cost of one call, which a busy neighbour does
 * ``pipelined`` (W2): one connection, 64 calls in flight.
 
 Every call passes a typed ``RobotStateQuery.Request`` and checks its typed reply; the script
-exits with an error otherwise. Run it with another checkout's ``src`` first on ``PYTHONPATH``
-to count an older version::
+exits with an error otherwise. ``--transport websockets`` runs both ends on the default
+transport instead, to count what a call costs there the same way. Run it with another
+checkout's ``src`` first on ``PYTHONPATH`` to count an older version::
 
     valgrind --tool=callgrind --callgrind-out-file=/dev/null \\
         python benchmarks/picows_path.py --shape fan-in --calls 2560     # then --calls 1280
@@ -48,15 +49,16 @@ async def calls(client: Client, count: int) -> None:
             raise SystemExit(f"unexpected reply: {reply!r}")
 
 
-async def run(shape: str, count: int, connections: int) -> float:
-    """Make ``count`` calls in ``shape``; return the process's CPU time per call, in µs."""
+async def run(shape: str, count: int, connections: int, transport: str = "picows") -> float:
+    """Make ``count`` calls in ``shape`` on ``transport``; return the process's CPU time per
+    call, in µs."""
     conns, in_flight = SHAPES[shape]
     conns = connections if conns is None else conns
     server = Server()
     server.add_service(SERVICE, RobotStateQuery, get_robot_state)
-    async with serve(server, "127.0.0.1", 0, transport="picows") as running:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         clients = [
-            await connect(running.url, transport="picows", timeout=CALL_TIMEOUT)
+            await connect(running.url, transport=transport, timeout=CALL_TIMEOUT)
             for _ in range(conns)
         ]
         each = count // (conns * in_flight)
@@ -73,8 +75,9 @@ def main() -> None:
     parser.add_argument("--shape", choices=list(SHAPES), default="sequential")
     parser.add_argument("--calls", type=int, default=2560)
     parser.add_argument("--connections", type=int, default=20, help="for fan-in")
+    parser.add_argument("--transport", choices=["picows", "websockets"], default="picows")
     args = parser.parse_args()
-    per_call = asyncio.run(run(args.shape, args.calls, args.connections))
+    per_call = asyncio.run(run(args.shape, args.calls, args.connections, args.transport))
     print(f"{args.shape}: {per_call:.1f} µs of CPU per call, both ends")
 
 

@@ -315,6 +315,13 @@ def test_the_picows_path_benchmark_answers_every_call(shape: str) -> None:
     assert result.stdout.startswith(f"{shape}: ") and "µs of CPU per call" in result.stdout
 
 
+def test_the_picows_path_benchmark_runs_on_the_default_transport_too() -> None:
+    script = ROOT / "benchmarks" / "picows_path.py"
+    result = run_benchmark(script, "--shape", "fan-in", "--calls", "64", "--connections", "4",
+                           "--transport", "websockets")  # fmt: skip
+    assert result.stdout.startswith("fan-in: ") and "µs of CPU per call" in result.stdout
+
+
 def test_the_servers_path_benchmark_pushes_messages_when_asked() -> None:
     # --push hands each message over as it arrives; the script checks every reply.
     script = ROOT / "benchmarks" / "server_path.py"
