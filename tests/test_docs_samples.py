@@ -57,7 +57,7 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness: minutes long; tests/test_benchmarks.py runs it in --quick mode"
     ),
-    r"\.venv/bin/python benchmarks/server_path\.py": (
+    r"\.venv/bin/python benchmarks/server_path\.py( .*)?": (
         "the server's path in one process: a minute long; tests/test_benchmarks.py runs it small"
     ),
     r"valgrind --tool=callgrind .* benchmarks/server_path\.py .*": (
