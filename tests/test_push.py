@@ -66,6 +66,32 @@ async def test_a_picows_server_connection_is_read_by_push(
         await w.ws.close()
 
 
+async def test_a_lone_call_is_started_without_a_coroutine_for_its_message(
+    server: Server, transport: Transport, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The usual message, a single call, is started by ``handle`` itself, pushed or pulled;
+    any other message is ``handle_events``'s, and each is answered as before."""
+    handled: list[list[Any]] = []
+    handle_events = ServedConnection.handle_events
+
+    def recording(self: ServedConnection, events: list[Any], reader: Any) -> Any:
+        handled.append([type(event).__name__ for event in events])
+        return handle_events(self, events, reader)
+
+    monkeypatch.setattr(ServedConnection, "handle_events", recording)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        for id in (1, 2):
+            assert (await w.request("echo", {"text": "a"}, id=id))["result"] == {"text": "a"}
+        assert handled == []
+        batch = await w.call([request("echo", {"text": "b"}, id=3)])
+        assert [reply["result"] for reply in batch] == [{"text": "b"}]
+        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 9}})
+        assert error(await w.call(request("no_such", id=4))) == (4, -32601, "SERVICE_NOT_FOUND")
+        assert handled == [["Call"], [], ["bytes"]]
+        await w.ws.close()
+
+
 @real_transports
 async def test_a_first_step_runs_as_the_reader_and_a_call_that_waits_keeps_that_task(
     server: Server, transport: Transport

@@ -911,7 +911,7 @@ async def test_a_failure_inside_srvwire_is_still_answered(
 
 
 async def test_the_usual_handler_is_answered_as_any_other_for_every_outcome(
-    transport: Transport, caplog: pytest.LogCaptureFixture
+    transport: Transport, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """``async def f(request)`` runs on the runner's own steps, any other handler through
     run_handler: the same answer, and the same log, for whatever the handler does."""
@@ -951,6 +951,14 @@ async def test_the_usual_handler_is_answered_as_any_other_for_every_outcome(
     texts = ["typed", "dict", "none", "application", "rpc", "raises", "cancelled under it"]
     texts += ["wrong type", "unwritable", "waits"]
     caplog.set_level(logging.ERROR, logger="srvwire")
+    through_run_handler = []
+    run_handler = serving.run_handler
+
+    async def counting(*args: Any) -> bytes:
+        through_run_handler.append(args[0].name)
+        return await run_handler(*args)
+
+    monkeypatch.setattr(serving, "run_handler", counting)
     transcripts = []
     for handler in (usual, with_context):
         server = Server()
@@ -967,6 +975,7 @@ async def test_the_usual_handler_is_answered_as_any_other_for_every_outcome(
             await w.ws.close()
         transcripts.append((replies, [record.getMessage() for record in caplog.records]))
     assert transcripts[0] == transcripts[1]
+    assert through_run_handler == ["/outcome"] * len(texts)  # the second handler's calls only
     replies, logged = transcripts[0]
     assert [reply.get("result") for reply in replies] == [
         {"text": "ok"}, {"text": "from a dict"}, *[None] * 7, {"text": "waited"},
