@@ -32,7 +32,8 @@ from srvwire import (
 )
 from srvwire.errors import RegistrationError
 from srvwire.server import RunningServer
-from srvwire.transports.base import Transport
+from srvwire.serving import ServedConnection
+from srvwire.transports.base import Connection, Transport, TransportClosed
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
 from support import scaled
 
@@ -758,3 +759,81 @@ async def test_topics_work_with_the_access_log_on(caplog: pytest.LogCaptureFixtu
                 await client.call("/subtract", {"minuend": 2})
     lines = [r.getMessage() for r in caplog.records if r.name == "srvwire.access"]
     assert any(" /subtract OK " in line for line in lines), lines
+
+
+class Holding(Connection):
+    """A connection that holds what is sent, as a transport holds what the peer has not read
+    yet: ``buffered()`` says how many bytes; nothing arrives."""
+
+    def __init__(self) -> None:
+        self.remote_address = ("127.0.0.1", 1)
+        self.identity = None
+        self.sent: list[bytes] = []
+
+    async def recv(self) -> str | bytes:
+        raise TransportClosed(1000, "")
+
+    async def send(self, message: str | bytes) -> None:
+        self.sent.append(message if isinstance(message, bytes) else message.encode())
+
+    def buffered(self) -> int:
+        return sum(len(message) for message in self.sent)
+
+    @property
+    def congested(self) -> bool:
+        return False
+
+    async def writable(self) -> None:
+        return None
+
+    async def close(self, code: int = 1000, reason: str = "") -> None:
+        return None
+
+    @property
+    def close_code(self) -> int | None:
+        return None
+
+    @property
+    def close_reason(self) -> str:
+        return ""
+
+
+async def test_a_calls_reply_takes_its_room_from_the_best_effort_data_queued() -> None:
+    """Replies are never refused: once a call's reply is queued, what topic data no longer
+    fits in the connection's budget is given up, best effort's oldest first."""
+    server = Server()
+    lossy = server.topic("/lossy", String, qos={"depth": 100, "reliability": "best_effort"})
+
+    async def at_once(request: Any) -> Any:
+        return subtract(request)
+
+    server.add_service("/subtract", Subtract, at_once)
+    size = len(json.dumps({"data": "x" * 100}))
+    conn = Holding()
+    served = ServedConnection(
+        conn,
+        server.registry,
+        max_in_flight=8,
+        executor=None,
+        logger=logging.getLogger("srvwire.test"),
+        max_queued_bytes=40 * size,
+    )
+    reader = asyncio.current_task()
+    assert reader is not None
+    subscribe = {"jsonrpc": "2.0", "id": 1, "method": "$/subscribe", "params": {"topic": "/lossy"}}
+    rest = served.handle(json.dumps(subscribe), reader)
+    if rest is not None:
+        await rest  # nothing to wait for: the loop does not turn
+    subscription = served.outbox.subscriptions[1]
+    for _ in range(20):  # in one turn: the writer has not run, all of it waits in the outbox
+        lossy.publish({"data": "x" * 100})
+    queued = served.outbox.queued
+    assert queued > 15 * size and subscription.dropped == 0
+    call = {"jsonrpc": "2.0", "id": 2, "method": "/subtract", "params": {"minuend": 5}}
+    held = 30 * size - conn.buffered()  # the reply, with what is held, leaves 10 messages' room
+    conn.sent.append(b" " * held)
+    assert served.handle(json.dumps(call), reader) is None  # answered at once
+    assert json.loads(conn.sent[-1])["result"] == {"difference": 5}
+    assert served.outbox.queued <= 40 * size - conn.buffered()
+    assert subscription.dropped > 0 and len(served.outbox.subscriptions) == 1
+    served.writer.stop()
