@@ -674,7 +674,10 @@ class PicowsListener(Listener):
     async def wait_closed(self) -> None:
         await self._server.wait_closed()
         while self._handlers:
-            await asyncio.gather(*self._handlers, return_exceptions=True)
+            # Not gather: from Python 3.12 it completes without yielding when every task is
+            # done, and a task that just ended leaves the set only in a callback the loop has
+            # yet to run, so this would turn forever.
+            await asyncio.wait(set(self._handlers))
 
 
 class PicowsTransport(Transport):
