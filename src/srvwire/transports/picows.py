@@ -191,6 +191,40 @@ class PicowsConnection(WSListener, Connection):
     event loop; srvwire calls :meth:`recv`, :meth:`send` and :meth:`close`.
     """
 
+    __slots__ = (
+        "_awaiting_pong",
+        "_budget",
+        "_corked",
+        "_corked_size",
+        "_ended",
+        "_flush_due",
+        "_framing",
+        "_gone",
+        "_handed",
+        "_keepalive",
+        "_limit",
+        "_loop",
+        "_messages",
+        "_parts",
+        "_parts_size",
+        "_parts_text",
+        "_ping_interval",
+        "_ping_timeout",
+        "_reading",
+        "_receive",
+        "_received",
+        "_sent",
+        "_single",
+        "_stall",
+        "_timed_out",
+        "_waiter",
+        "_writable",
+        "_write_timeout",
+        "_ws",
+        "identity",
+        "remote_address",
+    )
+
     def __init__(self, options: Options, identity: object = None) -> None:
         super().__init__()
         self.identity = identity
@@ -214,8 +248,8 @@ class PicowsConnection(WSListener, Connection):
         # messages, framed and masked when written.
         self._corked: list[bytes] = []
         self._corked_size = 0
-        self._handed = 0  # a client's messages handed over since the read began
-        self._single = False  # a client's last read handed one over, and nothing was sent since
+        self._handed = 0  # messages handed over since the read began
+        self._single = False  # the last read handed one over, and nothing was sent since
         # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
         # or on_ws_frame is running (it flushes after the read's last frame).
         self._flush_due = False
@@ -285,7 +319,7 @@ class PicowsConnection(WSListener, Connection):
             elif not due:
                 self._flush_due = True
                 self._loop.call_soon(self._flush_later)
-        if frame.last_in_buffer and not self._framing:  # a client: see send
+        if frame.last_in_buffer:  # what a client's next send does depends on it (see send)
             self._single = self._handed == 1
             self._handed = 0
 
@@ -832,6 +866,8 @@ class _Opening(WSProtocol):  # type: ignore[misc]
 
 class _ServerConnection(PicowsConnection):
     """A connection a listener accepted: its handler starts once the upgrade is done."""
+
+    __slots__ = ("_started",)
 
     def __init__(self, options: Options, identity: object, started: Any) -> None:
         super().__init__(options, identity)
