@@ -1219,9 +1219,9 @@ async def test_once_open_a_picows_servers_reads_go_straight_to_picows() -> None:
             assert await pair.client.recv() == f"reply {i}"
 
 
-async def test_a_receiver_that_pauses_picows_reading_as_it_takes_the_queue_keeps_it_paused() -> (
-    None
-):
+async def test_a_receiver_that_pauses_picows_reading_as_it_takes_the_queue_keeps_it_paused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # picows stopped reading the socket for its own queue; deliver_to reads again before it
     # hands that queue over, so a receiver that pauses the reading meanwhile (a server whose
     # own queue is full) keeps it paused, and the peer is held back.
@@ -1231,17 +1231,18 @@ async def test_a_receiver_that_pauses_picows_reading_as_it_takes_the_queue_keeps
         server = pair.server
         assert isinstance(server, PicowsConnection)
         arrived = asyncio.Event()
-        deliver = server._deliver
+        deliver = PicowsConnection._deliver
         count = 0
 
-        def counting(payload: bytes, text: bool) -> None:
+        def counting(self: PicowsConnection, payload: bytes, text: bool) -> None:
             nonlocal count
-            deliver(payload, text)
-            count += 1
-            if count == READ_HIGH_WATER:
-                arrived.set()
+            deliver(self, payload, text)
+            if self is server:
+                count += 1
+                if count == READ_HIGH_WATER:
+                    arrived.set()
 
-        server._deliver = counting  # type: ignore[method-assign]
+        monkeypatch.setattr(PicowsConnection, "_deliver", counting)  # its slots hold no method
         for i in range(READ_HIGH_WATER + 6):
             await pair.client.send(str(i))
         await arrived.wait()
@@ -1287,6 +1288,7 @@ async def test_a_lone_reply_goes_through_picows_send_only_when_picows_copies_it(
     conn = PicowsConnection(Options())
     ws = FakeWS()
     conn._ws = ws  # type: ignore[assignment]
+    conn._framing = True  # a server's: it frames its own messages
     message = b"x" * size
     conn._corked = [_header(size), message]
     conn._corked_size = size
@@ -1295,3 +1297,134 @@ async def test_a_lone_reply_goes_through_picows_send_only_when_picows_copies_it(
         assert (ws.sent, ws.underlying_transport.written) == ([message], [])
     else:
         assert (ws.sent, ws.underlying_transport.written) == ([], [_header(size) + message])
+
+
+# A picows client's writes: its small messages held to the end of the loop's turn, masked here.
+
+
+def picows_client_writes(connection: Connection) -> list[bytes]:
+    """The bytes of every write a picows client makes of the messages it held (picows' own
+    ``send`` writes through a reference taken when it connected, so those are not counted)."""
+    socket = connection._ws.underlying_transport  # type: ignore[attr-defined]
+    writes: list[bytes] = []
+    write = socket.write
+
+    def counting(data: bytes) -> None:
+        writes.append(bytes(data))
+        write(data)
+
+    socket.write = counting
+    return writes
+
+
+def client_frames(data: bytes) -> list[tuple[bytes, bytes]]:
+    """Split ``data`` into the (masking key, unmasked payload) of each final text frame it holds,
+    failing on anything else a client may not send (RFC 6455, 5.2 and 5.3)."""
+    from websockets.utils import apply_mask
+
+    frames = []
+    at = 0
+    while at < len(data):
+        assert data[at] == 0x81, "a final text frame"
+        assert data[at + 1] & 0x80, "masked, as a client's frame must be"
+        size = data[at + 1] & 0x7F
+        assert size != 127, "no message held here needs an 8-byte length"
+        at += 2
+        if size == 126:
+            size = int.from_bytes(data[at : at + 2], "big")
+            at += 2
+        key = data[at : at + 4]
+        payload = data[at + 4 : at + 4 + size]
+        assert len(payload) == size
+        frames.append((key, apply_mask(payload, key)))
+        at += 4 + size
+    return frames
+
+
+@pytest.mark.parametrize("size", [0, 1, 3, 4, 5, 125, 126, 127, 511, 512])
+def test_a_client_frame_made_here_is_masked_as_the_rfc_says(size: int) -> None:
+    from srvwire.transports.picows import _masked_frames
+
+    messages = [(bytes(range(256)) * 2)[:size], b"second"]
+    frames = client_frames(_masked_frames(messages))
+    assert [payload for _, payload in frames] == messages
+    assert frames[0][0] != frames[1][0]  # a fresh key for each frame
+
+
+async def test_a_picows_clients_sends_in_one_turn_go_out_in_one_write() -> None:
+    """A pipelined client's calls of one turn leave together; a websockets server, which fails
+    a client's frame that is not masked, reads every one."""
+    async with listening(WebSocketsTransport()) as (listener, accepted):
+        client = await PicowsTransport().connect(listener.url, Options())
+        try:
+            async with asyncio.timeout(scaled(5)):
+                server = await accepted.get()
+                writes = picows_client_writes(client)
+                messages = [f"call {i} ☃" for i in range(20)]
+                for message in messages:
+                    await client.send(message)
+                assert writes == []  # held until the loop comes round
+                assert [await server.recv() for _ in messages] == messages
+                assert len(writes) == 1
+                frames = client_frames(writes[0])
+                assert [payload.decode() for _, payload in frames] == messages
+                assert len({key for key, _ in frames}) == len(frames)  # a key each
+        finally:
+            await client.close()
+
+
+async def test_a_picows_clients_first_send_after_a_lone_message_is_written_at_once() -> None:
+    """A caller that got its reply and calls again is alone in its turn: its call is not held
+    for the turn's end. A second send in the turn is."""
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        client = pair.client
+        received: asyncio.Queue[str | bytes] = asyncio.Queue()
+        assert client.deliver_to(received.put_nowait)
+        await pair.server.send("reply 1")
+        assert await received.get() == "reply 1"
+        await client.send("call 2")
+        assert client._corked == []  # type: ignore[attr-defined]  # written at once
+        await client.send("call 3")
+        assert client._corked == [b"call 3"]  # type: ignore[attr-defined]  # held
+        assert [await pair.server.recv() for _ in range(2)] == ["call 2", "call 3"]
+        for i in range(2):  # a read of two messages: the next send is held
+            await pair.server.send(f"reply {i}")
+        assert [await received.get() for _ in range(2)] == ["reply 0", "reply 1"]
+        await client.send("call 4")
+        assert client._corked == [b"call 4"]  # type: ignore[attr-defined]
+        assert await pair.server.recv() == "call 4"
+
+
+async def test_a_picows_client_writes_larger_messages_at_once_after_what_it_held() -> None:
+    from srvwire.transports.picows import CLIENT_CORK_LIMIT
+
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        sizes = [10, CLIENT_CORK_LIMIT - 4, CLIENT_CORK_LIMIT - 3, 100, 70_000, 5] * 3
+        for i, size in enumerate(sizes):  # held ones and ones written at once, mixed
+            await pair.client.send(f"{i:04d}".encode() + b"x" * size)
+        received = [await pair.server.recv() for _ in sizes]
+        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(len(sizes))]
+        assert [len(m) for m in received] == [size + 4 for size in sizes]
+
+
+async def test_a_picows_client_writes_what_it_holds_past_a_quarter_of_its_budget() -> None:
+    options = Options(max_queued_bytes=4000)
+    async with connected(PicowsTransport(), options) as pair, asyncio.timeout(scaled(5)):
+        writes = picows_client_writes(pair.client)
+        for i in range(10):  # 2 500 bytes in one turn: a write at each 1 000
+            await pair.client.send(f"{i:04d}".encode() + b"x" * 246)
+        assert [len(client_frames(data)) for data in writes] == [4, 4]
+        assert pair.client.buffered() >= 500  # type: ignore[attr-defined]
+        received = [await pair.server.recv() for _ in range(10)]
+        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(10)]
+        assert [len(client_frames(data)) for data in writes] == [4, 4, 2]
+
+
+async def test_a_message_a_picows_client_holds_arrives_before_its_close_frame() -> None:
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        await pair.client.send("last words")
+        assert pair.client._corked  # type: ignore[attr-defined]
+        await pair.client.close(4000, "done")
+        assert await pair.server.recv() == "last words"
+        closed = await closed_with(pair.server)
+        assert (closed.code, closed.reason) == (4000, "done")

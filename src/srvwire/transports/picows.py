@@ -16,11 +16,17 @@ leaves to its user:
   the connection.
 * **Flow control both ways.** ``send`` puts the message in the connection's buffer and waits
   only while ``picows`` says the socket's buffer is past its high-water mark
-  (``pause_writing``/``resume_writing``). A client's message is framed and written by ``picows``
-  at once (it masks it). A server frames its own messages (unmasked: a header and the bytes)
-  and *corks* them: the replies made while draining one read go out in one write, after
-  the last frame the read brought (the replies made in ``on_ws_frame``), when ``recv`` finds
-  nothing more to read, at the loop's next turn, or past the budget, whichever comes first.
+  (``pause_writing``/``resume_writing``). A server frames its own messages (unmasked: a
+  header and the bytes) and *corks* them: the replies made while draining one read go out in
+  one write, after the last frame the read brought (the replies made in ``on_ws_frame``), when
+  ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
+  comes first. A client corks its small messages too (at most :data:`CLIENT_CORK_LIMIT`
+  bytes), until the loop's next turn: the calls its callers make in one turn (a pipelined
+  client woken by a read of many replies) go out in one write, each frame masked with a fresh
+  key from ``os.urandom``, as RFC 6455 asks. The first message sent after a read that brought
+  a single one is written at once instead, by ``picows`` (a caller that waited for its reply
+  and calls again: nothing else is coming this turn), and so is a larger message, or a lone
+  one when the turn ends.
   The budget (``max_queued_bytes``) is the socket buffer's high-water mark: a ``send`` that
   finds the connection congested waits before it queues anything, and a
   connection congested for ``write_timeout`` (or a ping period, when sooner) is dropped at once
@@ -54,6 +60,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
 import ssl as _ssl
 import struct
@@ -116,6 +123,10 @@ PICOWS_COPIES = 8192
 one is written as two parts, the header a view of a buffer ``picows`` reuses for the next
 frame; where asyncio keeps such a view unsent (``writelines`` from Python 3.12), the next frame
 would overwrite the header. So a larger lone message is framed and written here, as a copy."""
+CLIENT_CORK_LIMIT = 512
+"""The largest message a client corks (see the module); a larger one is written at once by
+``picows``, which masks it in C: masking it here, in Python, would cost about what the system
+call saved does."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
@@ -139,6 +150,27 @@ def _header(size: int) -> bytes:
 
 
 _HEADER = [_header(size) for size in range(126)]
+_MASKED_HEADER = [bytes((0x81, 0x80 | size)) for size in range(126)]
+
+
+def _masked_frames(messages: Sequence[bytes]) -> bytes:
+    """Frame ``messages`` as a client must (RFC 6455, 5.3): each a final text frame whose
+    payload is masked with its own fresh key, all in one ``bytes`` to write at once."""
+    keys = os.urandom(4 * len(messages))
+    parts: list[bytes] = []
+    for index, data in enumerate(messages):
+        size = len(data)
+        key = keys[4 * index : 4 * index + 4]
+        if size < 126:
+            parts.append(_MASKED_HEADER[size])
+        else:
+            parts.append(struct.pack("!BBH", 0x81, 0x80 | 126, size))
+        parts.append(key)
+        # XOR with the key repeated, as one integer operation: little-endian, so the first
+        # byte of the payload meets the first byte of the key.
+        pad = int.from_bytes(key * ((size >> 2) + 1), "little")
+        parts.append((int.from_bytes(data, "little") ^ pad).to_bytes(size + 4, "little")[:size])
+    return b"".join(parts)
 
 
 def _url(host: str, port: int, tls: bool = False) -> str:
@@ -159,6 +191,40 @@ class PicowsConnection(WSListener, Connection):
     event loop; srvwire calls :meth:`recv`, :meth:`send` and :meth:`close`.
     """
 
+    __slots__ = (
+        "_awaiting_pong",
+        "_budget",
+        "_corked",
+        "_corked_size",
+        "_ended",
+        "_flush_due",
+        "_framing",
+        "_gone",
+        "_handed",
+        "_keepalive",
+        "_limit",
+        "_loop",
+        "_messages",
+        "_parts",
+        "_parts_size",
+        "_parts_text",
+        "_ping_interval",
+        "_ping_timeout",
+        "_reading",
+        "_receive",
+        "_received",
+        "_sent",
+        "_single",
+        "_stall",
+        "_timed_out",
+        "_waiter",
+        "_writable",
+        "_write_timeout",
+        "_ws",
+        "identity",
+        "remote_address",
+    )
+
     def __init__(self, options: Options, identity: object = None) -> None:
         super().__init__()
         self.identity = identity
@@ -178,8 +244,12 @@ class PicowsConnection(WSListener, Connection):
         self._parts_size = 0
         self._parts_text = False
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
-        self._corked: list[bytes] = []  # a server's frames not yet written (see _flush)
+        # Not yet written (see _flush): a server's frames, header and payload; a client's
+        # messages, framed and masked when written.
+        self._corked: list[bytes] = []
         self._corked_size = 0
+        self._handed = 0  # messages handed over since the read began
+        self._single = False  # the last read handed one over, and nothing was sent since
         # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
         # or on_ws_frame is running (it flushes after the read's last frame).
         self._flush_due = False
@@ -249,6 +319,9 @@ class PicowsConnection(WSListener, Connection):
             elif not due:
                 self._flush_due = True
                 self._loop.call_soon(self._flush_later)
+        if frame.last_in_buffer:  # what a client's next send does depends on it (see send)
+            self._single = self._handed == 1
+            self._handed = 0
 
     def on_ws_disconnected(self, transport: WSTransport) -> None:
         if self._sent is None:
@@ -325,8 +398,19 @@ class PicowsConnection(WSListener, Connection):
             self._corked_size += size
             if self._corked_size >= self._budget // 4:
                 self._flush()
-        else:
-            ws.send(_TEXT, data)
+        elif self._single or len(data) > CLIENT_CORK_LIMIT:  # a client's, at once
+            self._single = False
+            if self._corked:
+                self._flush()
+            ws.send(_TEXT, data)  # picows frames and masks it
+        else:  # a client's, corked until the loop's next turn (see the module)
+            if not self._flush_due:
+                self._flush_due = True
+                self._loop.call_soon(self._flush_later)
+            self._corked.append(data)
+            self._corked_size += len(data)
+            if self._corked_size >= self._budget // 4:
+                self._flush()
 
     def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
         # Reading paused for the queue resumes first: nothing is queued once this returns, and a
@@ -417,6 +501,7 @@ class PicowsConnection(WSListener, Connection):
         else:
             message = payload
         if self._receive is not None:
+            self._handed += 1
             self._receive(message)
             return
         messages = self._messages
@@ -454,9 +539,10 @@ class PicowsConnection(WSListener, Connection):
 
     def _flush(self) -> None:
         """Write the frames ``send`` corked, in one write: on a server, every reply made while
-        draining one read goes out in one system call instead of one each. A lone message of at
-        most :data:`PICOWS_COPIES` bytes goes out through ``picows``' own ``send``, which frames
-        it and makes the system call in C."""
+        draining one read goes out in one system call instead of one each; on a client, every
+        call made in one turn of the loop. A lone message (on a server, of at most
+        :data:`PICOWS_COPIES` bytes) goes out through ``picows``' own ``send``, which frames it
+        (and masks it, on a client) and makes the system call in C."""
         corked = self._corked
         if not corked:
             return
@@ -465,6 +551,14 @@ class PicowsConnection(WSListener, Connection):
         if ws is None or self._ended is not None or ws.is_close_frame_sent:
             corked.clear()
             self._corked_size = 0
+        elif not self._framing:  # a client's messages
+            self._corked_size = 0
+            if len(corked) == 1:
+                ws.send(_TEXT, corked.pop())
+            else:
+                data = _masked_frames(corked)
+                corked.clear()
+                ws.underlying_transport.write(data)
         elif len(corked) == 2 and len(corked[1]) <= PICOWS_COPIES:  # one frame, small
             message = corked[1]
             corked.clear()
@@ -614,7 +708,10 @@ class PicowsListener(Listener):
     async def wait_closed(self) -> None:
         await self._server.wait_closed()
         while self._handlers:
-            await asyncio.gather(*self._handlers, return_exceptions=True)
+            # Not gather: from Python 3.12 it completes without yielding when every task is
+            # done, and a task that just ended leaves the set only in a callback the loop has
+            # yet to run, so this would turn forever.
+            await asyncio.wait(set(self._handlers))
 
 
 class PicowsTransport(Transport):
@@ -769,6 +866,8 @@ class _Opening(WSProtocol):  # type: ignore[misc]
 
 class _ServerConnection(PicowsConnection):
     """A connection a listener accepted: its handler starts once the upgrade is done."""
+
+    __slots__ = ("_started",)
 
     def __init__(self, options: Options, identity: object, started: Any) -> None:
         super().__init__(options, identity)
