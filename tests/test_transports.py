@@ -1428,3 +1428,17 @@ async def test_a_message_a_picows_client_holds_arrives_before_its_close_frame() 
         assert await pair.server.recv() == "last words"
         closed = await closed_with(pair.server)
         assert (closed.code, closed.reason) == (4000, "done")
+
+
+async def test_a_picows_server_frames_every_length_as_websockets_reads_it() -> None:
+    """A server's frames are made here: a websockets client, which checks every header, reads
+    each size whole, across the one-byte, two-byte and eight-byte lengths."""
+    from websockets.asyncio.client import connect
+
+    sizes = [0, 1, 125, 126, 127, 2**16 - 1, 2**16, 70_000]
+    async with listening(PicowsTransport()) as (listener, accepted):
+        async with connect(listener.url, max_size=None) as client, asyncio.timeout(scaled(5)):
+            server = await accepted.get()
+            for size in sizes:  # in one turn: held and written together
+                await server.send(b"x" * size)
+            assert [len(await client.recv()) for _ in sizes] == sizes

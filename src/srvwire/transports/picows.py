@@ -150,6 +150,7 @@ def _header(size: int) -> bytes:
 
 
 _HEADER = [_header(size) for size in range(126)]
+_HEADER_16 = bytes((0x81, 126))  # then the size in two bytes
 _MASKED_HEADER = [bytes((0x81, 0x80 | size)) for size in range(126)]
 
 
@@ -392,7 +393,11 @@ class PicowsConnection(WSListener, Connection):
                 self._loop.call_soon(self._flush_later)
             size = len(data)
             corked.append(
-                _HEADER[size] if size < 126 else _header(size)  # a text frame, unmasked
+                _HEADER[size]  # a text frame, unmasked
+                if size < 126
+                else _HEADER_16 + size.to_bytes(2, "big")
+                if size < 2**16
+                else _header(size)
             )
             corked.append(data)
             self._corked_size += size
