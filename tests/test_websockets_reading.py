@@ -140,8 +140,9 @@ async def test_reading_small_messages_allocates_no_read_sized_buffer() -> None:
     assert peak < READ_SIZE // 4
 
 
-def test_messages_flow_when_uvloop_reads_into_the_buffer() -> None:
-    """uvloop asks a buffered protocol for its buffer too: the same messages, whole."""
+def test_messages_flow_on_uvloop_which_reads_as_before() -> None:
+    """uvloop hands a connection what it read (``data_received``; a connection is an
+    ``asyncio.Protocol`` too), from a buffer of its own: the same messages, whole."""
 
     async def exchange() -> list[str | bytes]:
         async with two_clients(tls=False) as ends:

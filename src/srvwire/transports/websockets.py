@@ -70,7 +70,9 @@ of :data:`READ_SIZE` (256 KiB), which the C library maps from the kernel and giv
 read, however little arrived: three system calls and a page fault per read, more than the
 read itself. A connection is an ``asyncio.BufferedProtocol`` instead: the event loop reads into
 a buffer of the same size that every connection of the thread shares (:class:`_ReadBuffer`),
-and websockets copies what arrived into its own buffer before the next read can start.
+and websockets copies what arrived into its own buffer before the next read can start. uvloop,
+which reads into a buffer of its own already, still calls ``data_received`` (a connection is an
+``asyncio.Protocol`` too).
 
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
@@ -189,7 +191,9 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         self.held_back = False  # srvwire paused reading (WebSocketsConnection.pause_reading)
         self.handed = 0  # messages handed to the receiver by the read being processed
         self.closing: asyncio.TimerHandle | None = None  # drops a connection this side failed
-        self.reading = _read_buffer.view  # what the socket is read into (see get_buffer)
+        # What the socket is read into: the buffer of this thread, the one its event loop, which
+        # made this connection, runs in.
+        self.reading = _read_buffer.view
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -202,9 +206,8 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             self.transport.resume_reading()
 
     def get_buffer(self, sizehint: int) -> memoryview:
-        """Where the event loop reads the socket: this thread's buffer, whatever the hint."""
-        self.reading = view = _read_buffer.view
-        return view
+        """Where the event loop reads the socket: its thread's buffer, whatever the hint."""
+        return self.reading
 
     def buffer_updated(self, nbytes: int) -> None:
         # websockets' receive_data appends the bytes to its own buffer: nothing keeps the view.
