@@ -69,9 +69,10 @@ TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
             transport: str = "websockets", proxy: bool = False,
-            raw: bool = False) -> dict[str, float]:  # fmt: skip
+            raw: bool = False, loop: str = "asyncio") -> dict[str, float]:  # fmt: skip
     """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call
-    (``url``: of a real server, on ``transport``; ``raw``: the raw websockets client there)."""
+    (``url``: of a real server, on ``transport``; ``raw``: the raw websockets client there;
+    ``loop``: asyncio or uvloop)."""
     from srvwire.client import connect
     from srvwire.protocol import services_notification
     from srvwire.transports.base import Connection, Transport, TransportClosed
@@ -247,6 +248,10 @@ def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
                 figures[shape] = spent / (each * len(callers)) * 1e6
         return figures
 
+    if loop == "uvloop":
+        import uvloop
+
+        return uvloop.run(run())
     return asyncio.run(run())
 
 
@@ -259,6 +264,7 @@ def child(
     server: Sequence[str] = (),
     proxy: bool = False,
     keep_heap: bool = False,
+    loop: str = "asyncio",
 ) -> Any:
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
     printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under;
@@ -276,6 +282,7 @@ def child(
         command.append("--raw")
     if keep_heap:
         command.append("--keep-heap")
+    command += ["--loop", loop]
     done = subprocess.run(
         [*prefix, *command, "--shapes", ",".join(shapes), *server],
         env=env,
@@ -289,12 +296,13 @@ def child(
 
 
 def instructions(src: str, calls: int, shape: str, push: bool, server: Sequence[str],
-                 proxy: bool = False, keep_heap: bool = False) -> float:  # fmt: skip
+                 proxy: bool = False, keep_heap: bool = False,
+                 loop: str = "asyncio") -> float:  # fmt: skip
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], push, VALGRIND, server, proxy, keep_heap)
+        _, err = child(src, n, [shape], push, VALGRIND, server, proxy, keep_heap, loop)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -365,6 +373,9 @@ def main() -> None:
         action="store_true",
         help="call srvwire.keep_freed_heap() first in every child, so that no read maps memory",
     )
+    parser.add_argument(
+        "--loop", choices=["asyncio", "uvloop"], default="asyncio", help="the client's event loop"
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--url", help=argparse.SUPPRESS)
     parser.add_argument("--transport", default="websockets", help=argparse.SUPPRESS)
@@ -378,7 +389,7 @@ def main() -> None:
 
             keep_freed_heap()
         figures = measure(
-            args.calls, shapes, args.push, args.url, args.transport, args.proxy, args.raw
+            args.calls, shapes, args.push, args.url, args.transport, args.proxy, args.raw, args.loop
         )
         print(json.dumps(figures))
         return
@@ -397,7 +408,9 @@ def report(
         for shape in shapes:
             print(f"{shape} (instructions per call, valgrind)")
             counts = [
-                instructions(src, calls, shape, args.push, server, args.proxy, args.keep_heap)
+                instructions(
+                    src, calls, shape, args.push, server, args.proxy, args.keep_heap, args.loop
+                )
                 for src in sources
             ]
             for src, count in zip(sources, counts, strict=True):
@@ -407,7 +420,15 @@ def report(
     for _ in range(args.repeat):
         for src in sources:
             measured = child(
-                src, args.calls, shapes, args.push, (), server, args.proxy, args.keep_heap
+                src,
+                args.calls,
+                shapes,
+                args.push,
+                (),
+                server,
+                args.proxy,
+                args.keep_heap,
+                args.loop,
             )[0]
             for shape, value in measured.items():
                 runs[src][shape].append(value)
