@@ -27,11 +27,20 @@ Shapes, each timed over ``--calls`` calls (CPU time of the process, ``time.proce
 Several source trees can be compared in the same run (``--src old/src --src src``): each is
 measured in a child process of its own, first on ``sys.path``, and the trees alternate within
 every repeat; the figure is the minimum over ``--repeat`` runs (the least disturbed by other
-processes), and the table gives each tree's ratio to the first one.
+processes), and the table gives each tree's ratio to the first one. ``--raw`` (with ``--server
+websockets``) measures the harness's raw websockets client (``baseline_client.py``) in the same
+shapes, against the same server, as one more row.
+
+``--keep-heap`` calls ``srvwire.keep_freed_heap()`` in each child first (the raw client too),
+so that no block of a socket read's size is mapped from the kernel and given back per read: what
+a process that once freed a larger block gets from glibc's own adjustment of its thresholds (the
+harness's clients do, building W4's request), where a small client that never did maps and
+unmaps asyncio's 256 KiB read buffer on every read.
 
     python benchmarks/client_path.py                       # this checkout's src/
     python benchmarks/client_path.py --src /tmp/old/src --src src --repeat 7
     python benchmarks/client_path.py --src /tmp/old/src --src src --server websockets --instructions
+    python benchmarks/client_path.py --server websockets --shapes fan-in --raw --instructions
 """
 
 from __future__ import annotations
@@ -52,15 +61,18 @@ from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
+RAW = "raw websockets"  # the row of --raw: the harness's baseline client, not a source tree
 PIPELINE = 64  # calls in flight in the pipelined shape, as W2
 FAN_IN = 100  # connections in the fan-in shape, as W3
 TIMEOUT = 30.0  # every call's deadline, as the harness's
 
 
 def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
-            transport: str = "websockets", proxy: bool = False) -> dict[str, float]:  # fmt: skip
+            transport: str = "websockets", proxy: bool = False,
+            raw: bool = False, loop: str = "asyncio") -> dict[str, float]:  # fmt: skip
     """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call
-    (``url``: of a real server, on ``transport``)."""
+    (``url``: of a real server, on ``transport``; ``raw``: the raw websockets client there;
+    ``loop``: asyncio or uvloop)."""
     from srvwire.client import connect
     from srvwire.protocol import services_notification
     from srvwire.transports.base import Connection, Transport, TransportClosed
@@ -165,9 +177,34 @@ def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
         def check_url(self, url: str) -> None:
             return None
 
+    async def open_raw(stack: AsyncExitStack) -> Any:
+        """A connection of the harness's raw websockets client to ``url``."""
+        from baseline_client import BaselineConnection
+        from websockets.asyncio.client import connect as websockets_connect
+
+        assert url is not None
+        opened = BaselineConnection(await websockets_connect(url, compression=None))
+        stack.push_async_callback(opened.close)
+        return opened
+
+    def calling_raw(connection: Any) -> Callable[[int], Awaitable[None]]:
+        """``n`` calls one after the other on a raw client's ``connection``."""
+        from baseline_client import make_request
+
+        request = make_request(SMALL_REQUEST)
+
+        async def calling(n: int) -> None:
+            for _ in range(n):
+                reply = await connection.call(SERVICE, request)
+                assert type(reply) is dict
+
+        return calling
+
     def caller(client: Any) -> Callable[[int], Awaitable[None]]:
         """``n`` calls one after the other on ``client``: ``client.call(SERVICE, request)``,
         or the same through a ServiceProxy made once."""
+        if raw:
+            return calling_raw(client)
         request = RobotStateQuery.Request(**SMALL_REQUEST)
         proxied = client.proxy(SERVICE)
 
@@ -188,6 +225,9 @@ def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
         async with AsyncExitStack() as stack:
             clients = []
             for _ in range(FAN_IN if "fan-in" in shapes else 1):
+                if raw:
+                    clients.append(await open_raw(stack))
+                    continue
                 opened = (
                     connect("ws://fake", transport=Fake(), timeout=TIMEOUT)
                     if url is None
@@ -208,6 +248,10 @@ def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
                 figures[shape] = spent / (each * len(callers)) * 1e6
         return figures
 
+    if loop == "uvloop":
+        import uvloop
+
+        return uvloop.run(run())
     return asyncio.run(run())
 
 
@@ -219,17 +263,26 @@ def child(
     prefix: Sequence[str] = (),
     server: Sequence[str] = (),
     proxy: bool = False,
+    keep_heap: bool = False,
+    loop: str = "asyncio",
 ) -> Any:
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
     printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under;
-    ``server``: the options naming the real server, if any)."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), str(HERE)]))
+    ``server``: the options naming the real server, if any; ``src`` :data:`RAW`: the raw
+    websockets client, with this checkout's srvwire for the shared benchmark code)."""
+    tree = HERE.parent / "src" if src == RAW else Path(src).resolve()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), str(HERE)]))
     env["PYTHONHASHSEED"] = "0"  # the same work in every run, for the instruction counts
     command = [sys.executable, __file__, "--child", "--calls", str(calls)]
     if push:
         command.append("--push")
     if proxy:
         command.append("--proxy")
+    if src == RAW:
+        command.append("--raw")
+    if keep_heap:
+        command.append("--keep-heap")
+    command += ["--loop", loop]
     done = subprocess.run(
         [*prefix, *command, "--shapes", ",".join(shapes), *server],
         env=env,
@@ -243,12 +296,13 @@ def child(
 
 
 def instructions(src: str, calls: int, shape: str, push: bool, server: Sequence[str],
-                 proxy: bool = False) -> float:  # fmt: skip
+                 proxy: bool = False, keep_heap: bool = False,
+                 loop: str = "asyncio") -> float:  # fmt: skip
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], push, VALGRIND, server, proxy)
+        _, err = child(src, n, [shape], push, VALGRIND, server, proxy, keep_heap, loop)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -308,15 +362,36 @@ def main() -> None:
         action="store_true",
         help="call through a ServiceProxy (client.proxy(name)(request)) instead of client.call",
     )
+    parser.add_argument(
+        "--raw",
+        action="store_true",
+        help="with --server websockets: measure the harness's raw websockets client too, as one "
+        "more row",
+    )
+    parser.add_argument(
+        "--keep-heap",
+        action="store_true",
+        help="call srvwire.keep_freed_heap() first in every child, so that no read maps memory",
+    )
+    parser.add_argument(
+        "--loop", choices=["asyncio", "uvloop"], default="asyncio", help="the client's event loop"
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--url", help=argparse.SUPPRESS)
     parser.add_argument("--transport", default="websockets", help=argparse.SUPPRESS)
     args = parser.parse_args()
     shapes = args.shapes.split(",")
+    if args.raw and not args.child and args.server != "websockets":
+        parser.error("--raw measures the raw websockets client: it needs --server websockets")
     if args.child:
-        print(
-            json.dumps(measure(args.calls, shapes, args.push, args.url, args.transport, args.proxy))
+        if args.keep_heap:
+            from srvwire.heap import keep_freed_heap
+
+            keep_freed_heap()
+        figures = measure(
+            args.calls, shapes, args.push, args.url, args.transport, args.proxy, args.raw, args.loop
         )
+        print(json.dumps(figures))
         return
     with contextlib.ExitStack() as stack:
         server = [] if args.server is None else stack.enter_context(real_server(args.server))
@@ -327,13 +402,16 @@ def report(
     args: argparse.Namespace, parser: argparse.ArgumentParser, shapes: list[str], server: list[str]
 ) -> None:
     """Measure every source tree and print the tables."""
-    sources = args.src or [str(HERE.parent / "src")]
+    sources = (args.src or [str(HERE.parent / "src")]) + ([RAW] if args.raw else [])
     if args.instructions:
         calls = 2_000 if args.calls == parser.get_default("calls") else args.calls
         for shape in shapes:
             print(f"{shape} (instructions per call, valgrind)")
             counts = [
-                instructions(src, calls, shape, args.push, server, args.proxy) for src in sources
+                instructions(
+                    src, calls, shape, args.push, server, args.proxy, args.keep_heap, args.loop
+                )
+                for src in sources
             ]
             for src, count in zip(sources, counts, strict=True):
                 print(f"  {count:8.0f}  ratio {count / counts[0]:.3f}  {src}")
@@ -341,7 +419,17 @@ def report(
     runs: dict[str, dict[str, list[float]]] = {src: {s: [] for s in shapes} for src in sources}
     for _ in range(args.repeat):
         for src in sources:
-            measured = child(src, args.calls, shapes, args.push, (), server, args.proxy)[0]
+            measured = child(
+                src,
+                args.calls,
+                shapes,
+                args.push,
+                (),
+                server,
+                args.proxy,
+                args.keep_heap,
+                args.loop,
+            )[0]
             for shape, value in measured.items():
                 runs[src][shape].append(value)
     first = sources[0]

@@ -264,6 +264,21 @@ def test_the_client_path_benchmark_compares_source_trees(
     assert rows[0][2] == rows[2][2] == "1.000"
 
 
+def test_the_client_path_benchmark_measures_the_raw_client_beside() -> None:
+    # --raw adds the harness's raw websockets client as one more row, calling the same real
+    # server in the same shape (its child asserts every reply); here with the heap kept and
+    # on uvloop, which the child must have been able to do.
+    src = str(ROOT / "src")
+    options = ["--calls", "800", "--repeat", "1", "--src", src, "--server", "websockets",
+               "--shapes", "fan-in", "--raw", "--keep-heap", "--loop", "uvloop"]  # fmt: skip
+    result = run_benchmark(ROOT / "benchmarks" / "client_path.py", *options)
+    lines = result.stdout.splitlines()
+    assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == ["fan-in"]
+    rows = [line.split() for line in lines if line.startswith(" ")]
+    assert [row[3:-1] for row in rows] == [[src], ["raw", "websockets"]]
+    assert all(float(row[0]) > 0 and row[1] == "ratio" for row in rows)
+
+
 def test_the_large_reply_steps_agree_both_ways_and_are_measured() -> None:
     # Each way runs in a process of its own, which exits unless both ways make the same.
     script = ROOT / "benchmarks" / "large_path.py"

@@ -79,6 +79,14 @@ COMMANDS: dict[str, str] = {
         "the client's in-process benchmark: a minute long, valgrind's counts longer; "
         "tests/test_benchmarks.py runs it small"
     ),
+    r"\.venv/bin/python benchmarks/srvwire_server\.py": (
+        "the harness's srvwire server, serving until its input ends: tests/test_benchmarks.py "
+        "runs it under client_path.py --server"
+    ),
+    r"PYTHONPATH=src:benchmarks strace -f -c \.venv/bin/python benchmarks/client_path\.py .*": (
+        "the client benchmark's child counted by strace: strace is no dependency; "
+        "tests/test_benchmarks.py runs the script itself"
+    ),
     r"\.venv/bin/python benchmarks/large_path\.py( .*)?": (
         "W4's two steps in one process, both ways: tests/test_benchmarks.py runs it small"
     ),

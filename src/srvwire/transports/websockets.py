@@ -69,6 +69,15 @@ the peer has not closed it within ``close_timeout``. :meth:`~WebSocketsConnectio
 stops reading the socket, with or without a receiver: websockets' queue, which stops reading
 while ``recv`` lags 16 messages behind, resumes it only when srvwire does not hold it back.
 
+**Every read goes into one buffer per thread.** asyncio reads a socket into a new bytes object
+of :data:`READ_SIZE` (256 KiB), which the C library maps from the kernel and gives back on every
+read, however little arrived: three system calls and a page fault per read, more than the
+read itself. A connection is an ``asyncio.BufferedProtocol`` instead: the event loop reads into
+a buffer of the same size that every connection of the thread shares (:class:`_ReadBuffer`),
+and websockets copies what arrived into its own buffer before the next read can start. uvloop,
+which reads into a buffer of its own already, still calls ``data_received`` (a connection is an
+``asyncio.Protocol`` too).
+
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
 and, through ``select_subprotocol``, its subprotocol. A client's refusal says the HTTP status
@@ -92,6 +101,7 @@ import socket
 import ssl as _ssl
 import struct
 import sys
+import threading
 import weakref
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -151,8 +161,28 @@ _TEXT_126 = bytes((0x81, 126))
 _LENGTH = struct.Struct("!H").pack
 
 
-class _Watched(WebSocket):
-    """What srvwire adds to a websockets connection: it knows when writing is paused, and
+READ_SIZE = 2**18
+"""Bytes a connection reads from its socket at most at once: what asyncio itself reads."""
+
+
+class _ReadBuffer(threading.local):
+    """The buffer every connection of one thread reads its socket into (see the module).
+
+    An event loop runs in one thread and reads one socket at a time, and websockets copies
+    what a read brought into its own buffer before the read's callback returns, so one buffer
+    serves every connection of the thread; a thread that never reads has none.
+    """
+
+    def __init__(self) -> None:
+        self.view = memoryview(bytearray(READ_SIZE))
+
+
+_read_buffer = _ReadBuffer()
+
+
+class _Watched(WebSocket, asyncio.BufferedProtocol):
+    """What srvwire adds to a websockets connection: it reads its socket into its thread's
+    buffer (an ``asyncio.BufferedProtocol``); it knows when writing is paused, and
     closes the connection when it stays paused for ``write_timeout`` (None: never); once it
     has a receiver (:meth:`WebSocketsConnection.deliver_to`), it hands each message to it in
     the read callback instead of to websockets' queue; and srvwire may hold reading back
@@ -172,6 +202,9 @@ class _Watched(WebSocket):
         self.held_back = False  # srvwire paused reading (WebSocketsConnection.pause_reading)
         self.handed = 0  # messages handed to the receiver by the read being processed
         self.closing: asyncio.TimerHandle | None = None  # drops a connection this side failed
+        # What the socket is read into: the buffer of this thread, the one its event loop, which
+        # made this connection, runs in.
+        self.reading = _read_buffer.view
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -182,6 +215,14 @@ class _Watched(WebSocket):
         srvwire holds reading back."""
         if not self.held_back:
             self.transport.resume_reading()
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        """Where the event loop reads the socket: its thread's buffer, whatever the hint."""
+        return self.reading
+
+    def buffer_updated(self, nbytes: int) -> None:
+        # websockets' receive_data appends the bytes to its own buffer: nothing keeps the view.
+        self.data_received(self.reading[:nbytes])  # type: ignore[arg-type]
 
     def data_received(self, data: bytes) -> None:
         pushing = self.pushing
