@@ -1042,6 +1042,31 @@ async def test_a_raw_reply_checked_as_its_caller_gives_up_still_fails_the_connec
     assert not client.connected
 
 
+async def test_a_raw_reply_whose_call_was_cancelled_as_it_came_is_still_checked(
+    peer: FakePeer, client: Client
+) -> None:
+    # From Python 3.12 a cancelled caller cancels the future it awaits at once, so a reply
+    # routed in that step finds its call's future already done: it is checked all the same.
+    class CancelledAsTaken(dict[int, Any]):
+        def pop(self, key: int, default: Any = None) -> Any:
+            future = super().pop(key, None)
+            if future is None:
+                return default
+            future.cancel()  # what Python 3.12 does to it as its caller is cancelled
+            return future
+
+    session = client._link.session  # type: ignore[union-attr]
+    session.pending = CancelledAsTaken(session.pending)
+    call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
+    ws = peer.connections[0]
+    await ws.send(compact(await next_call_id(peer), '{"sum":3},"error":{}'))
+    with pytest.raises(asyncio.CancelledError):
+        await call
+    await asyncio.wait_for(ws.wait_closed(), scaled(5))
+    assert ws.close_code == 1008
+    assert not client.connected
+
+
 # --- waiting for services and for the server --------------------------------------------------
 
 

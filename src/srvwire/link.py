@@ -289,10 +289,13 @@ class Link:
                 raw = peek_reply(data)
                 if raw is not None:
                     future = self.session.pending.pop(raw.id, None)
-                    if future is not None:
-                        if not future.done():
-                            future.set_result(raw)
+                    if future is not None and not future.done():
+                        future.set_result(raw)
                         return
+                    # No call waits for it. Its caller may have given up in this very step
+                    # (from Python 3.12 a cancelled caller cancels the future it awaits at
+                    # once): the reply is still read whole below, and one that is not
+                    # JSON-RPC still fails the connection.
             try:
                 events = self.session.receive(data)
             except ProtocolViolation as exc:
