@@ -87,6 +87,10 @@ COMMANDS: dict[str, str] = {
         "the client benchmark's child counted by strace: strace is no dependency; "
         "tests/test_benchmarks.py runs the script itself"
     ),
+    r"strace -f -c \.venv/bin/python benchmarks/run\.py .*": (
+        "the harness's system calls counted by strace: strace is no dependency; "
+        "tests/test_benchmarks.py runs the harness itself"
+    ),
     r"\.venv/bin/python benchmarks/large_path\.py( .*)?": (
         "W4's two steps in one process, both ways: tests/test_benchmarks.py runs it small"
     ),
