@@ -1442,3 +1442,22 @@ async def test_a_picows_server_frames_every_length_as_websockets_reads_it() -> N
             for size in sizes:  # in one turn: held and written together
                 await server.send(b"x" * size)
             assert [len(await client.recv()) for _ in sizes] == sizes
+
+
+async def test_a_picows_client_writes_what_it_holds_once_it_reaches_its_write_size() -> None:
+    """A pipelined client's calls reach the server in a few writes, not one at the turn's end:
+    the server works on the first while the client makes the next."""
+    from srvwire.transports.picows import CLIENT_CORK_LIMIT, CLIENT_WRITE_AT
+
+    size = 400
+    assert size <= CLIENT_CORK_LIMIT and CLIENT_WRITE_AT % size  # held, and not a round count
+    per_write = CLIENT_WRITE_AT // size + 1
+    async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
+        writes = picows_client_writes(pair.client)
+        count = 2 * per_write + 3
+        for i in range(count):  # in one turn
+            await pair.client.send(f"{i:04d}".encode() + b"x" * (size - 4))
+        assert [len(client_frames(data)) for data in writes] == [per_write, per_write]
+        received = [await pair.server.recv() for _ in range(count)]
+        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(count)]
+        assert [len(client_frames(data)) for data in writes] == [per_write, per_write, 3]

@@ -21,12 +21,12 @@ leaves to its user:
   one write, after the last frame the read brought (the replies made in ``on_ws_frame``), when
   ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
   comes first. A client corks its small messages too (at most :data:`CLIENT_CORK_LIMIT`
-  bytes), until the loop's next turn: the calls its callers make in one turn (a pipelined
-  client woken by a read of many replies) go out in one write, each frame masked with a fresh
-  key from ``os.urandom``, as RFC 6455 asks. The first message sent after a read that brought
-  a single one is written at once instead, by ``picows`` (a caller that waited for its reply
-  and calls again: nothing else is coming this turn), and so is a larger message, or a lone
-  one when the turn ends.
+  bytes), until the loop's next turn or :data:`CLIENT_WRITE_AT` bytes: the calls its callers
+  make in one turn (a pipelined client woken by a read of many replies) go out in a few
+  writes, each frame masked with a fresh key from ``os.urandom``, as RFC 6455 asks. The first
+  message sent after a read that brought a single one is written at once instead, by
+  ``picows`` (a caller that waited for its reply and calls again: nothing else is coming this
+  turn), and so is a larger message, or a lone one when the turn ends.
   The budget (``max_queued_bytes``) is the socket buffer's high-water mark: a ``send`` that
   finds the connection congested waits before it queues anything, and a
   connection congested for ``write_timeout`` (or a ping period, when sooner) is dropped at once
@@ -127,6 +127,10 @@ CLIENT_CORK_LIMIT = 512
 """The largest message a client corks (see the module); a larger one is written at once by
 ``picows``, which masks it in C: masking it here, in Python, would cost about what the system
 call saved does."""
+CLIENT_WRITE_AT = 2**12
+"""Bytes of held messages at which a client writes them without waiting for the turn's end:
+a pipelined client's calls then reach the server in a few writes, and the server works on the
+first while the client makes the next, instead of the two ends taking turns."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
@@ -414,7 +418,7 @@ class PicowsConnection(WSListener, Connection):
                 self._loop.call_soon(self._flush_later)
             self._corked.append(data)
             self._corked_size += len(data)
-            if self._corked_size >= self._budget // 4:
+            if self._corked_size >= CLIENT_WRITE_AT or self._corked_size >= self._budget // 4:
                 self._flush()
 
     def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
