@@ -932,9 +932,9 @@ async def test_text_is_counted_in_bytes_against_the_cork_limit() -> None:
 
 async def test_a_server_frames_what_it_holds_as_websockets_frames_it() -> None:
     """The bytes a server writes for held messages of every header length are the frames
-    websockets' own ``send_text`` writes; the client's are websockets' (they are masked)."""
+    websockets' own ``send_text`` writes; neither end calls ``send_text`` for them."""
     from websockets.frames import Frame, Opcode
-    from websockets.protocol import Protocol, Side
+    from websockets.protocol import Protocol
 
     from srvwire.transports.websockets import CORK_LIMIT
 
@@ -966,8 +966,39 @@ async def test_a_server_frames_what_it_holds_as_websockets_frames_it() -> None:
         assert b"".join(writes) == b"".join(expected)
         assert received[::2] == [m.decode() for m in messages]
         assert received[1::2] == ["é→€" * 100] * len(messages)
-        assert framed == [Side.CLIENT]  # only the client's call went through send_text
+        assert framed == []  # the client frames its own too (see the test below)
         assert await pair.server.recv() == "a call"
+
+
+async def test_a_client_frames_what_it_holds_masked_with_a_key_each() -> None:
+    """A websockets client's held messages are framed and masked here, each with a fresh key;
+    the websockets server, which fails a client's frame that is not masked, reads them all."""
+    from srvwire.transports.websockets import CORK_LIMIT
+
+    lengths = [0, 1, 125, 126, 127, 1000, CORK_LIMIT // 2]
+    messages = [f"{n:05d}".encode()[:n] + b"x" * max(0, n - 5) for n in lengths]
+    async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
+        writes = count_writes(pair.client)
+        for message in messages:  # in one turn: held, and written past the limit
+            await pair.client.send(message)
+        await pair.client.send("é→€" * 100)  # a str is framed as its UTF-8 bytes
+        received = [await pair.server.recv() for _ in range(len(messages) + 1)]
+        assert received == [m.decode() for m in messages] + ["é→€" * 100]
+        frames = [frame for data in writes for frame in client_frames(data)]
+        assert [payload for _, payload in frames] == [*messages, "é→€".encode() * 100]
+        assert len({key for key, _ in frames}) == len(frames)  # a key each
+
+
+async def test_a_client_with_compression_on_leaves_its_frames_to_websockets() -> None:
+    deflate = Options(compression="deflate")
+    async with connected(WebSocketsTransport(), deflate) as pair, asyncio.timeout(scaled(5)):
+        writes = count_writes(pair.client)
+        for i in range(3):
+            await pair.client.send(f"call {i} " + "x" * 1000)
+        assert [await pair.server.recv() for _ in range(3)] == [
+            f"call {i} " + "x" * 1000 for i in range(3)
+        ]
+        assert 0 < len(b"".join(writes)) < 1000  # compressed, by websockets
 
 
 async def test_a_server_with_compression_on_leaves_its_frames_to_websockets() -> None:

@@ -97,6 +97,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import logging
+import os
 import socket
 import ssl as _ssl
 import struct
@@ -122,6 +123,11 @@ from websockets.http11 import Request, Response
 from websockets.protocol import OPEN, Event, Protocol, Side, State
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
+
+try:  # websockets' C masking, as its own frames use; its Python one where it was not built
+    from websockets.speedups import apply_mask
+except ImportError:  # websockets ships it compiled for the common platforms
+    from websockets.utils import apply_mask
 
 from srvwire.transports.base import (
     CREDENTIAL_HEADERS,
@@ -159,6 +165,31 @@ DEFAULT_WRITE_LIMIT = 2**15
 _SHORT_TEXT = [bytes((0x81, length)) for length in range(126)]
 _TEXT_126 = bytes((0x81, 126))
 _LENGTH = struct.Struct("!H").pack
+# A client's frames have the mask bit set in the second byte, and the key after the length.
+_SHORT_MASKED = [bytes((0x81, 0x80 | length)) for length in range(126)]
+_MASKED_126 = bytes((0x81, 0x80 | 126))
+
+
+class _MaskingKeys(threading.local):
+    """Masking keys for a thread's client frames: four bytes each, never used twice, taken
+    from ``os.urandom`` a thousand at a time instead of a system call per frame (a key is
+    seen on the wire once used, and tells nothing of the next, which the OS drew apart)."""
+
+    def __init__(self) -> None:
+        self.supply = b""
+        self.at = 0
+
+    def key(self) -> bytes:
+        at = self.at
+        supply = self.supply
+        if at >= len(supply):
+            supply = self.supply = os.urandom(4096)
+            at = 0
+        self.at = at + 4
+        return supply[at : at + 4]
+
+
+_masking_keys = _MaskingKeys()
 
 
 READ_SIZE = 2**18
@@ -515,6 +546,7 @@ class WebSocketsConnection(Connection):
         "_flushing",
         "_frames",
         "_held",
+        "_keys",
         "_protocol",
         "_single",
         "_ws",
@@ -534,11 +566,11 @@ class WebSocketsConnection(Connection):
         self._held = 0  # bytes framed since the last write, at most (websockets may write them)
         self._single = False  # the last read handed one message over, and nothing was sent since
         protocol = ws.protocol
-        # Whether a held message is framed here (see the module): a server's frames go out
-        # unmasked and, without extensions, as they are; websockets' log of frames stays its own.
-        self._frames = (
-            protocol.side is Side.SERVER and not protocol.extensions and not protocol.debug
-        )
+        # Whether a held message is framed here (see the module): without extensions, and
+        # with websockets' log of frames off, which stays its own. A server's frames go out
+        # unmasked, a client's masked with keys from its thread's supply.
+        self._frames = not protocol.extensions and not protocol.debug
+        self._keys = None if protocol.side is Side.SERVER else _masking_keys
         self.remote_address = ws.remote_address
         self.identity = identity
         ws.write_timeout = _write_timeout(options)
@@ -565,11 +597,15 @@ class WebSocketsConnection(Connection):
             and self._protocol.state is OPEN
             and ws.transport.get_write_buffer_size() + size <= ws.write_limit_high
         ):
-            if self._frames:  # a server's text frame, as websockets' send_text frames it
+            if not self._frames:
+                self._protocol.send_text(message)
+            elif self._keys is None:  # a server's text frame, as websockets' send_text frames it
                 header = _SHORT_TEXT[length] if length < 126 else _TEXT_126 + _LENGTH(length)
                 self._protocol.writes.append(header + message)
-            else:
-                self._protocol.send_text(message)
+            else:  # a client's: masked, with a fresh key each (RFC 6455, 5.3)
+                key = self._keys.key()
+                header = _SHORT_MASKED[length] if length < 126 else _MASKED_126 + _LENGTH(length)
+                self._protocol.writes.append(header + key + apply_mask(message, key))
             if size >= CORK_LIMIT or (self._single and not self._flushing):
                 self._single = False  # the first send after a lone message writes at once
                 self.flush()
