@@ -39,10 +39,12 @@ many tasks made in one turn: what writes a client's calls, since its reader neve
 a receiver a single message, with nothing held. That is a peer calling one call at a time,
 whose next call would otherwise wait a loop turn for nothing to join it; after a read of
 several messages (a pipelined peer's replies) the sends they cause are held as above. A
-server frames a message it holds itself, the two or four bytes of a final text frame's header
-before it, where websockets' ``send_text`` builds a ``Frame`` and serializes it in Python (a
-server's frames are not masked; with compression on, or websockets' debug log of frames, its
-own ``send_text`` frames them): a quarter of its instructions, and the same bytes.
+connection frames a message it holds itself, the two or four bytes of a final text frame's
+header before it, where websockets' ``send_text`` builds a ``Frame`` and serializes it in
+Python: a server's frames unmasked, the same bytes at a quarter of the instructions; a
+client's masked with websockets' own C ``apply_mask`` and a fresh key each, drawn from
+``os.urandom`` a thousand at a time (:class:`_MaskingKeys`). With compression on, or
+websockets' debug log of frames, its own ``send_text`` frames them.
 :data:`CORK_LIMIT` is what keeps a pipelined
 peer busy: holding every reply to 64 calls until the last is made lets the peer start on none
 of them before, and two ends that each answer a whole window in one write settle into taking
