@@ -443,3 +443,15 @@ async def test_an_async_handler_may_return_any_awaitable_with_or_without_a_deadl
     for deadline in (None, time.monotonic() + scaled(30)):
         context = Context(service="/future", deadline=deadline)
         assert await dispatch(marked, {"text": "hi"}, context) == b'{"text":"hi"}'
+
+
+def test_a_context_whose_deadline_fired_has_no_time_left_whatever_the_clock_says() -> None:
+    # uvloop runs a timer up to a millisecond early: the deadline's timer has fired, so the
+    # time left is none, though the clock is a little short of the deadline.
+    ctx = Context(service="/s", request_id=1, deadline=time.monotonic() + scaled(60))
+    assert (ctx.time_remaining() or 0.0) > 0
+    ctx._mark_cancelled(DeadlineExceeded("the deadline passed", service="/s"))
+    assert ctx.cancelled and ctx.time_remaining() == 0.0
+    cancelled = Context(service="/s", request_id=2, deadline=time.monotonic() + scaled(60))
+    cancelled._mark_cancelled()  # cancelled otherwise: the deadline is still ahead
+    assert (cancelled.time_remaining() or 0.0) > 0

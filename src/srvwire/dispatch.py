@@ -200,6 +200,10 @@ class Context:
         """Seconds until the caller's deadline (0 once passed), or None without a deadline."""
         if self.deadline is None:
             return None
+        if isinstance(self._cancel_error, DeadlineExceeded):
+            # Passed, as the server's timer found, though uvloop runs a timer up to a
+            # millisecond before its time, when the clock may still say otherwise.
+            return 0.0
         return max(0.0, self.deadline - time.monotonic())
 
     @property
