@@ -962,7 +962,8 @@ async def test_a_reply_nobody_waits_for_is_parsed_and_dropped_or_fails_the_conne
     # The same reply with a tail that is not JSON is checked as before, and fails the connection.
     peer.reply = None
     task = asyncio.create_task(client.call(ADD, {"a": 1}, timeout=scaled(30)))
-    await peer.next(ADD)
+    assert (await peer.next(ADD))["params"]["a"] == 2  # the call answered above
+    assert (await peer.next(ADD))["params"]["a"] == 1  # this one: the client waits for it
     await ws.send(compact(late, '{"sum":3},"error":{}'))
     with pytest.raises(ConnectionLost) as caught:
         await task
