@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import ssl
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from types import ModuleType
 from typing import Any
 
 import pytest
+import trustme
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -68,3 +70,16 @@ def run_benchmark(script: Path, *args: str) -> subprocess.CompletedProcess[str]:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     return result
+
+
+def tls_on_localhost(tls: bool) -> tuple[ssl.SSLContext | None, ssl.SSLContext | None]:
+    """The server's and the client's TLS contexts for 127.0.0.1, from a new certificate
+    authority (trustme); with ``tls`` False, neither."""
+    if not tls:
+        return None, None
+    ca = trustme.CA()
+    server_ssl = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ca.issue_cert("127.0.0.1").configure_cert(server_ssl)
+    client_ssl = ssl.create_default_context()
+    ca.configure_trust(client_ssl)
+    return server_ssl, client_ssl

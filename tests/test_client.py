@@ -1034,6 +1034,14 @@ async def test_a_raw_reply_checked_as_its_caller_gives_up_still_fails_the_connec
     # The reader hands the unparsed reply over, and in the same step the caller is cancelled:
     # the reply is checked anyway, as the reader checked every reply before.
     call = call_cancelled_as_answered(client, monkeypatch)
+    await a_bad_reply_to_the_cancelled_call_fails_the_connection(peer, client, call)
+
+
+async def a_bad_reply_to_the_cancelled_call_fails_the_connection(
+    peer: FakePeer, client: Client, call: asyncio.Task[Any]
+) -> None:
+    """Answer ``call`` with both a result and an error: the call ends cancelled, and the
+    client, which read the reply all the same, closes the connection with 1008."""
     ws = peer.connections[0]
     await ws.send(compact(await next_call_id(peer), '{"sum":3},"error":{}'))
     with pytest.raises(asyncio.CancelledError):
@@ -1059,13 +1067,7 @@ async def test_a_raw_reply_whose_call_was_cancelled_as_it_came_is_still_checked(
     session = client._link.session  # type: ignore[union-attr]
     session.pending = CancelledAsTaken(session.pending)
     call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}))
-    ws = peer.connections[0]
-    await ws.send(compact(await next_call_id(peer), '{"sum":3},"error":{}'))
-    with pytest.raises(asyncio.CancelledError):
-        await call
-    await asyncio.wait_for(ws.wait_closed(), scaled(5))
-    assert ws.close_code == 1008
-    assert not client.connected
+    await a_bad_reply_to_the_cancelled_call_fails_the_connection(peer, client, call)
 
 
 # --- waiting for services and for the server --------------------------------------------------

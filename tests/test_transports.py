@@ -989,26 +989,18 @@ async def test_a_client_frames_what_it_holds_masked_with_a_key_each() -> None:
         assert len({key for key, _ in frames}) == len(frames)  # a key each
 
 
-async def test_a_client_with_compression_on_leaves_its_frames_to_websockets() -> None:
+@pytest.mark.parametrize("side", ["client", "server"])
+async def test_with_compression_on_each_end_leaves_its_frames_to_websockets(side: str) -> None:
     deflate = Options(compression="deflate")
     async with connected(WebSocketsTransport(), deflate) as pair, asyncio.timeout(scaled(5)):
-        writes = count_writes(pair.client)
+        sender, receiver = (
+            (pair.client, pair.server) if side == "client" else (pair.server, pair.client)
+        )
+        writes = count_writes(sender)
         for i in range(3):
-            await pair.client.send(f"call {i} " + "x" * 1000)
-        assert [await pair.server.recv() for _ in range(3)] == [
-            f"call {i} " + "x" * 1000 for i in range(3)
-        ]
-        assert 0 < len(b"".join(writes)) < 1000  # compressed, by websockets
-
-
-async def test_a_server_with_compression_on_leaves_its_frames_to_websockets() -> None:
-    deflate = Options(compression="deflate")
-    async with connected(WebSocketsTransport(), deflate) as pair, asyncio.timeout(scaled(5)):
-        writes = count_writes(pair.server)
-        for i in range(3):
-            await pair.server.send(f"reply {i} " + "x" * 1000)
-        assert [await pair.client.recv() for _ in range(3)] == [
-            f"reply {i} " + "x" * 1000 for i in range(3)
+            await sender.send(f"message {i} " + "x" * 1000)
+        assert [await receiver.recv() for _ in range(3)] == [
+            f"message {i} " + "x" * 1000 for i in range(3)
         ]
         assert 0 < len(b"".join(writes)) < 1000  # compressed, by websockets
 

@@ -11,12 +11,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import ssl
 from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
-import trustme
 from websockets.asyncio.client import connect as websockets_connect
 from websockets.asyncio.messages import MAX_FRAGMENTS
 from websockets.frames import Frame
@@ -27,7 +25,7 @@ from srvwire.inline import first_step
 from srvwire.server import Server, serve
 from srvwire.transports.base import Connection, Options, TransportClosed
 from srvwire.transports.websockets import WebSocketsConnection, WebSocketsTransport
-from support import scaled
+from support import scaled, tls_on_localhost
 from test_transports import closed_with, connected, count_writes, listening
 
 MODES = ["pull", "push"]
@@ -314,13 +312,7 @@ async def turns(count: int = 1000) -> None:
 async def ends(tls: bool) -> AsyncIterator[tuple[Connection, WebSocketsConnection]]:
     """A client and the server's end of its connection, over TLS or not."""
     transport = WebSocketsTransport()
-    server_ssl = client_ssl = None
-    if tls:
-        ca = trustme.CA()
-        server_ssl = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-        ca.issue_cert("127.0.0.1").configure_cert(server_ssl)
-        client_ssl = ssl.create_default_context()
-        ca.configure_trust(client_ssl)
+    server_ssl, client_ssl = tls_on_localhost(tls)
     async with listening(transport, ssl=server_ssl) as (listener, accepted):
         client = await transport.connect(listener.url, Options(), ssl=client_ssl)
         try:

@@ -9,19 +9,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ssl
 import struct
 import threading
 import tracemalloc
 from collections.abc import AsyncIterator, Callable
 
 import pytest
-import trustme
 import uvloop
 
 from srvwire.transports.base import Connection, Options
 from srvwire.transports.websockets import READ_SIZE, WebSocketsConnection, WebSocketsTransport
-from support import scaled
+from support import scaled, tls_on_localhost
 from test_transports import listening
 from test_websockets_push import MODES, Taker, accept, received
 
@@ -49,13 +47,7 @@ def reads_of(connection: Connection) -> asyncio.Queue[int]:
 async def two_clients(tls: bool) -> AsyncIterator[list[tuple[Connection, WebSocketsConnection]]]:
     """Two clients of one listener, each with the server's end of its connection."""
     transport = WebSocketsTransport()
-    server_ssl = client_ssl = None
-    if tls:
-        ca = trustme.CA()
-        server_ssl = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-        ca.issue_cert("127.0.0.1").configure_cert(server_ssl)
-        client_ssl = ssl.create_default_context()
-        ca.configure_trust(client_ssl)
+    server_ssl, client_ssl = tls_on_localhost(tls)
     async with listening(transport, ssl=server_ssl) as (listener, accepted):
         ends = []
         try:
