@@ -12,6 +12,7 @@ import contextlib
 import errno
 import itertools
 import logging
+import subprocess
 import sys
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -1484,3 +1485,29 @@ async def test_a_picows_client_writes_what_it_holds_once_it_reaches_its_write_si
         received = [await pair.server.recv() for _ in range(count)]
         assert [m[:4] for m in received] == [f"{i:04d}" for i in range(count)]
         assert [len(client_frames(data)) for data in writes] == [per_write, per_write, 3]
+
+
+def test_a_forked_child_masks_with_keys_of_its_own() -> None:
+    """A websockets client's masking keys come from a supply drawn ahead: a child forked from
+    a process that drew some must not send the keys its parent sends next. Run in a process of
+    its own, where nothing but this thread runs when it forks."""
+    script = """
+import os
+from srvwire.transports.websockets import _masking_keys
+
+_masking_keys.key()  # the parent has a supply
+read, write = os.pipe()
+child = os.fork()
+if child == 0:
+    os.write(write, b"".join(_masking_keys.key() for _ in range(5)))
+    os._exit(0)
+os.waitpid(child, 0)
+theirs = os.read(read, 20)
+ours = b"".join(_masking_keys.key() for _ in range(5))
+print(len(theirs), theirs != ours)
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["20", "True"]

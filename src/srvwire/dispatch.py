@@ -231,9 +231,9 @@ class Context:
 
     def _mark_cancelled(self, error: RPCError | None = None) -> None:
         """Record that the call is over, and the error it is to answer (server use only)."""
-        self._cancelled = True
         if error is not None and self._cancel_error is None:
-            self._cancel_error = error
+            self._cancel_error = error  # first: time_remaining() reads it once cancelled is set
+        self._cancelled = True
         wakeup = self._wakeup
         if wakeup is not None:
             wakeup.set()

@@ -293,9 +293,9 @@ class Link:
                         future.set_result(raw)
                         return
                     # No call waits for it. Its caller may have given up in this very step
-                    # (from Python 3.12 a cancelled caller cancels the future it awaits at
-                    # once): the reply is still read whole below, and one that is not
-                    # JSON-RPC still fails the connection.
+                    # (cancelling a task cancels the future it awaits at once, which from
+                    # Python 3.12 is the call's own future inside wait_for): the reply is still
+                    # read whole below, and one that is not JSON-RPC still fails the connection.
             try:
                 events = self.session.receive(data)
             except ProtocolViolation as exc:

@@ -175,9 +175,14 @@ _MASKED_126 = bytes((0x81, 0x80 | 126))
 class _MaskingKeys(threading.local):
     """Masking keys for a thread's client frames: four bytes each, never used twice, taken
     from ``os.urandom`` a thousand at a time instead of a system call per frame (a key is
-    seen on the wire once used, and tells nothing of the next, which the OS drew apart)."""
+    seen on the wire once used, and tells nothing of the next, which the OS drew apart). A
+    forked child forgets the supply it was born with, which its parent goes on using."""
 
     def __init__(self) -> None:
+        self.supply = b""
+        self.at = 0
+
+    def forget(self) -> None:
         self.supply = b""
         self.at = 0
 
@@ -192,6 +197,7 @@ class _MaskingKeys(threading.local):
 
 
 _masking_keys = _MaskingKeys()
+os.register_at_fork(after_in_child=_masking_keys.forget)  # the forking thread's, the only one
 
 
 READ_SIZE = 2**18
