@@ -412,6 +412,22 @@ def test_a_message_that_does_not_fit_is_refused_as_the_parsed_one_is() -> None:
     assert str(recognised_.value) == str(parsed_.value)
 
 
+@pytest.mark.parametrize("field", ["subscription", "seq", "dropped"])
+def test_a_message_whose_opening_has_a_number_with_a_leading_zero_is_not_json(
+    field: str,
+) -> None:
+    # 07 is no JSON number: such an opening is not taken at its word, and the whole text,
+    # read in full, is refused as the parse error it is.
+    numbers = {"subscription": "7", "seq": "1", "dropped": "0"}
+    numbers[field] = "0" + numbers[field]
+    params = ",".join(f'"{name}":{number}' for name, number in numbers.items())
+    opening = '{"jsonrpc":"2.0","method":"$/message","params":{'
+    text = opening + params + ',"message":{"data":"x"}}}'
+    with pytest.raises(ProtocolViolation) as caught:
+        ClientSession[object]().receive(text)
+    assert type(caught.value.error) is ParseError
+
+
 def test_a_method_that_only_begins_as_message_does_is_not_a_message() -> None:
     session = ClientSession[object]()
     text = '{"jsonrpc":"2.0","method":"$/messages","params":{"subscription":7,"seq":1}}'

@@ -756,9 +756,10 @@ class TopicMessage:
         return parsed
 
 
+_COUNT = r"(0|[1-9][0-9]{0,17})"  # a JSON integer, no leading zero, of at most 18 digits
 _MESSAGE_OPENING = re.compile(
-    r'\{"jsonrpc":"2\.0","method":"\$/message","params":\{"subscription":([0-9]{1,18}),'
-    r'"seq":([0-9]{1,18}),"dropped":([0-9]{1,18}),"message":'
+    r'\{"jsonrpc":"2\.0","method":"\$/message","params":\{"subscription":' + _COUNT + ","
+    r'"seq":' + _COUNT + r',"dropped":' + _COUNT + r',"message":'
 )
 
 
