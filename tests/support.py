@@ -58,10 +58,15 @@ def record_calls(monkeypatch: pytest.MonkeyPatch, module: ModuleType, name: str)
 
 
 def run_benchmark(script: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """Run a benchmark script with ``args`` as a smoke test does: from the project's root, its
+    """Run a benchmark script with ``args`` as a smoke test does (see :func:`run_python`)."""
+    return run_python(str(script), *args)
+
+
+def run_python(*args: str) -> subprocess.CompletedProcess[str]:
+    """Run this Python with ``args`` in a process of its own: from the project's root, its
     output captured, within two (scaled) minutes; fail with that output unless it exits 0."""
     result = subprocess.run(
-        [sys.executable, str(script), *args],
+        [sys.executable, *args],
         capture_output=True,
         text=True,
         timeout=scaled(120),

@@ -13,8 +13,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import subprocess
-import sys
 from typing import Any
 
 import pytest
@@ -26,7 +24,7 @@ from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import ServedConnection
 from srvwire.session import ServerSession
 from srvwire.transports.base import Connection, Transport
-from support import ROOT, run_benchmark, scaled
+from support import ROOT, run_benchmark, run_python, scaled
 from test_server import closed_code, error, request
 from test_transports import connected
 
@@ -447,14 +445,6 @@ def test_an_event_loop_that_ends_with_a_connection_open_says_nothing_of_a_cancel
     # asyncio.run cancels every task as it ends, the parked reader among them: that is the
     # end of serving, not a handler's doing, so no error is logged. (In a process of its own:
     # what the ended loop leaves open is not this suite's to collect.)
-    result = subprocess.run(
-        [sys.executable, "-c", ENDING_LOOP, name],
-        capture_output=True,
-        text=True,
-        timeout=scaled(60),
-        cwd=ROOT,
-        check=False,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = run_python("-c", ENDING_LOOP, name)
     assert '"result":{"sum":3}' in result.stdout.replace(" ", "")
     assert "was cancelled by a handler" not in result.stdout + result.stderr
