@@ -318,15 +318,15 @@ class PicowsConnection(WSListener, Connection):
                 self._pong()
         finally:
             self._flush_due = due
-        if self._corked:  # replies made while taking it (a server's, given a receiver)
-            if frame.last_in_buffer:
-                self._flush()  # everything this read brought is answered: in one write
-            elif not due:
-                self._flush_due = True
-                self._loop.call_soon(self._flush_later)
-        if frame.last_in_buffer:  # what a client's next send does depends on it (see send)
+        if frame.last_in_buffer:
+            # What a client's next send does depends on what this read handed over (see send).
             self._single = self._handed == 1
             self._handed = 0
+            if self._corked:  # replies made while taking it (a server's, given a receiver)
+                self._flush()  # everything this read brought is answered: in one write
+        elif self._corked and not due:
+            self._flush_due = True
+            self._loop.call_soon(self._flush_later)
 
     def on_ws_disconnected(self, transport: WSTransport) -> None:
         if self._sent is None:
