@@ -211,7 +211,6 @@ class PicowsConnection(WSListener, Connection):
         "_loop",
         "_messages",
         "_parts",
-        "_parts_size",
         "_parts_text",
         "_ping_interval",
         "_ping_timeout",
@@ -245,8 +244,7 @@ class PicowsConnection(WSListener, Connection):
         self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
         self._reading = True
         self._receive: Callable[[str | bytes], None] | None = None  # see deliver_to
-        self._parts: list[bytes] = []  # the fragments of a message being received
-        self._parts_size = 0
+        self._parts: bytearray | None = None  # the fragments of a message being received
         self._parts_text = False
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
         # Not yet written (see _flush): a server's frames, header and payload; a client's
@@ -292,21 +290,21 @@ class PicowsConnection(WSListener, Connection):
         self._flush_due = True
         try:
             if kind is _TEXT or kind is _BINARY:
-                if self._parts_size or self._parts:
+                if self._parts is not None:
                     self._fail(1002, "a new message began before the last one ended")
                 elif frame.fin:
-                    self._deliver(frame.get_payload_as_bytes(), kind is _TEXT)
+                    self._whole(frame, kind is _TEXT)
                 else:
                     self._parts_text = kind is _TEXT
-                    self._add_part(frame.get_payload_as_bytes())
+                    self._parts = bytearray()
+                    self._add_part(frame)
             elif kind is _CONTINUATION:
-                if not self._parts:
+                parts = self._parts
+                if parts is None:
                     self._fail(1002, "a continuation frame without a message to continue")
-                elif self._add_part(frame.get_payload_as_bytes()) and frame.fin:
-                    payload = b"".join(self._parts)
-                    self._parts = []
-                    self._parts_size = 0
-                    self._deliver(payload, self._parts_text)
+                elif self._add_part(frame) and frame.fin:
+                    self._parts = None
+                    self._assembled(parts)
             elif kind is _CLOSE:
                 code = _code(frame.get_close_code())
                 # A close frame without a code is 1005 (RFC 6455, section 7.1.5).
@@ -496,19 +494,54 @@ class PicowsConnection(WSListener, Connection):
 
     # Helpers.
 
-    def _deliver(self, payload: bytes, text: bool) -> None:
+    def _whole(self, frame: WSFrame, text: bool) -> None:
+        """Deliver a message that came in one frame. Its size is checked before it is copied,
+        and a text message is decoded straight from ``picows``' buffer: one copy, the
+        ``str``, with no ``bytes`` of it made first (see docs/performance.md, "Large messages
+        on the picows transport")."""
+        size = frame.payload_size
         limit = self._limit
-        if limit is not None and len(payload) > limit:
-            self._fail(1009, self._too_big(len(payload)))
+        if limit is not None and size > limit:
+            self._fail(1009, self._too_big(size))
             return
         if text:
+            try:
+                message: str | bytes = frame.get_payload_as_utf8_text()
+            except UnicodeDecodeError as exc:
+                self._fail(1007, f"{exc.reason} at position {exc.start}")
+                return
+        else:
+            message = frame.get_payload_as_bytes()
+        self._deliver(message)
+
+    def _add_part(self, frame: WSFrame) -> bool:
+        """Append a fragment's payload to the message being received; fail with 1009 (and
+        return False) instead, without copying it, when it would take the message past the
+        size limit."""
+        parts = self._parts
+        assert parts is not None
+        limit = self._limit
+        if limit is not None and len(parts) + frame.payload_size > limit:
+            self._parts = None
+            self._fail(1009, self._too_big(len(parts) + frame.payload_size))
+            return False
+        parts += frame.get_payload_as_memoryview()  # copied here, within on_ws_frame
+        return True
+
+    def _assembled(self, payload: bytearray) -> None:
+        """Deliver a message whose fragments :meth:`_add_part` joined, decoded once."""
+        if self._parts_text:
             try:
                 message: str | bytes = payload.decode()
             except UnicodeDecodeError as exc:
                 self._fail(1007, f"{exc.reason} at position {exc.start}")
                 return
         else:
-            message = payload
+            message = bytes(payload)
+        self._deliver(message)
+
+    def _deliver(self, message: str | bytes) -> None:
+        """Hand ``message`` to the receiver, or queue it for ``recv``."""
         if self._receive is not None:
             self._handed += 1
             self._receive(message)
@@ -519,17 +552,6 @@ class PicowsConnection(WSListener, Connection):
             self._reading = False
             self._ws.underlying_transport.pause_reading()
         self._wake()
-
-    def _add_part(self, part: bytes) -> bool:
-        """Keep one fragment; fail with 1009 (and return False) past the size limit."""
-        self._parts.append(part)
-        self._parts_size += len(part)
-        limit = self._limit
-        if limit is not None and self._parts_size > limit:
-            self._parts = []
-            self._fail(1009, self._too_big(self._parts_size))
-            return False
-        return True
 
     def _too_big(self, size: int) -> str:
         """The close reason of a message over the limit: the side and the setting to raise."""
