@@ -5,9 +5,11 @@ the event loop's read callback: there is no asyncio stream and no reader task pe
 This module adds what srvwire's rules (:mod:`srvwire.transports.base`) ask and ``picows``
 leaves to its user:
 
-* **Whole messages.** Fragments are joined; a text message is decoded once, and one that is
-  not UTF-8 fails the connection with 1007. A message larger than ``max_message_size`` fails it
-  with 1009; the reason names the side and the setting (``over the server's
+* **Whole messages.** Fragments are joined into one ``bytearray``; a text message is decoded
+  once (one that came in one frame straight from ``picows``' read buffer, with no ``bytes`` of
+  it made first), and one that is not UTF-8 fails the connection with 1007. A message larger
+  than ``max_message_size`` fails it with 1009, and so does a fragment that would make one,
+  before it is copied; the reason names the side and the setting (``over the server's
   max_message_size (message of 2000 bytes, limit 1000 bytes)``), so that the peer's error says
   what to raise. Messages received before either are still
   delivered. The bytes held for one frame are bounded too: ``picows`` refuses a frame over
