@@ -125,6 +125,12 @@ PICOWS_COPIES = 8192
 one is written as two parts, the header a view of a buffer ``picows`` reuses for the next
 frame; where asyncio keeps such a view unsent (``writelines`` from Python 3.12), the next frame
 would overwrite the header. So a larger lone message is framed and written here, as a copy."""
+WRITE_APART = 2**16
+"""A server's held message larger than this, when it is the last one held, is not joined to
+what precedes it: the frames before it, its header and its first ``WRITE_APART`` bytes go in
+one write, then a view of the rest in a second, which the socket takes straight from the
+message. Joined, every byte of it was copied once more (see docs/performance.md, "Large
+messages on the picows transport")."""
 CLIENT_CORK_LIMIT = 512
 """The largest message a client corks (see the module); a larger one is written at once by
 ``picows``, which masks it in C: masking it here, in Python, would cost about what the system
@@ -597,6 +603,15 @@ class PicowsConnection(WSListener, Connection):
             corked.clear()
             self._corked_size = 0
             ws.send(_TEXT, message)
+        elif len(corked[-1]) > WRITE_APART:  # a large message last: its bulk is not copied
+            message = corked.pop()
+            corked.append(message[:WRITE_APART])
+            head = b"".join(corked)
+            corked.clear()
+            self._corked_size = 0
+            underlying = ws.underlying_transport
+            underlying.write(head)  # what came before, the header, the message's first bytes
+            underlying.write(memoryview(message)[WRITE_APART:])
         else:
             data = b"".join(corked)
             corked.clear()
