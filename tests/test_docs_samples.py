@@ -94,6 +94,14 @@ COMMANDS: dict[str, str] = {
     r"\.venv/bin/python benchmarks/large_path\.py( .*)?": (
         "W4's two steps in one process, both ways: tests/test_benchmarks.py runs it small"
     ),
+    r"echo go \| (perf stat|strace|valgrind) .* benchmarks/srvwire_client\.py .*": (
+        "the harness's srvwire client alone, against a server started by hand, under perf, "
+        "strace or valgrind (none a dependency): tests/test_benchmarks.py runs the client"
+    ),
+    r"\.venv/bin/python benchmarks/picows_large_send\.py( .*)?": (
+        "a picows server's large messages in one process: tests/test_picows_large.py runs it"
+    ),
+    r"\.venv/bin/pytest tests/test_picows_large\.py": "the tests of the page: make test runs them",
     r"\.venv/bin/python benchmarks/deadline_cost\.py( .*)?": (
         "what each way of awaiting a reply costs asyncio, counted by valgrind: a minute long; "
         "tests/test_benchmarks.py runs it small"

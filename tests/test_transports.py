@@ -1261,9 +1261,9 @@ async def test_a_receiver_that_pauses_picows_reading_as_it_takes_the_queue_keeps
         deliver = PicowsConnection._deliver
         count = 0
 
-        def counting(self: PicowsConnection, payload: bytes, text: bool) -> None:
+        def counting(self: PicowsConnection, message: str | bytes) -> None:
             nonlocal count
-            deliver(self, payload, text)
+            deliver(self, message)
             if self is server:
                 count += 1
                 if count == READ_HIGH_WATER:

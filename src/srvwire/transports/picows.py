@@ -5,9 +5,11 @@ the event loop's read callback: there is no asyncio stream and no reader task pe
 This module adds what srvwire's rules (:mod:`srvwire.transports.base`) ask and ``picows``
 leaves to its user:
 
-* **Whole messages.** Fragments are joined; a text message is decoded once, and one that is
-  not UTF-8 fails the connection with 1007. A message larger than ``max_message_size`` fails it
-  with 1009; the reason names the side and the setting (``over the server's
+* **Whole messages.** Fragments are joined into one ``bytearray``; a text message is decoded
+  once (one that came in one frame straight from ``picows``' read buffer, with no ``bytes`` of
+  it made first), and one that is not UTF-8 fails the connection with 1007. A message larger
+  than ``max_message_size`` fails it with 1009, and so does a fragment that would make one,
+  before it is copied; the reason names the side and the setting (``over the server's
   max_message_size (message of 2000 bytes, limit 1000 bytes)``), so that the peer's error says
   what to raise. Messages received before either are still
   delivered. The bytes held for one frame are bounded too: ``picows`` refuses a frame over
@@ -123,6 +125,12 @@ PICOWS_COPIES = 8192
 one is written as two parts, the header a view of a buffer ``picows`` reuses for the next
 frame; where asyncio keeps such a view unsent (``writelines`` from Python 3.12), the next frame
 would overwrite the header. So a larger lone message is framed and written here, as a copy."""
+WRITE_APART = 2**16
+"""A server's held message larger than this, when it is the last one held, is not joined to
+what precedes it: the frames before it, its header and its first ``WRITE_APART`` bytes go in
+one write, then a view of the rest in a second, which the socket takes straight from the
+message. Joined, every byte of it was copied once more (see docs/performance.md, "Large
+messages on the picows transport")."""
 CLIENT_CORK_LIMIT = 512
 """The largest message a client corks (see the module); a larger one is written at once by
 ``picows``, which masks it in C: masking it here, in Python, would cost about what the system
@@ -211,7 +219,6 @@ class PicowsConnection(WSListener, Connection):
         "_loop",
         "_messages",
         "_parts",
-        "_parts_size",
         "_parts_text",
         "_ping_interval",
         "_ping_timeout",
@@ -245,8 +252,7 @@ class PicowsConnection(WSListener, Connection):
         self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
         self._reading = True
         self._receive: Callable[[str | bytes], None] | None = None  # see deliver_to
-        self._parts: list[bytes] = []  # the fragments of a message being received
-        self._parts_size = 0
+        self._parts: bytearray | None = None  # the fragments of a message being received
         self._parts_text = False
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
         # Not yet written (see _flush): a server's frames, header and payload; a client's
@@ -292,21 +298,21 @@ class PicowsConnection(WSListener, Connection):
         self._flush_due = True
         try:
             if kind is _TEXT or kind is _BINARY:
-                if self._parts_size or self._parts:
+                if self._parts is not None:
                     self._fail(1002, "a new message began before the last one ended")
                 elif frame.fin:
-                    self._deliver(frame.get_payload_as_bytes(), kind is _TEXT)
+                    self._whole(frame, kind is _TEXT)
                 else:
                     self._parts_text = kind is _TEXT
-                    self._add_part(frame.get_payload_as_bytes())
+                    self._parts = bytearray()
+                    self._add_part(frame)
             elif kind is _CONTINUATION:
-                if not self._parts:
+                parts = self._parts
+                if parts is None:
                     self._fail(1002, "a continuation frame without a message to continue")
-                elif self._add_part(frame.get_payload_as_bytes()) and frame.fin:
-                    payload = b"".join(self._parts)
-                    self._parts = []
-                    self._parts_size = 0
-                    self._deliver(payload, self._parts_text)
+                elif self._add_part(frame) and frame.fin:
+                    self._parts = None
+                    self._assembled(parts)
             elif kind is _CLOSE:
                 code = _code(frame.get_close_code())
                 # A close frame without a code is 1005 (RFC 6455, section 7.1.5).
@@ -496,19 +502,54 @@ class PicowsConnection(WSListener, Connection):
 
     # Helpers.
 
-    def _deliver(self, payload: bytes, text: bool) -> None:
+    def _whole(self, frame: WSFrame, text: bool) -> None:
+        """Deliver a message that came in one frame. Its size is checked before it is copied,
+        and a text message is decoded straight from ``picows``' buffer: one copy, the
+        ``str``, with no ``bytes`` of it made first (see docs/performance.md, "Large messages
+        on the picows transport")."""
+        size = frame.payload_size
         limit = self._limit
-        if limit is not None and len(payload) > limit:
-            self._fail(1009, self._too_big(len(payload)))
+        if limit is not None and size > limit:
+            self._fail(1009, self._too_big(size))
             return
         if text:
+            try:
+                message: str | bytes = frame.get_payload_as_utf8_text()
+            except UnicodeDecodeError as exc:
+                self._fail(1007, f"{exc.reason} at position {exc.start}")
+                return
+        else:
+            message = frame.get_payload_as_bytes()
+        self._deliver(message)
+
+    def _add_part(self, frame: WSFrame) -> bool:
+        """Append a fragment's payload to the message being received; fail with 1009 (and
+        return False) instead, without copying it, when it would take the message past the
+        size limit."""
+        parts = self._parts
+        assert parts is not None
+        limit = self._limit
+        if limit is not None and len(parts) + frame.payload_size > limit:
+            self._parts = None
+            self._fail(1009, self._too_big(len(parts) + frame.payload_size))
+            return False
+        parts += frame.get_payload_as_memoryview()  # copied here, within on_ws_frame
+        return True
+
+    def _assembled(self, payload: bytearray) -> None:
+        """Deliver a message whose fragments :meth:`_add_part` joined, decoded once."""
+        if self._parts_text:
             try:
                 message: str | bytes = payload.decode()
             except UnicodeDecodeError as exc:
                 self._fail(1007, f"{exc.reason} at position {exc.start}")
                 return
         else:
-            message = payload
+            message = bytes(payload)
+        self._deliver(message)
+
+    def _deliver(self, message: str | bytes) -> None:
+        """Hand ``message`` to the receiver, or queue it for ``recv``."""
         if self._receive is not None:
             self._handed += 1
             self._receive(message)
@@ -519,17 +560,6 @@ class PicowsConnection(WSListener, Connection):
             self._reading = False
             self._ws.underlying_transport.pause_reading()
         self._wake()
-
-    def _add_part(self, part: bytes) -> bool:
-        """Keep one fragment; fail with 1009 (and return False) past the size limit."""
-        self._parts.append(part)
-        self._parts_size += len(part)
-        limit = self._limit
-        if limit is not None and self._parts_size > limit:
-            self._parts = []
-            self._fail(1009, self._too_big(self._parts_size))
-            return False
-        return True
 
     def _too_big(self, size: int) -> str:
         """The close reason of a message over the limit: the side and the setting to raise."""
@@ -573,6 +603,15 @@ class PicowsConnection(WSListener, Connection):
             corked.clear()
             self._corked_size = 0
             ws.send(_TEXT, message)
+        elif len(corked[-1]) > WRITE_APART:  # a large message last: its bulk is not copied
+            message = corked.pop()
+            corked.append(message[:WRITE_APART])
+            head = b"".join(corked)
+            corked.clear()
+            self._corked_size = 0
+            underlying = ws.underlying_transport
+            underlying.write(head)  # what came before, the header, the message's first bytes
+            underlying.write(memoryview(message)[WRITE_APART:])
         else:
             data = b"".join(corked)
             corked.clear()
