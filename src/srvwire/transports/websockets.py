@@ -55,7 +55,11 @@ send writes through, as websockets' own ``send`` with its backpressure, when its
 is larger than :data:`CORK_LIMIT`, when what is held and what the socket's buffer holds would
 pass the budget (``max_queued_bytes``, the high-water mark: held frames count as waiting to be
 sent, so a peer that does not read still holds the sender back at the same point), and when
-the connection is not open.
+the connection is not open. A message of :data:`WRITTEN_APART` bytes or more that writes
+through is framed here as well, where frames are (websockets' ``send_text`` would copy it
+behind its header): the header, then the payload itself (a server's, as a view of the bytes;
+a client's masked), in two writes, inside websockets' own ``send_context``, so with the same
+checks of the connection's state and the same wait for the buffer to drain as its ``send``.
 
 **Messages can be handed over in the read callback.** Given a receiver
 (:meth:`WebSocketsConnection.deliver_to`, as a client's link and a server ask), a connection
@@ -151,12 +155,23 @@ from srvwire.transports.base import (
     write_timeout_reason,
 )
 
-__all__ = ["CORK_LIMIT", "WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
+__all__ = [
+    "CORK_LIMIT",
+    "WRITTEN_APART",
+    "WebSocketsConnection",
+    "WebSocketsListener",
+    "WebSocketsTransport",
+]
 
 CORK_LIMIT = 2**12
 """Bytes of messages a connection holds to write together; reaching it writes them at once, and
 a larger message writes through (see the module's docstring)."""
 
+
+WRITTEN_APART = 2**16
+"""Bytes of a message from which a connection writes its frame's header and its payload
+apart, in two socket writes, rather than copying the payload behind the header (see the
+module's docstring); a shorter message goes out in one write, header and payload joined."""
 
 DEFAULT_WRITE_LIMIT = 2**15
 """websockets' own high-water mark, for ``max_queued_bytes=None``."""
@@ -167,9 +182,13 @@ DEFAULT_WRITE_LIMIT = 2**15
 _SHORT_TEXT = [bytes((0x81, length)) for length in range(126)]
 _TEXT_126 = bytes((0x81, 126))
 _LENGTH = struct.Struct("!H").pack
+# WRITTEN_APART and more: 127, and the length in eight bytes.
+_TEXT_127 = bytes((0x81, 127))
+_LENGTH_64 = struct.Struct("!Q").pack
 # A client's frames have the mask bit set in the second byte, and the key after the length.
 _SHORT_MASKED = [bytes((0x81, 0x80 | length)) for length in range(126)]
 _MASKED_126 = bytes((0x81, 0x80 | 126))
+_MASKED_127 = bytes((0x81, 0x80 | 127))
 
 
 class _MaskingKeys(threading.local):
@@ -624,13 +643,26 @@ class WebSocketsConnection(Connection):
                 ws.loop.call_soon(self.flush)
             return
         self._held = 0  # websockets' send writes every frame held before its own
-        # text=True sends bytes as a text frame as they are, and a str as usual.
         try:
             if ws.paused:  # congested: queue nothing more until it drains
                 await self.writable()
-            await ws.send(message, text=True)
+            if length >= WRITTEN_APART and self._frames and type(message) is bytes:
+                async with ws.send_context():  # what websockets' send does around its frame
+                    self._protocol.writes += self._apart(message, length)
+            else:  # text=True sends bytes as a text frame as they are
+                await ws.send(message, text=True)
         except ConnectionClosed as exc:
             raise _closed(exc, ws) from exc
+
+    def _apart(self, message: bytes, length: int) -> list[bytes]:
+        """A large message's frame as two writes: the header, then the payload as it is (a
+        server's, as a view of it) or masked (a client's), never copied behind the header."""
+        keys = self._keys
+        if keys is None:
+            # A view: asyncio slices what the socket did not take without copying it first.
+            return [_TEXT_127 + _LENGTH_64(length), memoryview(message)]  # type: ignore[list-item]
+        key = keys.key()
+        return [_MASKED_127 + _LENGTH_64(length) + key, apply_mask(message, key)]
 
     def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
         """Hand every message to ``receive`` from the read callback (see the module).
