@@ -3,6 +3,8 @@
 Every test runs on real sockets on 127.0.0.1. The buffer is shared by every connection of a
 thread, so what matters is that nothing is read into it before what the last read brought was
 taken out: a frame that arrives in pieces, on two connections at once, must come out whole.
+A large payload that fills websockets' reader is handed over as its buffer (that reader is
+also tested alone, fed by hand).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import struct
 import threading
 import tracemalloc
 from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 import pytest
 import uvloop
@@ -150,3 +153,82 @@ def test_messages_flow_on_uvloop_which_reads_as_before() -> None:
     with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
         taken = runner.run(exchange())
     assert taken == ["small", "x" * (3 * READ_SIZE), "after"]
+
+
+def feed(reader: Any, n: int, pieces: list[bytes], eof: bool = False) -> Any:
+    """What ``reader.read_exact(n)`` returns once ``pieces`` were fed to it one at a time (and
+    then the end of the stream, with ``eof``), or raises."""
+    reading = reader.read_exact(n)
+    try:
+        next(reading)  # waits for the first piece
+        for piece in pieces:
+            reader.feed_data(piece)
+            next(reading)
+        if eof:
+            reader.feed_eof()
+            next(reading)
+    except StopIteration as done:
+        return done.value
+    raise AssertionError("read_exact still waits")
+
+
+def test_a_large_payload_that_fills_the_reader_is_its_buffer_and_anything_else_a_copy() -> None:
+    """From WRITTEN_APART bytes, the reader hands over its whole buffer when that is exactly
+    what is asked (a new buffer takes its place); with bytes behind it, or a short count, it
+    reads as websockets' reader does."""
+    from websockets.streams import StreamReader
+
+    from srvwire.transports.websockets import WRITTEN_APART, _WholeReader
+
+    size = WRITTEN_APART + 3
+    payload = bytes(range(256)) * (size // 256) + b"xyz"[: size % 256]
+    pieces = [payload[:1000], payload[1000:50_000], payload[50_000:]]
+
+    reader = _WholeReader()
+    buffer = reader.buffer
+    taken = feed(reader, size, pieces)
+    assert taken is buffer and taken == payload
+    assert reader.buffer is not buffer and reader.buffer == b""
+
+    for make in (StreamReader, _WholeReader):  # the same answers from both
+        reader = make()
+        taken = feed(reader, size, [*pieces[:2], pieces[2] + b"next"])
+        assert (taken, reader.buffer) == (payload, b"next")
+        reader = make()
+        assert feed(reader, 2, [b"\x81\x7f"]) == b"\x81\x7f"
+        reader = make()
+        short = f"^stream ends after 1000 bytes, expected {size} bytes$"
+        with pytest.raises(EOFError, match=short):
+            feed(reader, size, pieces[:1], eof=True)
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["tcp", "tls"])
+@pytest.mark.parametrize("mode", MODES)
+async def test_a_large_reply_read_to_its_end_is_handed_over_without_a_copy(
+    mode: str, tls: bool
+) -> None:
+    """A client's last read of a large reply ends where the frame does: the frame's payload is
+    the very buffer websockets' reader gathered it in. A second message behind the first in the
+    same write comes out whole too."""
+    async with two_clients(tls) as ends:
+        (client, server), _ = ends
+        ws = client._ws  # type: ignore[attr-defined]
+        payloads: list[Any] = []
+        process_event = ws.process_event
+
+        def recording(event: Any) -> None:
+            payloads.append(event.data)
+            process_event(event)
+
+        ws.process_event = recording
+        gathering = ws.protocol.reader.buffer
+        reply = "[" + ",".join(str(i / 7) for i in range(30_000)) + "]"  # under 1 MiB
+        await server.send(reply)
+        async with asyncio.timeout(scaled(5)):
+            assert await received(client, mode, 1) == [reply]
+        assert payloads[-1] is gathering
+        then = [text_frame(b"a" * 1000), text_frame(b"b" * 2000)]
+        server._ws.transport.write(b"\x81\x7f" + struct.pack("!Q", len(reply)) + reply.encode())
+        server._ws.transport.write(b"".join(then))
+        async with asyncio.timeout(scaled(5)):
+            assert await received(client, mode, 3) == [reply, "a" * 1000, "b" * 2000]

@@ -82,7 +82,10 @@ read itself. A connection is an ``asyncio.BufferedProtocol`` instead: the event 
 a buffer of the same size that every connection of the thread shares (:class:`_ReadBuffer`),
 and websockets copies what arrived into its own buffer before the next read can start. uvloop,
 which reads into a buffer of its own already, still calls ``data_received`` (a connection is an
-``asyncio.Protocol`` too).
+``asyncio.Protocol`` too). websockets gathers a frame that spans many reads in its reader's
+buffer and returns a copy of the payload out of it; a payload of :data:`WRITTEN_APART` bytes or
+more that fills the buffer exactly (the reply to a peer that waits for it) is that buffer
+itself instead (:class:`_WholeReader`).
 
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
@@ -110,7 +113,7 @@ import struct
 import sys
 import threading
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
@@ -127,6 +130,7 @@ from websockets.exceptions import (
 from websockets.frames import BINARY, CONT, PONG, TEXT, Close, CloseCode, Frame
 from websockets.http11 import Request, Response
 from websockets.protocol import OPEN, Event, Protocol, Side, State
+from websockets.streams import StreamReader
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
@@ -238,6 +242,25 @@ class _ReadBuffer(threading.local):
 _read_buffer = _ReadBuffer()
 
 
+class _WholeReader(StreamReader):
+    """websockets' reader of a connection's bytes, which hands over a large frame's payload
+    without copying it when its buffer holds exactly that payload: the buffer itself, and a new
+    one takes its place. websockets' own reader copies the bytes it returns out of its buffer,
+    which for a megabyte reply is a copy of all of it; a peer answering one call at a time
+    sends nothing behind its reply, so the last read of the reply ends where the frame does.
+    Anything else (a short read, more bytes behind the payload) is read as websockets reads it.
+    """
+
+    def read_exact(self, n: int) -> Generator[None, None, bytearray]:
+        if n >= WRITTEN_APART:
+            while len(self.buffer) < n and not self.eof:
+                yield
+            if len(self.buffer) == n:
+                whole, self.buffer = self.buffer, bytearray()
+                return whole
+        return (yield from super().read_exact(n))
+
+
 class _Watched(WebSocket, asyncio.BufferedProtocol):
     """What srvwire adds to a websockets connection: it reads its socket into its thread's
     buffer (an ``asyncio.BufferedProtocol``); it knows when writing is paused, and
@@ -263,6 +286,8 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # What the socket is read into: the buffer of this thread, the one its event loop, which
         # made this connection, runs in.
         self.reading = _read_buffer.view
+        # The same reader, reading large payloads whole (the parser holds its bound methods).
+        self.protocol.reader.__class__ = _WholeReader
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
