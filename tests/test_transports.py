@@ -1027,18 +1027,18 @@ def frames_in(data: bytes, mask: bool) -> list[Any]:
 
 @pytest.mark.parametrize("tls", [False, True])
 async def test_a_large_message_is_written_apart_from_its_frame_header_uncopied(tls: bool) -> None:
-    """From WRITTEN_APART bytes, a server writes its frame's header and then the message itself
+    """From LARGE_MESSAGE bytes, a server writes its frame's header and then the message itself
     (a view of the very bytes object: no copy of it is made on the way to the socket), and a
     client the header with its key and then the payload masked; below it, one write, header and
     payload joined. Each end reads what the other sent, over TCP and TLS, and the bytes are the
     frames websockets' parser reads."""
-    from srvwire.transports.websockets import WRITTEN_APART
+    from srvwire.transports.websockets import LARGE_MESSAGE
     from support import tls_on_localhost
 
     transport = WebSocketsTransport()
     server_ssl, client_ssl = tls_on_localhost(tls)
     options = Options(max_message_size=2**22)
-    sizes = [WRITTEN_APART - 1, WRITTEN_APART, 3 * 2**20 + 5]
+    sizes = [LARGE_MESSAGE - 1, LARGE_MESSAGE, 3 * 2**20 + 5]
     messages = [f"{size:09d}".encode() + b"x" * (size - 9) for size in sizes]
     async with listening(transport, options, ssl=server_ssl) as (listener, accepted):
         client = await transport.connect(listener.url, options, ssl=client_ssl)

@@ -55,7 +55,7 @@ send writes through, as websockets' own ``send`` with its backpressure, when its
 is larger than :data:`CORK_LIMIT`, when what is held and what the socket's buffer holds would
 pass the budget (``max_queued_bytes``, the high-water mark: held frames count as waiting to be
 sent, so a peer that does not read still holds the sender back at the same point), and when
-the connection is not open. A message of :data:`WRITTEN_APART` bytes or more that writes
+the connection is not open. A message of :data:`LARGE_MESSAGE` bytes or more that writes
 through is framed here as well, where frames are (websockets' ``send_text`` would copy it
 behind its header): the header, then the payload itself (a server's, as a view of the bytes;
 a client's masked), in two writes, inside websockets' own ``send_context``, so with the same
@@ -83,9 +83,10 @@ a buffer of the same size that every connection of the thread shares (:class:`_R
 and websockets copies what arrived into its own buffer before the next read can start. uvloop,
 which reads into a buffer of its own already, still calls ``data_received`` (a connection is an
 ``asyncio.Protocol`` too). websockets gathers a frame that spans many reads in its reader's
-buffer and returns a copy of the payload out of it; a payload of :data:`WRITTEN_APART` bytes or
-more that fills the buffer exactly (the reply to a peer that waits for it) is that buffer
-itself instead (:class:`_WholeReader`).
+buffer and returns a copy of the payload out of it. A client reads a payload of
+:data:`LARGE_MESSAGE` bytes or more into a buffer of its size instead, straight from the
+socket, which is the payload handed over (a reply of megabytes, in a few reads); a server
+hands over websockets' buffer itself when it holds exactly such a payload (:class:`_WholeReader`).
 
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
@@ -161,7 +162,7 @@ from srvwire.transports.base import (
 
 __all__ = [
     "CORK_LIMIT",
-    "WRITTEN_APART",
+    "LARGE_MESSAGE",
     "WebSocketsConnection",
     "WebSocketsListener",
     "WebSocketsTransport",
@@ -172,10 +173,11 @@ CORK_LIMIT = 2**12
 a larger message writes through (see the module's docstring)."""
 
 
-WRITTEN_APART = 2**16
-"""Bytes of a message from which a connection writes its frame's header and its payload
-apart, in two socket writes, rather than copying the payload behind the header (see the
-module's docstring); a shorter message goes out in one write, header and payload joined."""
+LARGE_MESSAGE = 2**16
+"""Bytes from which a message is large: a connection writes its frame's header and its payload
+apart, in two socket writes, rather than copying the payload behind the header (a shorter
+message goes out in one write, header and payload joined); and reads its payload without
+copying it out of websockets' reader (see the module's docstring)."""
 
 DEFAULT_WRITE_LIMIT = 2**15
 """websockets' own high-water mark, for ``max_queued_bytes=None``."""
@@ -186,7 +188,7 @@ DEFAULT_WRITE_LIMIT = 2**15
 _SHORT_TEXT = [bytes((0x81, length)) for length in range(126)]
 _TEXT_126 = bytes((0x81, 126))
 _LENGTH = struct.Struct("!H").pack
-# WRITTEN_APART and more: 127, and the length in eight bytes.
+# LARGE_MESSAGE and more: 127, and the length in eight bytes.
 _TEXT_127 = bytes((0x81, 127))
 _LENGTH_64 = struct.Struct("!Q").pack
 # A client's frames have the mask bit set in the second byte, and the key after the length.
@@ -244,21 +246,61 @@ _read_buffer = _ReadBuffer()
 
 class _WholeReader(StreamReader):
     """websockets' reader of a connection's bytes, which hands over a large frame's payload
-    without copying it when its buffer holds exactly that payload: the buffer itself, and a new
-    one takes its place. websockets' own reader copies the bytes it returns out of its buffer,
-    which for a megabyte reply is a copy of all of it; a peer answering one call at a time
-    sends nothing behind its reply, so the last read of the reply ends where the frame does.
+    without copying it out of a buffer of its own: websockets' reader gathers a payload that
+    spans many reads in its buffer and returns a copy of it.
+
+    On a client's connection with a size limit (``in_place``), a large payload not all read yet
+    is read into a buffer of its size (``target``, which the limit bounds: websockets checks a
+    frame's length against it before it reads the payload), which the connection hands the
+    event loop to read the socket into: the payload comes from the socket straight into the
+    bytes it is handed over as, in reads as large as what has arrived. On a server's, whose
+    peers are not trusted with memory they have not sent, and without a limit, a large payload
+    is gathered as websockets gathers it, and handed over as that buffer itself when the buffer
+    holds exactly it (a peer that waits for its reply sends nothing behind its message).
     Anything else (a short read, more bytes behind the payload) is read as websockets reads it.
     """
 
+    in_place = False
+    target: bytearray | None = None  # the payload being read in place
+    filled = 0  # bytes of ``target`` read so far
+
     def read_exact(self, n: int) -> Generator[None, None, bytearray]:
-        if n >= WRITTEN_APART:
+        if n >= LARGE_MESSAGE:
+            if self.in_place and len(self.buffer) < n:
+                return (yield from self.read_in_place(n))
             while len(self.buffer) < n and not self.eof:
                 yield
             if len(self.buffer) == n:
                 whole, self.buffer = self.buffer, bytearray()
                 return whole
         return (yield from super().read_exact(n))
+
+    def read_in_place(self, n: int) -> Generator[None, None, bytearray]:
+        target = bytearray(n)
+        filled = len(self.buffer)
+        target[:filled] = self.buffer
+        self.buffer = bytearray()
+        self.target, self.filled = target, filled
+        try:
+            while self.filled < n:
+                if self.eof:  # as websockets' reader says it
+                    raise EOFError(f"stream ends after {self.filled} bytes, expected {n} bytes")
+                yield
+        finally:
+            self.target = None
+        return target
+
+    def feed_data(self, data: bytes | bytearray) -> None:
+        target = self.target
+        if target is None or self.eof:
+            super().feed_data(data)
+            return
+        filled = self.filled
+        taken = min(len(target) - filled, len(data))
+        target[filled : filled + taken] = data[:taken]
+        self.filled = filled + taken
+        if taken < len(data):  # what follows the payload
+            super().feed_data(data[taken:])
 
 
 class _Watched(WebSocket, asyncio.BufferedProtocol):
@@ -287,7 +329,15 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # made this connection, runs in.
         self.reading = _read_buffer.view
         # The same reader, reading large payloads whole (the parser holds its bound methods).
-        self.protocol.reader.__class__ = _WholeReader
+        reader = self.protocol.reader
+        reader.__class__ = _WholeReader
+        assert isinstance(reader, _WholeReader)
+        # A client reads in place what its limit bounds (the frame's length is checked first).
+        protocol = self.protocol
+        bounded = protocol.max_message_size is not None or protocol.max_fragment_size is not None
+        reader.in_place = protocol.side is Side.CLIENT and bounded
+        self.whole_reader = reader
+        self.reading_in_place = False  # the event loop reads into the payload read in place
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -300,10 +350,21 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             self.transport.resume_reading()
 
     def get_buffer(self, sizehint: int) -> memoryview:
-        """Where the event loop reads the socket: its thread's buffer, whatever the hint."""
+        """Where the event loop reads the socket: the rest of a large payload read in place,
+        else its thread's buffer, whatever the hint."""
+        reader = self.whole_reader
+        target = reader.target
+        if target is not None:
+            self.reading_in_place = True
+            return memoryview(target)[reader.filled :]
+        self.reading_in_place = False
         return self.reading
 
     def buffer_updated(self, nbytes: int) -> None:
+        if self.reading_in_place:  # the bytes are where they belong: say how many arrived
+            self.whole_reader.filled += nbytes
+            self.data_received(b"")
+            return
         # websockets' receive_data appends the bytes to its own buffer: nothing keeps the view.
         self.data_received(self.reading[:nbytes])  # type: ignore[arg-type]
 
@@ -671,7 +732,7 @@ class WebSocketsConnection(Connection):
         try:
             if ws.paused:  # congested: queue nothing more until it drains
                 await self.writable()
-            if length >= WRITTEN_APART and self._frames and type(message) is bytes:
+            if length >= LARGE_MESSAGE and self._frames and type(message) is bytes:
                 async with ws.send_context():  # what websockets' send does around its frame
                     self._protocol.writes += self._apart(message, length)
             else:  # text=True sends bytes as a text frame as they are
