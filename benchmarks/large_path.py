@@ -12,6 +12,11 @@ replies written whole").
 * ``read``: the frame's text decoded from UTF-8 and the result validated into the typed
   ``Response``; ``slice`` validates the result sliced out of the message (``RawReply.result``,
   as srvwire did), ``whole`` the whole message with its envelope (``ModelDecoder.from_reply``).
+* ``carry``: the written reply carried from a server's connection to a client's over loopback
+  TCP, both ends in this process (so the figures are both ends' together, the kernel's copies
+  included): ``websockets`` on websockets' own connections (``send(text=True)``, ``recv``),
+  ``srvwire`` on srvwire's websockets transport, the reply handed to a receiver as a client's
+  link takes it (``deliver_to``).
 
 Each step first checks that both ways make the same (bytes, or an equal ``Response`` of every
 value), then runs ``--calls`` times after a warm-up; the figures are minor page faults and CPU
@@ -25,24 +30,33 @@ each::
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import resource
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
+from websockets.asyncio.client import connect
+from websockets.asyncio.server import serve
 from websockets.frames import Frame, Opcode
 
 from srvwire.heap import keep_freed_heap
 from srvwire.models import ModelDecoder, json_writer, reply_writer
 from srvwire.protocol import peek_reply, write_response
+from srvwire.transports.base import Options
+from srvwire.transports.websockets import WebSocketsTransport
 
-from common import LARGE_VALUES_COUNT, reply_fields
+from common import LARGE_VALUES_COUNT, MAX_MESSAGE, reply_fields
 from typed import RobotStateQuery
 
-WAYS = {"write": ("two-step", "one-pass"), "read": ("slice", "whole")}
+WAYS = {
+    "write": ("two-step", "one-pass"),
+    "read": ("slice", "whole"),
+    "carry": ("websockets", "srvwire"),
+}
 WARMUP = 5
 
 
@@ -65,6 +79,8 @@ def step(side: str, way: str) -> Callable[[int], Any]:
 
         return write
     payload = reply_writer(model, "strings")(1, model(**fields))
+    if side == "carry":
+        return Carrier(way, payload)
     decoder = ModelDecoder(model)
 
     def read(id: int) -> Any:
@@ -77,14 +93,89 @@ def step(side: str, way: str) -> Callable[[int], Any]:
     return read
 
 
+class Carrier:
+    """Carries a payload from a server's end of a connection to a client's, one way; the
+    connection is opened at once, on an event loop of its own, and held until :meth:`close`."""
+
+    def __init__(self, way: str, payload: bytes) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.payload = payload
+        self.done = asyncio.Event()  # the server's end is held open until it is set
+        opening = self.open_websockets() if way == "websockets" else self.open_srvwire()
+        self.carry = self.loop.run_until_complete(opening)
+
+    def __call__(self, id: int) -> Any:
+        return self.loop.run_until_complete(self.carry())
+
+    def close(self) -> None:
+        self.loop.run_until_complete(self.closing())
+        self.loop.close()
+
+    async def hold(self, connection: Any) -> None:
+        self.accepted.set_result(connection)
+        await self.done.wait()
+
+    async def open_websockets(self) -> Callable[[], Coroutine[Any, Any, Any]]:
+        self.accepted: asyncio.Future[Any] = self.loop.create_future()
+        limits: Any = {"max_size": MAX_MESSAGE, "compression": None}
+        server = await serve(self.hold, "127.0.0.1", 0, **limits)
+        client = await connect(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}", **limits)
+        sender = await self.accepted
+
+        async def closing() -> None:
+            await client.close()
+            self.done.set()
+            server.close()
+            await server.wait_closed()
+
+        async def carry() -> Any:
+            await sender.send(self.payload, text=True)
+            return await client.recv()
+
+        self.closing = closing
+        return carry
+
+    async def open_srvwire(self) -> Callable[[], Coroutine[Any, Any, Any]]:
+        self.accepted = self.loop.create_future()
+        options = Options(max_message_size=MAX_MESSAGE)
+        transport = WebSocketsTransport()
+        listener = await transport.listen(self.hold, "127.0.0.1", 0, options)
+        client = await transport.connect(listener.url, options)
+        sender = await self.accepted
+        arrived: list[asyncio.Future[Any]] = []
+        client.deliver_to(lambda message: arrived.pop().set_result(message))
+
+        async def closing() -> None:
+            await client.close()
+            self.done.set()
+            listener.close()
+            await listener.wait_closed()
+
+        async def carry() -> Any:
+            arrival = self.loop.create_future()
+            arrived.append(arrival)
+            await sender.send(self.payload)
+            return await arrival
+
+        self.closing = closing
+        return carry
+
+
 def measure(side: str, way: str, calls: int) -> dict[str, Any]:
     """Run one step ``calls`` times in this process; return faults and CPU ms per step."""
     run = step(side, way)
-    other = step(side, next(w for w in WAYS[side] if w != way))
-    made, expected = run(0), other(0)  # the two ways agree, before anything is measured
+    if side == "carry":  # the text of the message written, as the other way carries it
+        expected = reply_writer(RobotStateQuery.Response, "strings")(
+            1, RobotStateQuery.Response(**reply_fields("large"))
+        ).decode()
+        made = run(0)
+    else:
+        other = step(side, next(w for w in WAYS[side] if w != way))
+        made, expected = run(0), other(0)  # the two ways agree, before anything is measured
+        del other
     if made != expected or (side == "read" and len(made.values) != LARGE_VALUES_COUNT):
         raise SystemExit(f"{side} {way}: not what the other way makes")
-    del made, expected, other
+    del made, expected
     for id in range(WARMUP):
         made = run(id)
         del made
@@ -93,6 +184,8 @@ def measure(side: str, way: str, calls: int) -> dict[str, Any]:
         made = run(id)
         del made
     after = resource.getrusage(resource.RUSAGE_SELF)
+    if isinstance(run, Carrier):
+        run.close()
     cpu = (after.ru_utime + after.ru_stime) - (usage.ru_utime + usage.ru_stime)
     return {
         "side": side,

@@ -290,6 +290,8 @@ def test_the_large_reply_steps_agree_both_ways_and_are_measured() -> None:
             ["write", "one-pass"],
             ["read", "slice"],
             ["read", "whole"],
+            ["carry", "websockets"],
+            ["carry", "srvwire"],
         ]
         assert all(float(row[2]) >= 0 and float(row[3]) > 0 for row in rows)
 

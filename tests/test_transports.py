@@ -993,6 +993,81 @@ async def test_a_client_frames_what_it_holds_masked_with_a_key_each() -> None:
         assert len({key for key, _ in frames}) == len(frames)  # a key each
 
 
+def writes_of(connection: Connection) -> list[Any]:
+    """What ``connection`` hands its socket's transport to write from now on: the objects
+    themselves, not copies of them."""
+    ws: Any = connection._ws  # type: ignore[attr-defined]
+    written: list[Any] = []
+    write = ws.transport.write
+
+    def recording(data: Any) -> None:
+        written.append(data)
+        write(data)
+
+    ws.transport.write = recording
+    return written
+
+
+def frames_in(data: bytes, mask: bool) -> list[Any]:
+    """The frames websockets' own parser reads from ``data``, which they fill exactly."""
+    from websockets.frames import Frame
+    from websockets.streams import StreamReader
+
+    reader = StreamReader()
+    reader.feed_data(data)
+    reader.feed_eof()
+    frames = []
+    while reader.buffer:
+        parsing = Frame.parse(reader.read_exact, mask=mask)
+        with pytest.raises(StopIteration) as parsed:
+            next(parsing)
+        frames.append(parsed.value.value)
+    return frames
+
+
+@pytest.mark.parametrize("tls", [False, True])
+async def test_a_large_message_is_written_apart_from_its_frame_header_uncopied(tls: bool) -> None:
+    """From LARGE_MESSAGE bytes, a server writes its frame's header and then the message itself
+    (a view of the very bytes object: no copy of it is made on the way to the socket), and a
+    client the header with its key and then the payload masked; below it, one write, header and
+    payload joined. Each end reads what the other sent, over TCP and TLS, and the bytes are the
+    frames websockets' parser reads."""
+    from srvwire.transports.websockets import LARGE_MESSAGE
+    from support import tls_on_localhost
+
+    transport = WebSocketsTransport()
+    server_ssl, client_ssl = tls_on_localhost(tls)
+    options = Options(max_message_size=2**22)
+    sizes = [LARGE_MESSAGE - 1, LARGE_MESSAGE, 3 * 2**20 + 5]
+    messages = [f"{size:09d}".encode() + b"x" * (size - 9) for size in sizes]
+    async with listening(transport, options, ssl=server_ssl) as (listener, accepted):
+        client = await transport.connect(listener.url, options, ssl=client_ssl)
+        try:
+            async with asyncio.timeout(scaled(10)):
+                server = await accepted.get()
+                for sender, receiver, masked in [(server, client, False), (client, server, True)]:
+                    written = writes_of(sender)
+                    for message in messages:
+                        await sender.send(message)
+                        assert await receiver.recv() == message.decode()
+                    assert [len(data) for data in written] == [
+                        4 + 4 * masked + sizes[0],
+                        10 + 4 * masked,
+                        sizes[1],
+                        10 + 4 * masked,
+                        sizes[2],
+                    ]
+                    if not masked:  # the server's payloads are the messages, not copies
+                        assert [type(written[i]) for i in (2, 4)] == [memoryview, memoryview]
+                        assert written[2].obj is messages[1] and written[4].obj is messages[2]
+                    frames = frames_in(b"".join(bytes(data) for data in written), masked)
+                    assert [bytes(frame.data) for frame in frames] == messages
+                    assert all(frame.fin and frame.opcode.name == "TEXT" for frame in frames)
+        finally:
+            async with asyncio.timeout(scaled(5)):
+                await client.close()
+
+
 @pytest.mark.parametrize("side", ["client", "server"])
 async def test_with_compression_on_each_end_leaves_its_frames_to_websockets(side: str) -> None:
     deflate = Options(compression="deflate")

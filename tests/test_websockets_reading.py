@@ -3,6 +3,9 @@
 Every test runs on real sockets on 127.0.0.1. The buffer is shared by every connection of a
 thread, so what matters is that nothing is read into it before what the last read brought was
 taken out: a frame that arrives in pieces, on two connections at once, must come out whole.
+A client reads a large payload from the socket straight into the buffer it is handed over as,
+and a server hands over websockets' buffer when it holds exactly such a payload (the reader is
+also tested alone, fed by hand).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import struct
 import threading
 import tracemalloc
 from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 import pytest
 import uvloop
@@ -150,3 +154,135 @@ def test_messages_flow_on_uvloop_which_reads_as_before() -> None:
     with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
         taken = runner.run(exchange())
     assert taken == ["small", "x" * (3 * READ_SIZE), "after"]
+
+
+def feed(reader: Any, n: int, pieces: list[bytes], eof: bool = False) -> Any:
+    """What ``reader.read_exact(n)`` returns once ``pieces`` were fed to it one at a time (and
+    then the end of the stream, with ``eof``), or raises."""
+    reading = reader.read_exact(n)
+    try:
+        next(reading)  # waits for the first piece
+        for piece in pieces:
+            reader.feed_data(piece)
+            next(reading)
+        if eof:
+            reader.feed_eof()
+            next(reading)
+    except StopIteration as done:
+        return done.value
+    raise AssertionError("read_exact still waits")
+
+
+def test_a_servers_reader_hands_over_a_large_payload_that_fills_it_as_its_buffer() -> None:
+    """From LARGE_MESSAGE bytes, a server's reader hands over its whole buffer when that is
+    exactly what is asked (a new buffer takes its place); with bytes behind it, or a short
+    count, it reads as websockets' reader does."""
+    from websockets.streams import StreamReader
+
+    from srvwire.transports.websockets import LARGE_MESSAGE, _WholeReader
+
+    size = LARGE_MESSAGE + 3
+    payload = bytes(range(256)) * (size // 256) + b"xyz"[: size % 256]
+    pieces = [payload[:1000], payload[1000:50_000], payload[50_000:]]
+
+    reader = _WholeReader()
+    buffer = reader.buffer
+    taken = feed(reader, size, pieces)
+    assert taken is buffer and taken == payload
+    assert reader.buffer is not buffer and reader.buffer == b""
+
+    for make in (StreamReader, _WholeReader, in_place):  # the same answers from each
+        reader = make()
+        taken = feed(reader, size, [*pieces[:2], pieces[2] + b"next"])
+        assert (taken, reader.buffer) == (payload, b"next")
+        reader = make()
+        assert feed(reader, 2, [b"\x81\x7f"]) == b"\x81\x7f"
+        reader = make()
+        short = f"^stream ends after 1000 bytes, expected {size} bytes$"
+        with pytest.raises(EOFError, match=short):
+            feed(reader, size, pieces[:1], eof=True)
+
+
+def in_place() -> Any:
+    """A client's reader: it reads a large payload into a buffer of the payload's size."""
+    from srvwire.transports.websockets import _WholeReader
+
+    reader = _WholeReader()
+    reader.in_place = True
+    return reader
+
+
+def test_a_clients_reader_reads_a_large_payload_into_a_buffer_of_its_size() -> None:
+    """Once a large payload is asked for, what arrives goes into ``target``, the payload's own
+    buffer, which is what is handed over; the bytes behind it stay in the reader's buffer."""
+    from srvwire.transports.websockets import LARGE_MESSAGE
+
+    size = LARGE_MESSAGE * 3
+    payload = bytes(range(251)) * (size // 251) + bytes(size % 251)
+    reader = in_place()
+    reader.feed_data(payload[:100])  # the first read: a header's worth and a little more
+    reading = reader.read_exact(size)
+    next(reading)
+    target = reader.target
+    assert isinstance(target, bytearray) and len(target) == size
+    assert (reader.filled, reader.buffer) == (100, b"")
+    target[100:5000] = payload[100:5000]  # as the event loop reads the socket into it
+    reader.filled += 4900
+    reader.feed_data(b"")
+    next(reading)
+    reader.feed_data(payload[5000:] + b"after")  # as a read into another buffer hands it over
+    with pytest.raises(StopIteration) as done:
+        next(reading)
+    assert done.value.value is target and target == payload
+    assert (reader.target, reader.buffer) == (None, b"after")
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["tcp", "tls"])
+@pytest.mark.parametrize("mode", MODES)
+async def test_a_clients_large_reply_is_read_from_the_socket_into_its_payload(
+    mode: str, tls: bool
+) -> None:
+    """Past the read that brought its header, the event loop reads a large reply's payload
+    straight into the buffer it is handed over as: no more than a read's worth of it goes
+    through websockets' reader. A reply followed by two messages in one write comes out whole
+    too."""
+    async with two_clients(tls) as ends:
+        (client, server), _ = ends
+        ws = client._ws  # type: ignore[attr-defined]
+        fed: list[int] = []
+        reader = ws.protocol.reader
+        feed_data = reader.feed_data
+
+        def counting(data: bytes) -> None:
+            fed.append(len(data))
+            feed_data(data)
+
+        reader.feed_data = counting
+        reply = "[" + ",".join(str(i / 7) for i in range(40_000)) + "]"  # under 1 MiB
+        assert len(reply) > 2 * READ_SIZE
+        await server.send(reply)
+        async with asyncio.timeout(scaled(5)):
+            assert await received(client, mode, 1) == [reply]
+        assert 0 < sum(fed) <= READ_SIZE
+        then = [text_frame(b"a" * 1000), text_frame(b"b" * 2000)]
+        server._ws.transport.write(b"\x81\x7f" + struct.pack("!Q", len(reply)) + reply.encode())
+        server._ws.transport.write(b"".join(then))
+        async with asyncio.timeout(scaled(5)):
+            assert await received(client, mode, 3) == [reply, "a" * 1000, "b" * 2000]
+
+
+async def test_only_a_client_with_a_size_limit_reads_in_place() -> None:
+    """A server's peers are not trusted with memory they have not sent, nor is a peer whose
+    messages no limit bounds: their large payloads are gathered as websockets gathers them."""
+    transport = WebSocketsTransport()
+    async with listening(transport) as (listener, accepted):
+        for options, in_place in [(Options(), True), (Options(max_message_size=None), False)]:
+            client = await transport.connect(listener.url, options)
+            try:
+                async with asyncio.timeout(scaled(5)):
+                    server = await accept(accepted)
+                assert client._ws.whole_reader.in_place is in_place  # type: ignore[attr-defined]
+                assert server._ws.whole_reader.in_place is False  # type: ignore[attr-defined]
+            finally:
+                async with asyncio.timeout(scaled(5)):
+                    await client.close()

@@ -55,7 +55,11 @@ send writes through, as websockets' own ``send`` with its backpressure, when its
 is larger than :data:`CORK_LIMIT`, when what is held and what the socket's buffer holds would
 pass the budget (``max_queued_bytes``, the high-water mark: held frames count as waiting to be
 sent, so a peer that does not read still holds the sender back at the same point), and when
-the connection is not open.
+the connection is not open. A message of :data:`LARGE_MESSAGE` bytes or more that writes
+through is framed here as well, where frames are (websockets' ``send_text`` would copy it
+behind its header): the header, then the payload itself (a server's, as a view of the bytes;
+a client's masked), in two writes, inside websockets' own ``send_context``, so with the same
+checks of the connection's state and the same wait for the buffer to drain as its ``send``.
 
 **Messages can be handed over in the read callback.** Given a receiver
 (:meth:`WebSocketsConnection.deliver_to`, as a client's link and a server ask), a connection
@@ -78,7 +82,11 @@ read itself. A connection is an ``asyncio.BufferedProtocol`` instead: the event 
 a buffer of the same size that every connection of the thread shares (:class:`_ReadBuffer`),
 and websockets copies what arrived into its own buffer before the next read can start. uvloop,
 which reads into a buffer of its own already, still calls ``data_received`` (a connection is an
-``asyncio.Protocol`` too).
+``asyncio.Protocol`` too). websockets gathers a frame that spans many reads in its reader's
+buffer and returns a copy of the payload out of it. A client reads a payload of
+:data:`LARGE_MESSAGE` bytes or more into a buffer of its size instead, straight from the
+socket, which is the payload handed over (a reply of megabytes, in a few reads); a server
+hands over websockets' buffer itself when it holds exactly such a payload (:class:`_WholeReader`).
 
 A listener's gate runs in websockets' ``process_request``: an :class:`Answered` request gets
 that plain HTTP response (the upgrade never happens), an :class:`Admitted` one its identity
@@ -106,7 +114,7 @@ import struct
 import sys
 import threading
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Sequence
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
@@ -123,6 +131,7 @@ from websockets.exceptions import (
 from websockets.frames import BINARY, CONT, PONG, TEXT, Close, CloseCode, Frame
 from websockets.http11 import Request, Response
 from websockets.protocol import OPEN, Event, Protocol, Side, State
+from websockets.streams import StreamReader
 from websockets.typing import Subprotocol
 from websockets.uri import parse_uri
 
@@ -151,12 +160,24 @@ from srvwire.transports.base import (
     write_timeout_reason,
 )
 
-__all__ = ["CORK_LIMIT", "WebSocketsConnection", "WebSocketsListener", "WebSocketsTransport"]
+__all__ = [
+    "CORK_LIMIT",
+    "LARGE_MESSAGE",
+    "WebSocketsConnection",
+    "WebSocketsListener",
+    "WebSocketsTransport",
+]
 
 CORK_LIMIT = 2**12
 """Bytes of messages a connection holds to write together; reaching it writes them at once, and
 a larger message writes through (see the module's docstring)."""
 
+
+LARGE_MESSAGE = 2**16
+"""Bytes from which a message is large: a connection writes its frame's header and its payload
+apart, in two socket writes, rather than copying the payload behind the header (a shorter
+message goes out in one write, header and payload joined); and reads its payload without
+copying it out of websockets' reader (see the module's docstring)."""
 
 DEFAULT_WRITE_LIMIT = 2**15
 """websockets' own high-water mark, for ``max_queued_bytes=None``."""
@@ -167,9 +188,13 @@ DEFAULT_WRITE_LIMIT = 2**15
 _SHORT_TEXT = [bytes((0x81, length)) for length in range(126)]
 _TEXT_126 = bytes((0x81, 126))
 _LENGTH = struct.Struct("!H").pack
+# LARGE_MESSAGE and more: 127, and the length in eight bytes.
+_TEXT_127 = bytes((0x81, 127))
+_LENGTH_64 = struct.Struct("!Q").pack
 # A client's frames have the mask bit set in the second byte, and the key after the length.
 _SHORT_MASKED = [bytes((0x81, 0x80 | length)) for length in range(126)]
 _MASKED_126 = bytes((0x81, 0x80 | 126))
+_MASKED_127 = bytes((0x81, 0x80 | 127))
 
 
 class _MaskingKeys(threading.local):
@@ -219,6 +244,65 @@ class _ReadBuffer(threading.local):
 _read_buffer = _ReadBuffer()
 
 
+class _WholeReader(StreamReader):
+    """websockets' reader of a connection's bytes, which hands over a large frame's payload
+    without copying it out of a buffer of its own: websockets' reader gathers a payload that
+    spans many reads in its buffer and returns a copy of it.
+
+    On a client's connection with a size limit (``in_place``), a large payload not all read yet
+    is read into a buffer of its size (``target``, which the limit bounds: websockets checks a
+    frame's length against it before it reads the payload), which the connection hands the
+    event loop to read the socket into: the payload comes from the socket straight into the
+    bytes it is handed over as, in reads as large as what has arrived. On a server's, whose
+    peers are not trusted with memory they have not sent, and without a limit, a large payload
+    is gathered as websockets gathers it, and handed over as that buffer itself when the buffer
+    holds exactly it (a peer that waits for its reply sends nothing behind its message).
+    Anything else (a short read, more bytes behind the payload) is read as websockets reads it.
+    """
+
+    in_place = False
+    target: bytearray | None = None  # the payload being read in place
+    filled = 0  # bytes of ``target`` read so far
+
+    def read_exact(self, n: int) -> Generator[None, None, bytearray]:
+        if n >= LARGE_MESSAGE:
+            if self.in_place and len(self.buffer) < n:
+                return (yield from self.read_in_place(n))
+            while len(self.buffer) < n and not self.eof:
+                yield
+            if len(self.buffer) == n:
+                whole, self.buffer = self.buffer, bytearray()
+                return whole
+        return (yield from super().read_exact(n))
+
+    def read_in_place(self, n: int) -> Generator[None, None, bytearray]:
+        target = bytearray(n)
+        filled = len(self.buffer)
+        target[:filled] = self.buffer
+        self.buffer = bytearray()
+        self.target, self.filled = target, filled
+        try:
+            while self.filled < n:
+                if self.eof:  # as websockets' reader says it
+                    raise EOFError(f"stream ends after {self.filled} bytes, expected {n} bytes")
+                yield
+        finally:
+            self.target = None
+        return target
+
+    def feed_data(self, data: bytes | bytearray) -> None:
+        target = self.target
+        if target is None or self.eof:
+            super().feed_data(data)
+            return
+        filled = self.filled
+        taken = min(len(target) - filled, len(data))
+        target[filled : filled + taken] = data[:taken]
+        self.filled = filled + taken
+        if taken < len(data):  # what follows the payload
+            super().feed_data(data[taken:])
+
+
 class _Watched(WebSocket, asyncio.BufferedProtocol):
     """What srvwire adds to a websockets connection: it reads its socket into its thread's
     buffer (an ``asyncio.BufferedProtocol``); it knows when writing is paused, and
@@ -244,6 +328,16 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # What the socket is read into: the buffer of this thread, the one its event loop, which
         # made this connection, runs in.
         self.reading = _read_buffer.view
+        # The same reader, reading large payloads whole (the parser holds its bound methods).
+        reader = self.protocol.reader
+        reader.__class__ = _WholeReader
+        assert isinstance(reader, _WholeReader)
+        # A client reads in place what its limit bounds (the frame's length is checked first).
+        protocol = self.protocol
+        bounded = protocol.max_message_size is not None or protocol.max_fragment_size is not None
+        reader.in_place = protocol.side is Side.CLIENT and bounded
+        self.whole_reader = reader
+        self.reading_in_place = False  # the event loop reads into the payload read in place
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -256,10 +350,21 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             self.transport.resume_reading()
 
     def get_buffer(self, sizehint: int) -> memoryview:
-        """Where the event loop reads the socket: its thread's buffer, whatever the hint."""
+        """Where the event loop reads the socket: the rest of a large payload read in place,
+        else its thread's buffer, whatever the hint."""
+        reader = self.whole_reader
+        target = reader.target
+        if target is not None:
+            self.reading_in_place = True
+            return memoryview(target)[reader.filled :]
+        self.reading_in_place = False
         return self.reading
 
     def buffer_updated(self, nbytes: int) -> None:
+        if self.reading_in_place:  # the bytes are where they belong: say how many arrived
+            self.whole_reader.filled += nbytes
+            self.data_received(b"")
+            return
         # websockets' receive_data appends the bytes to its own buffer: nothing keeps the view.
         self.data_received(self.reading[:nbytes])  # type: ignore[arg-type]
 
@@ -624,13 +729,26 @@ class WebSocketsConnection(Connection):
                 ws.loop.call_soon(self.flush)
             return
         self._held = 0  # websockets' send writes every frame held before its own
-        # text=True sends bytes as a text frame as they are, and a str as usual.
         try:
             if ws.paused:  # congested: queue nothing more until it drains
                 await self.writable()
-            await ws.send(message, text=True)
+            if length >= LARGE_MESSAGE and self._frames and type(message) is bytes:
+                async with ws.send_context():  # what websockets' send does around its frame
+                    self._protocol.writes += self._apart(message, length)
+            else:  # text=True sends bytes as a text frame as they are
+                await ws.send(message, text=True)
         except ConnectionClosed as exc:
             raise _closed(exc, ws) from exc
+
+    def _apart(self, message: bytes, length: int) -> list[bytes]:
+        """A large message's frame as two writes: the header, then the payload as it is (a
+        server's, as a view of it) or masked (a client's), never copied behind the header."""
+        keys = self._keys
+        if keys is None:
+            # A view: asyncio slices what the socket did not take without copying it first.
+            return [_TEXT_127 + _LENGTH_64(length), memoryview(message)]  # type: ignore[list-item]
+        key = keys.key()
+        return [_MASKED_127 + _LENGTH_64(length) + key, apply_mask(message, key)]
 
     def deliver_to(self, receive: Callable[[str | bytes], None]) -> bool:
         """Hand every message to ``receive`` from the read callback (see the module).
