@@ -70,6 +70,10 @@ here is what websockets' ``recv`` does: the close frame at once, the TCP connect
 the peer has not closed it within ``close_timeout``. :meth:`~WebSocketsConnection.pause_reading`
 stops reading the socket, with or without a receiver: websockets' queue, which stops reading
 while ``recv`` lags 16 messages behind, resumes it only when srvwire does not hold it back.
+websockets answers a close frame as it parses it, before it hands over any event of that read;
+with a receiver, the frames before the close are handed over first
+(:meth:`_Watched.frame_received`), so the replies they make at once go out ahead of the answer,
+as when the close comes in a later read and as on picows.
 
 **Every read goes into one buffer per thread.** asyncio reads a socket into a new bytes object
 of :data:`READ_SIZE` (256 KiB), which the C library maps from the kernel and gives back on every
@@ -120,7 +124,7 @@ from websockets.exceptions import (
     InvalidURI,
     WebSocketException,
 )
-from websockets.frames import BINARY, CONT, PONG, TEXT, Close, CloseCode, Frame
+from websockets.frames import BINARY, CLOSE, CONT, PONG, TEXT, Close, CloseCode, Frame
 from websockets.http11 import Request, Response
 from websockets.protocol import OPEN, Event, Protocol, Side, State
 from websockets.typing import Subprotocol
@@ -320,6 +324,20 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             )
             self.refuse(CloseCode.INTERNAL_ERROR, "", exc)
 
+    def frame_received(self, frame: Frame) -> None:
+        """The protocol's ``recv_frame`` once messages are handed over: a close frame is
+        answered only after the frames that came before it in the same read were handed over,
+        so the replies they make at once go out ahead of the close, as when the close comes in
+        a later read (websockets answers it as it parses it, before any event is taken). A
+        receiver that failed the connection meanwhile has sent its own close instead."""
+        protocol = self.protocol
+        if frame.opcode is CLOSE and protocol.state is OPEN:
+            for event in protocol.events_received():
+                self.process_event(event)
+            if protocol.state is not OPEN:
+                return
+        Protocol.recv_frame(protocol, frame)
+
     def refuse(self, code: int, reason: str, exc: BaseException | None) -> None:
         """Fail the connection from the read callback, as websockets' ``recv`` fails it for a
         message it cannot return: the close frame now, the TCP connection dropped if the peer
@@ -363,6 +381,7 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # without the cycle collector.
         self.receive = None
         self.pushing = None
+        vars(self.protocol).pop("recv_frame", None)
         self.recv_messages.resume = self.transport.resume_reading
 
     def stalled(self) -> None:
@@ -650,6 +669,8 @@ class WebSocketsConnection(Connection):
         if ws.protocol.state is State.CLOSED:  # nothing more arrives
             ws.receive = None
             ws.pushing = None
+        else:  # a close frame waits for the messages before it (dropped once connection_lost)
+            ws.protocol.recv_frame = ws.frame_received  # type: ignore[method-assign]
         return True
 
     def pause_reading(self) -> None:
