@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+from ssl import SSLContext
 from typing import Any
 
 import pytest
@@ -24,7 +25,7 @@ from websockets.uri import parse_uri
 from conftest import Echo, Hang
 from srvwire import ConnectionLost, connect
 from srvwire.server import Server, serve
-from support import scaled
+from support import scaled, tls_on_localhost
 
 both_transports = pytest.mark.parametrize("transport", ["websockets", "picows"])
 
@@ -82,9 +83,9 @@ class RawEnd:
         ]
 
 
-async def raw_client(port: int, url: str) -> RawEnd:
+async def raw_client(port: int, url: str, ssl: SSLContext | None = None) -> RawEnd:
     """A raw client connected to the server at ``url``, past its ``$/services``."""
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    reader, writer = await asyncio.open_connection("127.0.0.1", port, ssl=ssl)
     protocol = ClientProtocol(parse_uri(url))
     client = RawEnd(protocol, reader, writer)
     protocol.send_request(protocol.connect())
@@ -99,8 +100,9 @@ def call(id: int, method: str, text: str) -> bytes:
 
 
 @both_transports
+@pytest.mark.parametrize("tls", [False, True], ids=["tcp", "tls"])
 async def test_calls_in_the_same_read_as_the_clients_close_are_answered_before_it(
-    transport: str,
+    transport: str, tls: bool
 ) -> None:
     """The calls a client sent before its close frame are read; the replies the server makes
     as it reads them go out ahead of its close, and a call still running then is cancelled, as
@@ -113,8 +115,9 @@ async def test_calls_in_the_same_read_as_the_clients_close_are_answered_before_i
     hang = Hang()
     server.add_service("/echo", Echo, echo)
     server.add_service("/hang", Echo, hang)
-    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
-        client = await raw_client(running.port, running.url)
+    server_ssl, client_ssl = tls_on_localhost(tls)
+    async with serve(server, "127.0.0.1", 0, transport=transport, ssl=server_ssl) as running:
+        client = await raw_client(running.port, running.url, client_ssl)
         client.protocol.send_text(call(1, "/echo", "a"))
         client.protocol.send_text(call(2, "/echo", "b"))
         client.protocol.send_text(call(3, "/hang", "c"))
