@@ -332,6 +332,33 @@ async def test_publishes_without_an_answer_are_summed_up_per_topic_when_the_conn
     assert access.queue.empty()
 
 
+async def test_acknowledged_publishes_with_one_id_have_a_line_and_a_duration_each(
+    access: Records, transport: Transport
+) -> None:
+    # An acknowledged publish is answered before the next message is read, so its id is free
+    # again at once: each has its own start (kept by id until answered, one would otherwise
+    # take the other's and leave it none, "-").
+    server = Server(access_log=True)
+    received: list[Any] = []
+    server.subscription("/cmd", String)(received.append)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        for text in ("a", "b"):  # sent back to back, before either is answered
+            message = {"topic": "/cmd", "message": {"data": text}}
+            await w.send({"jsonrpc": "2.0", "id": 7, "method": "$/publish", "params": message})
+        assert [await w.recv_reply() for _ in range(2)] == [
+            {"jsonrpc": "2.0", "id": 7, "result": None}
+        ] * 2
+        records = [await access.next() for _ in range(2)]
+        assert [(r.service, r.topic, r.outcome) for r in records] == [  # type: ignore[attr-defined]
+            ("$/publish", "/cmd", "OK")
+        ] * 2
+        assert all(r.duration_ms is not None for r in records)  # type: ignore[attr-defined]
+        assert [m.data for m in received] == ["a", "b"]
+        await w.ws.close()
+    assert access.queue.empty()
+
+
 async def test_removing_a_topic_sums_up_what_was_published_on_it_then(
     access: Records, transport: Transport
 ) -> None:

@@ -74,6 +74,10 @@ here is what websockets' ``recv`` does: the close frame at once, the TCP connect
 the peer has not closed it within ``close_timeout``. :meth:`~WebSocketsConnection.pause_reading`
 stops reading the socket, with or without a receiver: websockets' queue, which stops reading
 while ``recv`` lags 16 messages behind, resumes it only when srvwire does not hold it back.
+websockets answers a close frame as it parses it, before it hands over any event of that read;
+a server with a receiver hands the frames before the close over first
+(:meth:`_Watched.send_close_last`), so the replies they make at once go out ahead of the
+answer, as when the close comes in a later read and as on picows.
 
 **Every read goes into one buffer per thread.** asyncio reads a socket into a new bytes object
 of :data:`READ_SIZE` (256 KiB), which the C library maps from the kernel and gives back on every
@@ -128,7 +132,7 @@ from websockets.exceptions import (
     InvalidURI,
     WebSocketException,
 )
-from websockets.frames import BINARY, CONT, PONG, TEXT, Close, CloseCode, Frame
+from websockets.frames import BINARY, CLOSE, CONT, PONG, TEXT, Close, CloseCode, Frame
 from websockets.http11 import Request, Response
 from websockets.protocol import OPEN, Event, Protocol, Side, State
 from websockets.streams import StreamReader
@@ -312,6 +316,9 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
     (``held_back``), which the queue, resuming reading as it drains, respects."""
 
     write_timeout: float | None = None
+    # What answers the peer's close instead of its echo (see send_close_last): a class default,
+    # set on a connection only then.
+    refused: Close | None = None
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -425,6 +432,23 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             )
             self.refuse(CloseCode.INTERNAL_ERROR, "", exc)
 
+    def send_close_last(self, frame: Frame) -> None:
+        """The protocol's ``send_frame`` on a server that hands messages over. websockets
+        answers a client's close frame as it parses it, before any event of that read is
+        taken: the frames before the close are handed over first, so that the replies they
+        make at once go out ahead of the answer, as when the close comes in a later read. A
+        message refused meanwhile (:meth:`refuse`) turns the answer into its own close. Every
+        other frame passes as it is: only websockets' own frames come here (a pong, a close, a
+        message it frames itself), not those the connection frames."""
+        protocol = self.protocol
+        if frame.opcode is CLOSE and protocol.state is OPEN and protocol.close_rcvd is not None:
+            for event in protocol.events_received():  # the close frame is not among them yet
+                self.process_event(event)
+            refused = self.refused
+            if refused is not None:
+                frame = Frame(CLOSE, refused.serialize())
+        Protocol.send_frame(protocol, frame)
+
     def refuse(self, code: int, reason: str, exc: BaseException | None) -> None:
         """Fail the connection from the read callback, as websockets' ``recv`` fails it for a
         message it cannot return: the close frame now, the TCP connection dropped if the peer
@@ -432,9 +456,13 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         self.receive = _ignore
         self.fragments = []
         self.set_connection_exc(exc)
-        if self.protocol.state is not OPEN:
+        protocol = self.protocol
+        if protocol.state is not OPEN:
             return  # closing already
-        self.protocol.fail(code, reason)
+        if protocol.close_rcvd is not None:  # the peer's close is being answered: with this
+            self.refused = Close(code, _limit_named(protocol.side, code, reason))
+            return
+        protocol.fail(code, reason)
         try:
             self.send_data()
         except Exception as error:  # as data_received: the connection ends anyway
@@ -468,6 +496,7 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # without the cycle collector.
         self.receive = None
         self.pushing = None
+        vars(self.protocol).pop("send_frame", None)
         self.recv_messages.resume = self.transport.resume_reading
 
     def stalled(self) -> None:
@@ -506,15 +535,20 @@ def _closed(exc: ConnectionClosed, ws: _Watched) -> TransportClosed:
 def _name_the_limit(protocol: Protocol) -> None:
     """Make the close reason of a message over ``max_size`` name the setting and the side."""
     fail = protocol.fail
-    side = "server" if protocol.side is Side.SERVER else "client"
+    side = protocol.side
 
     def fail_naming_the_limit(code: int, reason: str = "") -> None:
-        if code == CloseCode.MESSAGE_TOO_BIG:
-            # A close reason holds at most 123 bytes; this one is ASCII.
-            reason = f"over the {side}'s max_message_size ({reason})"[:123]
-        fail(code, reason)
+        fail(code, _limit_named(side, code, reason))
 
     protocol.fail = fail_naming_the_limit  # type: ignore[method-assign]
+
+
+def _limit_named(side: Side, code: int, reason: str) -> str:
+    """The close reason of ``code``: for 1009, naming the setting and the side that refused."""
+    if code != CloseCode.MESSAGE_TOO_BIG:
+        return reason
+    name = "server" if side is Side.SERVER else "client"
+    return f"over the {name}'s max_message_size ({reason})"[:123]  # at most 123 bytes, ASCII
 
 
 def _url(host: str, port: int, tls: bool = False) -> str:
@@ -768,6 +802,8 @@ class WebSocketsConnection(Connection):
         if ws.protocol.state is State.CLOSED:  # nothing more arrives
             ws.receive = None
             ws.pushing = None
+        elif self._keys is None:  # a server answers a close after what came before it
+            ws.protocol.send_frame = ws.send_close_last  # type: ignore[method-assign]
         return True
 
     def pause_reading(self) -> None:

@@ -1,0 +1,205 @@
+"""A close frame that arrives in the same read as messages before it, on both WebSocket
+transports: the messages count as received, whichever end closes.
+
+The peer is raw: websockets' sans-I/O protocol on an asyncio stream, so that it writes the
+messages and its close frame in one ``write`` (one read at the other end, on loopback), which
+no srvwire end does on purpose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from ssl import SSLContext
+from typing import Any
+
+import pytest
+from websockets.client import ClientProtocol
+from websockets.frames import Close, Frame, Opcode
+from websockets.http11 import Request
+from websockets.protocol import Protocol
+from websockets.server import ServerProtocol
+from websockets.uri import parse_uri
+
+from conftest import Echo, Hang
+from srvwire import ConnectionLost, connect
+from srvwire.server import Server, serve
+from support import scaled, tls_on_localhost
+
+both_transports = pytest.mark.parametrize("transport", ["websockets", "picows"])
+
+
+class RawEnd:
+    """One end of a WebSocket connection, run by hand: what it writes goes out in one
+    ``write``, and :meth:`read` feeds what arrives to the protocol."""
+
+    def __init__(
+        self, protocol: Protocol, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        self.protocol = protocol
+        self.reader = reader
+        self.writer = writer
+        self.frames: list[Frame] = []
+
+    def write(self) -> None:
+        """Write everything the protocol has to send, in one write (an end of stream last)."""
+        data = self.protocol.data_to_send()
+        self.writer.write(b"".join(data))
+        if data and not data[-1]:
+            self.writer.close()
+
+    async def read(self) -> bool:
+        """Read once; keep the frames, answer what the protocol answers. False at the end."""
+        data = await self.reader.read(2**16)
+        if data:
+            self.protocol.receive_data(data)
+        else:
+            self.protocol.receive_eof()
+        self.frames += [e for e in self.protocol.events_received() if isinstance(e, Frame)]
+        self.write()
+        return bool(data)
+
+    async def text(self) -> Any:
+        """The next text message, as JSON."""
+        while not any(frame.opcode is Opcode.TEXT for frame in self.frames):
+            assert await self.read()
+        frame = next(frame for frame in self.frames if frame.opcode is Opcode.TEXT)
+        self.frames.remove(frame)
+        return json.loads(bytes(frame.data))
+
+    async def to_the_end(self) -> list[tuple[str, Any]]:
+        """Read until the connection ends; return what came, in order: ``("text", JSON)`` and
+        ``("close", code)``."""
+        async with asyncio.timeout(scaled(10)):
+            while await self.read():
+                pass
+        self.writer.close()
+        return [
+            ("close", Close.parse(bytes(frame.data)).code)
+            if frame.opcode is Opcode.CLOSE
+            else ("text", json.loads(bytes(frame.data)))
+            for frame in self.frames
+        ]
+
+
+async def raw_client(port: int, url: str, ssl: SSLContext | None = None) -> RawEnd:
+    """A raw client connected to the server at ``url``, past its ``$/services``."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port, ssl=ssl)
+    protocol = ClientProtocol(parse_uri(url))
+    client = RawEnd(protocol, reader, writer)
+    protocol.send_request(protocol.connect())
+    client.write()
+    assert (await client.text())["method"] == "$/services"
+    return client
+
+
+def call(id: int, method: str, text: str) -> bytes:
+    message = {"jsonrpc": "2.0", "id": id, "method": method, "params": {"text": text}}
+    return json.dumps(message).encode()
+
+
+@both_transports
+@pytest.mark.parametrize("tls", [False, True], ids=["tcp", "tls"])
+async def test_calls_in_the_same_read_as_the_clients_close_are_answered_before_it(
+    transport: str, tls: bool
+) -> None:
+    """The calls a client sent before its close frame are read; the replies the server makes
+    as it reads them go out ahead of its close, and a call still running then is cancelled, as
+    on any connection that closes."""
+    server = Server(grace_period=scaled(2))
+
+    async def echo(request: Any) -> Any:
+        return {"text": request.text}
+
+    hang = Hang()
+    server.add_service("/echo", Echo, echo)
+    server.add_service("/hang", Echo, hang)
+    server_ssl, client_ssl = tls_on_localhost(tls)
+    async with serve(server, "127.0.0.1", 0, transport=transport, ssl=server_ssl) as running:
+        client = await raw_client(running.port, running.url, client_ssl)
+        client.protocol.send_text(call(1, "/echo", "a"))
+        client.protocol.send_text(call(2, "/echo", "b"))
+        client.protocol.send_text(call(3, "/hang", "c"))
+        client.protocol.send_close(1000)
+        client.write()
+        assert await client.to_the_end() == [
+            ("text", {"jsonrpc": "2.0", "id": 1, "result": {"text": "a"}}),
+            ("text", {"jsonrpc": "2.0", "id": 2, "result": {"text": "b"}}),
+            ("close", 1000),
+        ]
+        async with asyncio.timeout(scaled(5)):
+            await hang.cancelled.wait()
+
+
+@both_transports
+async def test_a_message_refused_before_the_clients_close_in_the_same_read_ends_with_1007(
+    transport: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Text that is not UTF-8 fails the connection with 1007 before the close behind it is
+    answered: the reply to the call before it goes out, the close is not echoed, and nothing
+    is logged as an error."""
+    server = Server(grace_period=scaled(2))
+
+    async def echo(request: Any) -> Any:
+        return {"text": request.text}
+
+    server.add_service("/echo", Echo, echo)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        client = await raw_client(running.port, running.url)
+        client.protocol.send_text(call(1, "/echo", "a"))
+        client.protocol.send_frame(Frame(Opcode.TEXT, b"\xff"))
+        client.protocol.send_text(call(2, "/echo", "b"))
+        client.protocol.send_close(1000)
+        client.write()
+        assert await client.to_the_end() == [
+            ("text", {"jsonrpc": "2.0", "id": 1, "result": {"text": "a"}}),
+            ("close", 1007),
+        ]
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
+@both_transports
+async def test_replies_in_the_same_read_as_the_servers_close_reach_their_calls(
+    transport: str,
+) -> None:
+    """A client given replies and the server's close frame in one read resolves the calls
+    they answer; only the call left without a reply fails, with ConnectionLost."""
+    answered: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+    async def raw_server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        server = RawEnd(ServerProtocol(), reader, writer)
+        protocol = server.protocol
+        assert isinstance(protocol, ServerProtocol)
+        requests: list[object] = []
+        while not requests:
+            protocol.receive_data(await reader.read(2**16))
+            requests = protocol.events_received()
+        (request,) = requests
+        assert isinstance(request, Request)
+        protocol.send_response(protocol.accept(request))
+        services = {"services": [{"name": "/echo", "type": "srvwire_tests/srv/Echo"}]}
+        announce = {"jsonrpc": "2.0", "method": "$/services", "params": services}
+        protocol.send_text(json.dumps(announce).encode())
+        server.write()
+        calls = [await server.text() for _ in range(3)]
+        for message in calls[:2]:  # the last call gets no reply
+            result = {"text": message["params"]["text"]}
+            reply = {"jsonrpc": "2.0", "id": message["id"], "result": result}
+            protocol.send_text(json.dumps(reply, separators=(",", ":")).encode())
+        protocol.send_close(1001, "going away")
+        server.write()
+        await server.to_the_end()
+        answered.set_result(None)
+
+    listening = await asyncio.start_server(raw_server, "127.0.0.1", 0)
+    port = listening.sockets[0].getsockname()[1]
+    async with listening, connect(f"ws://127.0.0.1:{port}", transport=transport) as client:
+        results = await asyncio.gather(
+            *[client.call("/echo", {"text": str(i)}, srv_type=Echo) for i in range(3)],
+            return_exceptions=True,
+        )
+        await answered
+    assert [r.text for r in results[:2]] == ["0", "1"]
+    assert type(results[2]) is ConnectionLost
+    assert results[2].data["close_code"] == 1001
