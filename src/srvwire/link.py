@@ -504,7 +504,8 @@ class Link:
                 # Answered (or failed) while the send waited: wait_for would return just this,
                 # after arming a timer and waiting a loop turn (Python 3.11's does not look).
                 return future.result()
-            # On a future, wait_for creates no task: a timer and a done callback.
+            # On a future, wait_for creates no task: a timer and a done callback (which the
+            # reply runs as it is set, on Python 3.11: see Answer).
             reply = await asyncio.wait_for(future, deadline - loop.time())
             if task.cancelling() > cancelling:
                 # Python 3.11's wait_for returns the result when a cancellation arrives after
