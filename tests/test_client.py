@@ -8,6 +8,7 @@ a peer that never answers leaves the deadline as the only possible outcome.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -17,6 +18,7 @@ from typing import Any
 from unittest.mock import ANY
 
 import pytest
+import uvloop
 from websockets.asyncio.server import Server as WsServer, ServerConnection, serve as ws_serve
 from websockets.exceptions import ConnectionClosed
 
@@ -39,7 +41,7 @@ from srvwire.errors import (
     ServiceUnavailable,
     Unauthenticated,
 )
-from srvwire.link import MAX_READY, Link
+from srvwire.link import MAX_READY, Answer, Link
 from srvwire.loader import load_service
 from srvwire.models import Service
 from srvwire.protocol import RawReply
@@ -677,6 +679,96 @@ async def test_a_late_reply_is_ignored(
         f"dropping a reply for id {late['id']}: no call waits for it",
         "dropping a reply for id 'nobody': no call waits for it",
     ]
+
+
+# --- waking the caller ------------------------------------------------------------------------
+
+
+async def answer_add_or_fail(ws: ServerConnection, message: dict[str, Any]) -> None:
+    """Answer AddTwoInts as :func:`answer_add` does, or with an error reply when ``a`` is 0."""
+    if message.get("method") == ADD and message["params"].get("a") == 0:
+        error = {"code": 4001, "message": "a is 0"}
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": message["id"], "error": error}))
+    else:
+        await answer_add(ws, message)
+
+
+async def turns_to_wake(client: Client, request: dict[str, int]) -> int:
+    """Call ``client.call(ADD, request)`` and count the loop turns from the step its reply
+    reaches the client (the reader takes the call out of the pending calls, in the transport's
+    read callback) to the step the caller resumes (an error reply counts as a reply)."""
+    loop = asyncio.get_running_loop()
+    turns = 0
+    ticking = False
+
+    def tick() -> None:  # once per loop turn, while ticking: scheduled ahead of the wake-up
+        nonlocal turns
+        if ticking:
+            turns += 1
+            loop.call_soon(tick)
+
+    def routed() -> None:
+        nonlocal ticking
+        ticking = True
+        loop.call_soon(tick)
+
+    when_routed(client, routed)
+    with contextlib.suppress(ServiceError):
+        await client.call(ADD, request)
+    ticking = False
+    return turns
+
+
+@pytest.mark.parametrize("reply", ["result", "error"])
+async def test_a_reply_wakes_its_caller_at_the_next_loop_turn(
+    peer: FakePeer, client: Client, reply: str
+) -> None:
+    # As awaiting the call's future bare would: on Python 3.11, wait_for's own done callback
+    # would wake the caller a turn later (link.Answer runs it as the reply is set).
+    peer.reply = answer_add_or_fail
+    assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3  # its type found, kept
+    assert await turns_to_wake(client, {"a": 0 if reply == "error" else 1, "b": 2}) == 1
+    assert client.in_flight == 0
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+def test_a_reply_wakes_its_caller_at_the_next_loop_turn_on_uvloop(transport: str) -> None:
+    async def turns() -> list[int]:
+        peer = FakePeer()
+        await peer.start()
+        peer.reply = answer_add_or_fail
+        try:
+            async with connect(peer.url, timeout=scaled(5), transport=transport) as client:
+                assert (await client.call(ADD, {"a": 1, "b": 2})).sum == 3
+                return [await turns_to_wake(client, {"a": a, "b": 2}) for a in (1, 0)]
+        finally:
+            await peer.stop()
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        assert runner.run(turns()) == [1, 1]
+
+
+async def test_a_calls_future_runs_no_other_callback_and_steps_no_task_at_once() -> None:
+    # Only wait_for's own callback (a partial of _release_waiter) runs as the result is set;
+    # a task awaiting the future itself, or any other callback, is woken at the next turn.
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[Any] = Answer(loop=loop)
+    ran: list[str] = []
+    waiting = asyncio.Event()
+
+    async def wait() -> None:
+        waiting.set()
+        ran.append(await future)
+
+    future.add_done_callback(lambda _: ran.append("callback"))
+    task = loop.create_task(wait())
+    await waiting.wait()  # the task awaits the future
+    future.set_result("task")
+    assert ran == []
+    await task
+    assert ran == ["callback", "task"]
+    with pytest.raises(asyncio.InvalidStateError):
+        future.set_result("again")
 
 
 # --- a connection that drops or goes bad ------------------------------------------------------
