@@ -1229,6 +1229,24 @@ async def test_a_closed_picows_servers_protocol_no_longer_refers_to_itself() -> 
     assert not {"get_buffer", "buffer_updated"} & set(vars(protocol))
 
 
+async def test_a_picows_connection_says_it_is_congested_in_an_attribute() -> None:
+    """A server reads ``congested`` for every message it is handed: on picows it is a plain
+    attribute, not a property (a Python call each time), set and cleared where picows pauses
+    and resumes writing (test_past_its_budget_a_connection_is_congested_until_the_peer_reads
+    has it follow a real peer)."""
+    assert type(vars(PicowsConnection)["congested"]).__name__ == "member_descriptor"
+    async with connected(PicowsTransport()) as pair:
+        server = pair.server
+        assert isinstance(server, PicowsConnection) and server.congested is False
+        server.pause_writing()
+        writable = asyncio.ensure_future(server.writable())
+        await turns()
+        assert server.congested is True and not writable.done()
+        server.resume_writing()
+        assert server.congested is False
+        await writable
+
+
 async def test_once_open_a_picows_servers_reads_go_straight_to_picows() -> None:
     """The server's protocol looks at the first bytes it reads (a TLS record is refused at
     once); every later read reaches picows' own compiled methods, with no Python frame between

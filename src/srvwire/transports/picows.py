@@ -226,9 +226,12 @@ class PicowsConnection(WSListener, Connection):
         "_writable",
         "_write_timeout",
         "_ws",
+        "congested",
         "identity",
         "remote_address",
     )
+
+    congested: bool  # see __init__
 
     def __init__(self, options: Options, identity: object = None) -> None:
         super().__init__()
@@ -249,6 +252,9 @@ class PicowsConnection(WSListener, Connection):
         self._parts_size = 0
         self._parts_text = False
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
+        # Whether the socket's buffer is past its high-water mark: a send would wait. An
+        # attribute, not a property: a server reads it for every message it is handed.
+        self.congested = False
         # Not yet written (see _flush): a server's frames, header and payload; a client's
         # messages, framed and masked when written.
         self._corked: list[bytes] = []
@@ -352,6 +358,7 @@ class PicowsConnection(WSListener, Connection):
     def pause_writing(self) -> None:
         if self._writable is None:
             self._writable = self._loop.create_future()
+            self.congested = True
             if self._write_timeout is not None and self._ended is None:
                 self._stall = self._loop.call_later(self._write_timeout, self._stalled)
 
@@ -360,6 +367,7 @@ class PicowsConnection(WSListener, Connection):
             self._stall.cancel()
             self._stall = None
         writable, self._writable = self._writable, None
+        self.congested = False
         if writable is not None and not writable.done():
             writable.set_result(None)
 
@@ -445,11 +453,6 @@ class PicowsConnection(WSListener, Connection):
         if not self._reading and self._ws is not None:
             self._reading = True
             self._ws.underlying_transport.resume_reading()
-
-    @property
-    def congested(self) -> bool:
-        """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
-        return self._writable is not None
 
     def buffered(self) -> int:
         ws = self._ws
