@@ -20,8 +20,11 @@ leaves to its user:
   header and the bytes) and *corks* them: the replies made while draining one read go out in
   one write, after the last frame the read brought (the replies made in ``on_ws_frame``), when
   ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
-  comes first. A client corks its small messages too (at most :data:`CLIENT_CORK_LIMIT`
-  bytes), until the loop's next turn or :data:`CLIENT_WRITE_AT` bytes: the calls its callers
+  comes first; a reply made while the last frame of a read is handed over, with nothing
+  corked (a read of one call), goes out at once through ``picows``' ``send``, as the cork's
+  write of a lone message would have sent it at the read's end. A client corks its small
+  messages too (at most :data:`CLIENT_CORK_LIMIT` bytes), until the loop's next turn or
+  :data:`CLIENT_WRITE_AT` bytes: the calls its callers
   make in one turn (a pipelined client woken by a read of many replies) go out in a few
   writes, each frame masked with a fresh key from ``os.urandom``, as RFC 6455 asks. The first
   message sent after a read that brought a single one is written at once instead, by
@@ -197,6 +200,7 @@ class PicowsConnection(WSListener, Connection):
     """
 
     __slots__ = (
+        "_answering",
         "_awaiting_pong",
         "_budget",
         "_corked",
@@ -264,6 +268,9 @@ class PicowsConnection(WSListener, Connection):
         # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
         # or on_ws_frame is running (it flushes after the read's last frame).
         self._flush_due = False
+        # Whether the last frame of a read is being handed over: a server's first small
+        # message sent meanwhile, with nothing corked, goes out at once (see send).
+        self._answering = False
         self._framing = False  # whether send frames here: on a server (no mask), once open
         self._received: tuple[int, str] | None = None  # the close frame received
         self._sent: tuple[int, str] | None = None  # the close frame sent
@@ -294,8 +301,10 @@ class PicowsConnection(WSListener, Connection):
 
     def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
         kind = frame.msg_type
+        last = frame.last_in_buffer
         due = self._flush_due
         self._flush_due = True
+        self._answering = last
         try:
             if kind is _TEXT or kind is _BINARY:
                 if self._parts_size or self._parts:
@@ -324,7 +333,8 @@ class PicowsConnection(WSListener, Connection):
                 self._pong()
         finally:
             self._flush_due = due
-        if frame.last_in_buffer:
+            self._answering = False
+        if last:
             # What a client's next send does depends on what this read handed over (see send).
             self._single = self._handed == 1
             self._handed = 0
@@ -400,6 +410,12 @@ class PicowsConnection(WSListener, Connection):
         data = message.encode() if isinstance(message, str) else message
         if self._framing:
             corked = self._corked
+            if self._answering and len(data) <= PICOWS_COPIES and not corked:
+                # The reply to the last frame of a read, and nothing held: what _flush would
+                # do with it at the read's end, done now, without framing it here first.
+                self._answering = False
+                ws.send(_TEXT, data)
+                return
             if not self._flush_due:
                 self._flush_due = True
                 self._loop.call_soon(self._flush_later)
