@@ -40,17 +40,15 @@ import asyncio
 import json
 import logging
 import statistics
-import sys
 import time
-from collections import Counter, deque
-from types import FrameType
+from collections import deque
 from typing import Any
 
 from srvwire.dispatch import ServiceRegistry
 from srvwire.serving import ServedConnection
 from srvwire.transports.base import Connection, TransportClosed
 
-from common import CALL_TIMEOUT, SERVICE, SMALL_REQUEST, reply_fields
+from common import CALL_TIMEOUT, SERVICE, SMALL_REQUEST, print_steps, python_steps, reply_fields
 from typed import RobotStateQuery
 
 
@@ -181,35 +179,6 @@ async def one_run(calls: int, one_by_one: bool, push: bool = False) -> float:
     return elapsed / calls
 
 
-def steps(calls: int, one_by_one: bool, push: bool) -> dict[str, float]:
-    """The bytecode instructions each Python function runs per call, by ``module:function``:
-    those of ``calls`` calls less those of a tenth as many (what one run costs besides its
-    calls cancels out), divided by the difference."""
-
-    def count(calls: int) -> Counter[str]:
-        counted: Counter[str] = Counter()
-
-        def trace(frame: FrameType, event: str, arg: Any) -> Any:
-            frame.f_trace_opcodes = True
-            frame.f_trace_lines = False
-            if event == "opcode":
-                code = frame.f_code
-                counted[f"{code.co_filename.rsplit('/', 1)[-1]}:{code.co_name}"] += 1
-            return trace
-
-        sys.settrace(trace)
-        try:
-            asyncio.run(one_run(calls, one_by_one, push))
-        finally:
-            sys.settrace(None)
-        return counted
-
-    fewer = max(1, calls // 10)
-    many, few = count(calls), count(fewer)
-    per_call = {name: (many[name] - few[name]) / (calls - fewer) for name in many}
-    return {name: n for name, n in sorted(per_call.items(), key=lambda i: -i[1]) if n >= 0.5}
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else "")
     parser.add_argument("--calls", type=int, default=100_000)
@@ -227,13 +196,16 @@ def main() -> None:
     modes = ["pipelined", "one-by-one"] if args.mode == "both" else [args.mode]
     for mode in modes:
         if args.steps:
-            counted = steps(args.calls, mode == "one-by-one", args.push)
+
+            def calls(count: int, one_by_one: bool = mode == "one-by-one") -> int:
+                asyncio.run(one_run(count, one_by_one, args.push))
+                return count
+
+            counted = python_steps(calls, args.calls)
             if args.json:
                 print(json.dumps({"mode": mode, "steps": counted}))
-                continue
-            print(f"{mode}: {sum(counted.values()):.0f} bytecode instructions per call")
-            for name, n in counted.items():
-                print(f"{n:8.1f}  {name}")
+            else:
+                print_steps(mode, counted)
             continue
         runs = []
         for _ in range(args.repeat):
