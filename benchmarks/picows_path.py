@@ -29,7 +29,7 @@ from typing import Any
 from srvwire.client import Client, connect
 from srvwire.server import Server, serve
 
-from common import CALL_TIMEOUT, SERVICE, SMALL_REQUEST, reply_fields
+from common import CALL_TIMEOUT, SERVICE, SMALL_REQUEST, print_steps, python_steps, reply_fields
 from typed import RobotStateQuery
 
 SHAPES = {"sequential": (1, 1), "fan-in": (None, 1), "pipelined": (1, 64)}
@@ -50,8 +50,8 @@ async def calls(client: Client, count: int) -> None:
 
 
 async def run(shape: str, count: int, connections: int, transport: str = "picows") -> float:
-    """Make ``count`` calls in ``shape`` on ``transport``; return the process's CPU time per
-    call, in µs."""
+    """Make about ``count`` calls in ``shape`` on ``transport`` (:func:`made`); return the
+    process's CPU time per call, in µs."""
     conns, in_flight = SHAPES[shape]
     conns = connections if conns is None else conns
     server = Server()
@@ -61,7 +61,7 @@ async def run(shape: str, count: int, connections: int, transport: str = "picows
             await connect(running.url, transport=transport, timeout=CALL_TIMEOUT)
             for _ in range(conns)
         ]
-        each = count // (conns * in_flight)
+        each = made(shape, count, connections) // (conns * in_flight)
         started = time.process_time()
         await asyncio.gather(*(calls(client, each) for client in clients for _ in range(in_flight)))
         elapsed = time.process_time() - started
@@ -70,13 +70,32 @@ async def run(shape: str, count: int, connections: int, transport: str = "picows
     return elapsed / (each * conns * in_flight) * 1e6
 
 
+def made(shape: str, count: int, connections: int) -> int:
+    """How many of ``count`` calls :func:`run` makes: as many as divide evenly among the
+    shape's callers."""
+    conns, in_flight = SHAPES[shape]
+    callers = (connections if conns is None else conns) * in_flight
+    return count // callers * callers
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else "")
     parser.add_argument("--shape", choices=list(SHAPES), default="sequential")
     parser.add_argument("--calls", type=int, default=2560)
     parser.add_argument("--connections", type=int, default=20, help="for fan-in")
     parser.add_argument("--transport", choices=["picows", "websockets"], default="picows")
+    parser.add_argument(
+        "--steps", action="store_true", help="print bytecode instructions per call, by function"
+    )
     args = parser.parse_args()
+    if args.steps:
+
+        def calls(count: int) -> int:
+            asyncio.run(run(args.shape, count, args.connections, args.transport))
+            return made(args.shape, count, args.connections)
+
+        print_steps(f"{args.shape}, both ends", python_steps(calls, args.calls))
+        return
     per_call = asyncio.run(run(args.shape, args.calls, args.connections, args.transport))
     print(f"{args.shape}: {per_call:.1f} µs of CPU per call, both ends")
 

@@ -21,6 +21,11 @@ With ``--push`` the connection hands each message over as it arrives
 server that takes pushed messages answers it in that callback; pipelined, every message then
 arrives in one callback, as one read of a socket holding them all would deliver them.
 
+With ``--steps`` it prints, instead of times, the Python bytecode instructions each function
+runs per call (``sys.settrace`` with opcode events; the calls of ``--calls`` less those of a
+tenth as many): where the Python around the typed work is, function by function, exactly and
+whatever the machine's load.
+
 Run it with another checkout's ``src`` first on ``PYTHONPATH`` to compare two versions of
 srvwire, old and new alternating::
 
@@ -43,7 +48,7 @@ from srvwire.dispatch import ServiceRegistry
 from srvwire.serving import ServedConnection
 from srvwire.transports.base import Connection, TransportClosed
 
-from common import CALL_TIMEOUT, SERVICE, SMALL_REQUEST, reply_fields
+from common import CALL_TIMEOUT, SERVICE, SMALL_REQUEST, print_steps, python_steps, reply_fields
 from typed import RobotStateQuery
 
 
@@ -184,9 +189,24 @@ def main() -> None:
     parser.add_argument(
         "--push", action="store_true", help="hand each message over as it arrives (deliver_to)"
     )
+    parser.add_argument(
+        "--steps", action="store_true", help="print bytecode instructions per call, by function"
+    )
     args = parser.parse_args()
     modes = ["pipelined", "one-by-one"] if args.mode == "both" else [args.mode]
     for mode in modes:
+        if args.steps:
+
+            def calls(count: int, one_by_one: bool = mode == "one-by-one") -> int:
+                asyncio.run(one_run(count, one_by_one, args.push))
+                return count
+
+            counted = python_steps(calls, args.calls)
+            if args.json:
+                print(json.dumps({"mode": mode, "steps": counted}))
+            else:
+                print_steps(mode, counted)
+            continue
         runs = []
         for _ in range(args.repeat):
             coroutine = one_run(args.calls, mode == "one-by-one", args.push)

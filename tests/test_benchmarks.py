@@ -236,6 +236,19 @@ def test_the_servers_path_in_one_process_answers_every_call(tmp_path: Path) -> N
         assert 0 < row["min_us"] <= row["median_us"]
 
 
+def test_the_servers_path_counts_the_python_steps_of_a_call() -> None:
+    # --steps: the bytecode instructions each function runs per call, exactly. A call read in
+    # one pass runs the call runner, and looks its service up in C, with no step of its own.
+    script = ROOT / "benchmarks" / "server_path.py"
+    options = ["--steps", "--calls", "200", "--mode", "one-by-one", "--push", "--json"]
+    [row] = [json.loads(line) for line in run_benchmark(script, *options).stdout.splitlines()]
+    assert row["mode"] == "one-by-one"
+    steps = row["steps"]
+    assert {"serving.py:run_call", "session.py:_admit", "models.py:read"} <= set(steps)
+    assert all(n >= 0.5 for n in steps.values())
+    assert "dispatch.py:get" not in steps
+
+
 @pytest.mark.parametrize(
     ("options", "shapes"),
     [

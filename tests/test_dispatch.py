@@ -156,6 +156,19 @@ def test_lookup_with_and_without_the_slash_and_close_names() -> None:
     assert caught.value.data == {"candidates": []}
 
 
+def test_a_name_is_looked_up_in_one_dictionary_in_either_spelling() -> None:
+    registry = ServiceRegistry()
+    entry = registry.add("robot1/get_state", Subtract, subtract)
+    # The bound get of a dict: a call looks a service up without a Python step of its own.
+    assert type(registry.get) is type({}.get)
+    assert registry.get("/robot1/get_state") is entry and registry.get("robot1/get_state") is entry
+    for other in ("//robot1/get_state", "robot1", "/robot1/get_state/", "", "/"):
+        assert registry.get(other) is None, other
+    registry.remove("robot1/get_state")
+    assert registry.get("/robot1/get_state") is None and registry.get("robot1/get_state") is None
+    assert registry.add("/robot1/get_state", Echo, subtract) is registry.get("robot1/get_state")
+
+
 def test_services_are_listed_sorted() -> None:
     registry = ServiceRegistry()
     registry.add("/b", Echo, subtract)

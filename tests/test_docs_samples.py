@@ -68,6 +68,14 @@ COMMANDS: dict[str, str] = {
         "benchmarks/picows_path.py counted under callgrind: minutes long, and valgrind is no "
         "dependency; tests/test_push.py runs the script itself"
     ),
+    r"PYTHONHASHSEED=\d+ valgrind --tool=callgrind .* benchmarks/(server|picows)_path\.py .*": (
+        "the same counts with the hash seed fixed: tests/test_benchmarks.py and "
+        "tests/test_push.py run the scripts themselves"
+    ),
+    r"\.venv/bin/python benchmarks/picows_path\.py( .*)?": (
+        "both ends on picows in one process: a minute long; tests/test_push.py runs it small, "
+        "--steps too"
+    ),
     r"\.venv/bin/py-spy record .* benchmarks/\w+\.py .*": (
         "a sampling profile of a benchmark script: py-spy comes with the bench extra (make "
         "bench), not with the tests' environment; tests/test_push.py runs the script itself"

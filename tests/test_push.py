@@ -346,6 +346,18 @@ def test_the_picows_path_benchmark_runs_on_the_default_transport_too() -> None:
     assert result.stdout.startswith("fan-in: ") and "µs of CPU per call" in result.stdout
 
 
+def test_the_picows_path_benchmark_counts_the_python_steps_of_a_call() -> None:
+    # --steps: bytecode instructions per call, by function, both ends; a lone call's reply
+    # leaves as it is made, so the server's cork is never flushed.
+    script = ROOT / "benchmarks" / "picows_path.py"
+    result = run_benchmark(script, "--steps", "--shape", "sequential", "--calls", "200")
+    title, *rows = result.stdout.splitlines()
+    assert title.startswith("sequential, both ends: ") and title.endswith(" per call")
+    steps = {name: float(n) for n, name in (row.split(maxsplit=1) for row in rows)}
+    assert {"serving.py:run_call", "picows.py:on_ws_frame", "picows.py:send"} <= set(steps)
+    assert "picows.py:_flush" not in steps
+
+
 def test_the_servers_path_benchmark_pushes_messages_when_asked() -> None:
     # --push hands each message over as it arrives; the script checks every reply.
     script = ROOT / "benchmarks" / "server_path.py"

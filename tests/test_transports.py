@@ -1304,6 +1304,24 @@ async def test_a_closed_picows_servers_protocol_no_longer_refers_to_itself() -> 
     assert not {"get_buffer", "buffer_updated"} & set(vars(protocol))
 
 
+async def test_a_picows_connection_says_it_is_congested_in_an_attribute() -> None:
+    """A server reads ``congested`` for every message it is handed: on picows it is a plain
+    attribute, not a property (a Python call each time), set and cleared where picows pauses
+    and resumes writing (test_past_its_budget_a_connection_is_congested_until_the_peer_reads
+    has it follow a real peer)."""
+    assert type(vars(PicowsConnection)["congested"]).__name__ == "member_descriptor"
+    async with connected(PicowsTransport()) as pair:
+        server = pair.server
+        assert isinstance(server, PicowsConnection) and server.congested is False
+        server.pause_writing()
+        writable = asyncio.ensure_future(server.writable())
+        await turns()
+        assert server.congested is True and not writable.done()
+        server.resume_writing()
+        assert server.congested is False
+        await writable
+
+
 async def test_once_open_a_picows_servers_reads_go_straight_to_picows() -> None:
     """The server's protocol looks at the first bytes it reads (a TLS record is refused at
     once); every later read reaches picows' own compiled methods, with no Python frame between
@@ -1399,6 +1417,78 @@ async def test_a_lone_reply_goes_through_picows_send_only_when_picows_copies_it(
         assert (ws.sent, ws.underlying_transport.written) == ([message], [])
     else:
         assert (ws.sent, ws.underlying_transport.written) == ([], [_header(size) + message])
+
+
+async def test_a_picows_servers_reply_to_a_reads_last_frame_goes_out_as_it_is_made() -> None:
+    """While the last frame of a read is handed over, a server's first small message goes
+    straight to picows' own send (what the cork's flush did with a lone message at the read's
+    end, without framing it first); the replies to the frames before it, or a second message,
+    are corked and written in one write at the read's end, as before."""
+    from picows import WSMsgType
+
+    from srvwire.inline import first_step
+    from srvwire.transports.picows import PICOWS_COPIES, _header
+
+    class Underlying:
+        def __init__(self) -> None:
+            self.written: list[bytes] = []
+
+        def write(self, data: bytes) -> None:
+            self.written.append(bytes(data))
+
+    class FakeWS:
+        is_close_frame_sent = False
+
+        def __init__(self) -> None:
+            self.underlying_transport = Underlying()
+            self.sent: list[bytes] = []
+
+        def send(self, kind: Any, message: bytes) -> None:
+            self.sent.append(message)
+
+    @dataclass
+    class Frame:  # what on_ws_frame reads of picows' WSFrame
+        payload: bytes
+        last_in_buffer: bool
+        msg_type: Any = WSMsgType.TEXT
+        fin: bool = True
+
+        def get_payload_as_bytes(self) -> bytes:
+            return self.payload
+
+    conn = PicowsConnection(Options())
+    ws = FakeWS()
+    conn._ws = ws  # type: ignore[assignment]
+    conn._framing = True  # a server's
+    seen: list[tuple[list[bytes], list[bytes]]] = []  # what went out, as each reply was made
+
+    def answer(message: str | bytes) -> None:
+        for reply in replies.pop(0):
+            assert first_step(conn.send(reply)) is None  # sent without waiting
+        seen.append((list(ws.sent), list(ws.underlying_transport.written)))
+
+    conn.deliver_to(answer)
+    big = b"b" * (PICOWS_COPIES + 1)
+    replies = [[b"r1"]]  # a read of one call: its reply leaves as it is made
+    conn.on_ws_frame(ws, Frame(b"c1", True))  # type: ignore[arg-type]
+    assert seen == [([b"r1"], [])] and conn._corked == []
+    replies = [[b"r2"], [b"r3"]]  # two calls in one read: both replies in one write at its end
+    conn.on_ws_frame(ws, Frame(b"c2", False))  # type: ignore[arg-type]
+    conn.on_ws_frame(ws, Frame(b"c3", True))  # type: ignore[arg-type]
+    assert seen[1:] == [([b"r1"], []), ([b"r1"], [])]
+    assert ws.underlying_transport.written == [_header(2) + b"r2" + _header(2) + b"r3"]
+    replies = [[b"r4", b"r5"]]  # two messages for the last frame: the second is corked
+    conn.on_ws_frame(ws, Frame(b"c4", True))  # type: ignore[arg-type]
+    assert seen[3] == ([b"r1", b"r4"], ws.underlying_transport.written[:1])
+    assert ws.sent == [b"r1", b"r4", b"r5"]  # the lone corked one, by picows at the read's end
+    replies = [[big, b"r6"]]  # too big for picows to copy: framed here, and r6 after it
+    conn.on_ws_frame(ws, Frame(b"c5", True))  # type: ignore[arg-type]
+    assert ws.sent == [b"r1", b"r4", b"r5"]
+    assert ws.underlying_transport.written[1:] == [_header(len(big)) + big + _header(2) + b"r6"]
+    assert first_step(conn.send(b"later")) is None  # after the read: corked until the turn ends
+    assert conn._corked == [_header(5), b"later"]
+    await turns()
+    assert ws.sent[-1] == b"later" and conn._corked == []
 
 
 # A picows client's writes: its small messages held to the end of the loop's turn, masked here.

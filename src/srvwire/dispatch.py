@@ -539,6 +539,12 @@ class ServiceRegistry:
             raise ValueError(f"inf_nan must be one of {', '.join(INF_NAN_MODES)}, not {inf_nan!r}")
         self.inf_nan: InfNan = inf_nan
         self._entries: dict[str, ServiceEntry] = {}
+        self._names: dict[str, ServiceEntry] = {}  # each entry by its name, and without its "/"
+        self.get: Callable[[str], ServiceEntry | None] = self._names.get
+        """Return the service called ``name`` (the leading ``/`` optional), or None.
+
+        The bound ``get`` of a dictionary that holds both spellings of every name: a call
+        is looked up in C, with no Python step of its own."""
         self._discovery: dict[frozenset[str] | None, str] = {}  # by the scopes it shows
         self._fingerprints: dict[str, str] = {}  # of the types that have a definition
         self.topics: TopicBoard[Any] = TopicBoard()
@@ -632,6 +638,7 @@ class ServiceRegistry:
             usual=is_async and not takes_response and not context_param and max_concurrency is None,
         )
         self._entries[canonical] = entry
+        self._names[canonical] = self._names[canonical[1:]] = entry
         definition = full_definition(srv_type)
         if definition is not None:
             self._fingerprints[canonical] = fingerprint(definition)
@@ -645,16 +652,10 @@ class ServiceRegistry:
         entry = self._entries.pop(canonical, None)
         if entry is None:
             raise RegistrationError(f"no service named {canonical} is registered")
+        del self._names[canonical], self._names[canonical[1:]]
         self._fingerprints.pop(canonical, None)
         self._discovery.clear()
         self.read_call = self._read_call
-        return entry
-
-    def get(self, name: str) -> ServiceEntry | None:
-        """Return the service called ``name`` (the leading ``/`` optional), or None."""
-        entry = self._entries.get(name)
-        if entry is None and not name.startswith("/"):
-            entry = self._entries.get("/" + name)
         return entry
 
     def resolve(self, name: str) -> ServiceEntry:

@@ -227,12 +227,14 @@ class Call(Generic[E]):
         "timeout",
     )
 
-    def __init__(self, id: Id, entry: E, params: Any, timeout: float | None) -> None:
+    def __init__(
+        self, id: Id, entry: E, params: Any, timeout: float | None, batch: _Batch | None = None
+    ) -> None:
         self.id = id
         self.entry = entry
         self.params = params
         self.timeout = timeout
-        self.batch: _Batch | None = None
+        self.batch = batch
         self.index = 0
         self.context: Any = None
         self.deadline: float | None = None
@@ -424,8 +426,7 @@ class ServerSession(Generic[E]):
                 service=entry.name,
             )
             return self._refuse(id, duplicate)
-        call = Call(id, entry, params, timeout)
-        call.batch = batch
+        call = Call(id, entry, params, timeout, batch)
         if id is not None:
             self.calls[id] = call
         else:

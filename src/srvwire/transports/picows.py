@@ -22,8 +22,11 @@ leaves to its user:
   header and the bytes) and *corks* them: the replies made while draining one read go out in
   one write, after the last frame the read brought (the replies made in ``on_ws_frame``), when
   ``recv`` finds nothing more to read, at the loop's next turn, or past the budget, whichever
-  comes first. A client corks its small messages too (at most :data:`CLIENT_CORK_LIMIT`
-  bytes), until the loop's next turn or :data:`CLIENT_WRITE_AT` bytes: the calls its callers
+  comes first; a reply made while the last frame of a read is handed over, with nothing
+  corked (a read of one call), goes out at once through ``picows``' ``send``, as the cork's
+  write of a lone message would have sent it at the read's end. A client corks its small
+  messages too (at most :data:`CLIENT_CORK_LIMIT` bytes), until the loop's next turn or
+  :data:`CLIENT_WRITE_AT` bytes: the calls its callers
   make in one turn (a pipelined client woken by a read of many replies) go out in a few
   writes, each frame masked with a fresh key from ``os.urandom``, as RFC 6455 asks. The first
   message sent after a read that brought a single one is written at once instead, by
@@ -205,6 +208,7 @@ class PicowsConnection(WSListener, Connection):
     """
 
     __slots__ = (
+        "_answering",
         "_awaiting_pong",
         "_budget",
         "_corked",
@@ -233,9 +237,12 @@ class PicowsConnection(WSListener, Connection):
         "_writable",
         "_write_timeout",
         "_ws",
+        "congested",
         "identity",
         "remote_address",
     )
+
+    congested: bool  # see __init__
 
     def __init__(self, options: Options, identity: object = None) -> None:
         super().__init__()
@@ -255,6 +262,9 @@ class PicowsConnection(WSListener, Connection):
         self._parts: bytearray | None = None  # the fragments of a message being received
         self._parts_text = False
         self._writable: asyncio.Future[None] | None = None  # set while writing is paused
+        # Whether the socket's buffer is past its high-water mark: a send would wait. An
+        # attribute, not a property: a server reads it for every message it is handed.
+        self.congested = False
         # Not yet written (see _flush): a server's frames, header and payload; a client's
         # messages, framed and masked when written.
         self._corked: list[bytes] = []
@@ -264,6 +274,9 @@ class PicowsConnection(WSListener, Connection):
         # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
         # or on_ws_frame is running (it flushes after the read's last frame).
         self._flush_due = False
+        # Whether the last frame of a read is being handed over: a server's first small
+        # message sent meanwhile, with nothing corked, goes out at once (see send).
+        self._answering = False
         self._framing = False  # whether send frames here: on a server (no mask), once open
         self._received: tuple[int, str] | None = None  # the close frame received
         self._sent: tuple[int, str] | None = None  # the close frame sent
@@ -294,8 +307,10 @@ class PicowsConnection(WSListener, Connection):
 
     def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
         kind = frame.msg_type
+        last = frame.last_in_buffer
         due = self._flush_due
         self._flush_due = True
+        self._answering = last
         try:
             if kind is _TEXT or kind is _BINARY:
                 if self._parts is not None:
@@ -324,7 +339,8 @@ class PicowsConnection(WSListener, Connection):
                 self._pong()
         finally:
             self._flush_due = due
-        if frame.last_in_buffer:
+            self._answering = False
+        if last:
             # What a client's next send does depends on what this read handed over (see send).
             self._single = self._handed == 1
             self._handed = 0
@@ -358,6 +374,7 @@ class PicowsConnection(WSListener, Connection):
     def pause_writing(self) -> None:
         if self._writable is None:
             self._writable = self._loop.create_future()
+            self.congested = True
             if self._write_timeout is not None and self._ended is None:
                 self._stall = self._loop.call_later(self._write_timeout, self._stalled)
 
@@ -366,6 +383,7 @@ class PicowsConnection(WSListener, Connection):
             self._stall.cancel()
             self._stall = None
         writable, self._writable = self._writable, None
+        self.congested = False
         if writable is not None and not writable.done():
             writable.set_result(None)
 
@@ -398,6 +416,12 @@ class PicowsConnection(WSListener, Connection):
         data = message.encode() if isinstance(message, str) else message
         if self._framing:
             corked = self._corked
+            if self._answering and len(data) <= PICOWS_COPIES and not corked:
+                # The reply to the last frame of a read, and nothing held: what _flush would
+                # do with it at the read's end, done now, without framing it here first.
+                self._answering = False
+                ws.send(_TEXT, data)
+                return
             if not self._flush_due:
                 self._flush_due = True
                 self._loop.call_soon(self._flush_later)
@@ -451,11 +475,6 @@ class PicowsConnection(WSListener, Connection):
         if not self._reading and self._ws is not None:
             self._reading = True
             self._ws.underlying_transport.resume_reading()
-
-    @property
-    def congested(self) -> bool:
-        """Whether the socket's buffer is past its high-water mark: a ``send`` would wait."""
-        return self._writable is not None
 
     def buffered(self) -> int:
         ws = self._ws
