@@ -144,6 +144,11 @@ def test_send_goal_to_a_service_is_a_usage_error(
     assert "/trigger is the service std_srvs/srv/Trigger, not an action: use srvwire call" in err
 
 
+def interruptible() -> None:
+    """In a child before it runs the command: SIGINT to its default action."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_cancels_the_goal_on_the_server(url: str) -> None:
     command = [sys.executable, "-m", "srvwire", "action", "send_goal", "/forever", "{}"]
     process = subprocess.Popen(
@@ -151,6 +156,10 @@ def test_ctrl_c_cancels_the_goal_on_the_server(url: str) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # Ctrl-C as a terminal delivers it: a shell starts a background job (the suite run
+        # with `&` from a script) with SIGINT ignored, and its children inherit that, so
+        # Python would not raise KeyboardInterrupt and the goal would run to its deadline.
+        preexec_fn=interruptible,
     )
     try:
         assert process.stdout is not None
