@@ -77,10 +77,6 @@ class ServerProcess:
             self.done = True
             self.changed.notify_all()
 
-    def log(self) -> str:
-        with self.changed:
-            return "".join(self.lines)
-
     def wait_for_log(self, pattern: re.Pattern[str], timeout: float) -> re.Match[str]:
         """Wait until the server logs a line matching ``pattern``; fail after ``timeout``."""
         deadline = time.monotonic() + timeout
@@ -116,8 +112,10 @@ class RunningServer:
     def process(self) -> subprocess.Popen[str]:
         return self.server.process
 
-    def log(self) -> str:
-        return self.server.log()
+    def wait_for_line(self, text: str) -> None:
+        """Wait until the server has logged ``text``: it logs before it replies, but its log
+        comes through a pipe that the test's reader thread may not have read yet."""
+        self.server.wait_for_log(re.compile(re.escape(text)), scaled(10))
 
 
 @contextlib.contextmanager
@@ -201,9 +199,8 @@ async def test_the_demo_sequence(robot_server: RunningServer) -> None:
             "names": ["is_calibrated"],
         },
     ]
-    log = robot_server.log()
-    assert "query 'position'" in log
-    assert "command 'move'" in log
+    robot_server.wait_for_line("query 'position'")
+    robot_server.wait_for_line("command 'move'")
 
 
 async def test_the_joint_state_publisher_moves_the_robot(
@@ -326,7 +323,7 @@ def test_the_blocking_client_script(robot_server: RunningServer) -> None:
     )
     assert (result.returncode, result.stderr) == (0, "")
     assert result.stdout == sync_client_transcript()
-    assert "command 'move'" in robot_server.log()
+    robot_server.wait_for_line("command 'move'")
 
 
 def test_the_blocking_topics_and_action_script(
@@ -339,7 +336,7 @@ def test_the_blocking_topics_and_action_script(
     every = [f"calibrating joint_{i} ({i * 20}%)" for i in range(5)]
     feedback = lines[1:-1]  # the latest each time: a slow reader may skip some, in order
     assert feedback and feedback == [line for line in every if line in feedback]
-    assert "calibrate -> Robot calibrated" in robot_server.log()
+    robot_server.wait_for_line("calibrate -> Robot calibrated")
 
 
 def test_the_blocking_client_script_without_a_server() -> None:
