@@ -9,8 +9,11 @@ no srvwire end does on purpose.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
 from ssl import SSLContext
 from typing import Any
 
@@ -18,13 +21,16 @@ import pytest
 from websockets.client import ClientProtocol
 from websockets.frames import Close, Frame, Opcode
 from websockets.http11 import Request
-from websockets.protocol import Protocol
+from websockets.protocol import Protocol, State
 from websockets.server import ServerProtocol
 from websockets.uri import parse_uri
 
 from conftest import Echo, Hang
 from srvwire import ConnectionLost, connect
+from srvwire.inline import Pending, finish, first_step
 from srvwire.server import Server, serve
+from srvwire.transports.base import Connection, Options
+from srvwire.transports.websockets import WebSocketsConnection, WebSocketsTransport
 from support import scaled, tls_on_localhost
 
 both_transports = pytest.mark.parametrize("transport", ["websockets", "picows"])
@@ -203,3 +209,88 @@ async def test_replies_in_the_same_read_as_the_servers_close_reach_their_calls(
     assert [r.text for r in results[:2]] == ["0", "1"]
     assert type(results[2]) is ConnectionLost
     assert results[2].data["close_code"] == 1001
+
+
+@contextlib.asynccontextmanager
+async def raw_pair(receive: Callable[[Connection, str | bytes], None]) -> AsyncIterator[Pair]:
+    """A websockets-transport server connection that hands its messages to ``receive`` (with
+    itself) in the read callback, and a raw client connected to it, past the handshake."""
+    accepted: asyncio.Queue[Connection] = asyncio.Queue()
+    done = asyncio.Event()
+
+    async def handler(connection: Connection) -> None:
+        accepted.put_nowait(connection)
+        await done.wait()
+
+    listener = await WebSocketsTransport().listen(handler, "127.0.0.1", 0, Options())
+    try:
+        port = int(listener.url.rstrip("/").rsplit(":", 1)[1])
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        client = RawEnd(ClientProtocol(parse_uri(listener.url)), reader, writer)
+        client.protocol.send_request(client.protocol.connect())
+        client.write()
+        async with asyncio.timeout(scaled(5)):
+            server = await accepted.get()
+            while client.protocol.state is State.CONNECTING:
+                assert await client.read()
+        server.deliver_to(lambda message: receive(server, message))
+        yield Pair(client, server)
+    finally:
+        done.set()
+        listener.close()
+        async with asyncio.timeout(scaled(5)):
+            await listener.wait_closed()
+
+
+@dataclass
+class Pair:
+    client: RawEnd
+    server: Connection
+
+
+async def test_a_close_begun_as_the_clients_close_is_answered_waits_for_that_answer(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A server's close begun from a message that came with the client's close (as a handler's
+    first step, run in the read callback, or an eager task would begin it) finds the client's
+    close being answered: that answer is the one close the server sends, and the close returns
+    once the connection has ended."""
+    closing: list[Pending | None] = []
+
+    def receive(server: Connection, message: str | bytes) -> None:
+        if message == "close-me":
+            closing.append(first_step(server.close(1001, "going away")))
+
+    async with raw_pair(receive) as pair:
+        pair.client.protocol.send_text(b"close-me")
+        pair.client.protocol.send_close(1000)
+        pair.client.write()
+        assert await pair.client.to_the_end() == [("close", 1000)]
+        [pending] = closing
+        if pending is not None:
+            async with asyncio.timeout(scaled(5)):
+                await finish(pending)
+        assert pair.server.close_code == 1000
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
+async def test_a_message_refused_as_the_clients_close_is_answered_is_the_close_sent(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A receiver that fails on a message that came with the client's close: the server's
+    close is 1011 instead of the echo, and websockets records that close as the one sent."""
+
+    def receive(server: Connection, message: str | bytes) -> None:
+        raise RuntimeError("the receiver broke")
+
+    async with raw_pair(receive) as pair:
+        pair.client.protocol.send_text(b"break")
+        pair.client.protocol.send_close(1000)
+        pair.client.write()
+        assert await pair.client.to_the_end() == [("close", 1011)]
+        server = pair.server
+        assert isinstance(server, WebSocketsConnection)
+        sent = server._ws.protocol.close_sent
+        assert sent is not None and sent.code == 1011
+    [record] = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert record.getMessage() == "the receiver of messages failed; closing the connection"

@@ -182,6 +182,8 @@ LARGE_MESSAGE = 2**16
 apart, in two socket writes, rather than copying the payload behind the header (a shorter
 message goes out in one write, header and payload joined); and reads its payload without
 copying it out of websockets' reader (see the module's docstring)."""
+# A large message's frame has its length in eight bytes, which RFC 6455 allows only from 2**16.
+assert LARGE_MESSAGE >= 2**16
 
 DEFAULT_WRITE_LIMIT = 2**15
 """websockets' own high-water mark, for ``max_queued_bytes=None``."""
@@ -386,6 +388,8 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             super().data_received(data)
         finally:
             pushing.read_ends()
+        if self.refused is not None:  # websockets took its echo of the peer's close as sent
+            self.protocol.close_sent = self.refused
 
     def process_event(self, event: Event) -> None:
         receive = self.receive
@@ -873,9 +877,17 @@ class WebSocketsConnection(Connection):
             self._ws.send_data()
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
-        if self._ws.held_back:  # the peer's close frame, or its dropping, must be read
+        ws = self._ws
+        if ws.held_back:  # the peer's close frame, or its dropping, must be read
             self.resume_reading()
-        await self._ws.close(code, reason)
+        protocol = ws.protocol
+        if protocol.state is OPEN and protocol.close_rcvd is not None:
+            # Begun while the peer's close is being answered (_Watched.send_close_last hands
+            # the messages before it over, and one of them led here at once: a handler's first
+            # step, an eager task): that answer is this side's close, so wait for the end.
+            await ws.wait_closed()
+            return
+        await ws.close(code, reason)
 
     # Read from the close frames, as _closed does, so that closed() says what recv raised:
     # websockets' own close_code says 1006 where this side failed the connection with 1009.
