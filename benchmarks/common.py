@@ -87,6 +87,9 @@ def python_steps(run: Callable[[int], int], calls: int) -> dict[str, float]:
                 counted[f"{code.co_filename.rsplit('/', 1)[-1]}:{code.co_name}"] += 1
             return trace
 
+        # Python 3.12 turns opcode events on only for a frame that asks before tracing starts;
+        # one set from the trace function alone gives none (3.11 takes either).
+        sys._getframe().f_trace_opcodes = True
         sys.settrace(trace)
         try:
             made = run(calls)
