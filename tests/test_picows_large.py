@@ -142,6 +142,27 @@ async def test_a_fragment_past_the_limit_closes_with_1009_and_the_size_so_far() 
         )
 
 
+@pytest.mark.parametrize(
+    ("frames", "code"),
+    [
+        ([frame(Opcode.TEXT, b"x" * 11)], 1009),
+        ([frame(Opcode.TEXT, b"x" * 8, fin=False), frame(Opcode.CONT, b"y" * 8)], 1009),
+        ([frame(Opcode.TEXT, b"\xff")], 1007),
+        ([frame(Opcode.CONT, b"nothing to continue")], 1002),
+    ],
+    ids=["over the limit", "fragments over the limit", "not utf-8", "continuation alone"],
+)
+async def test_a_message_behind_a_frame_that_fails_the_connection_is_not_delivered(
+    frames: list[bytes], code: int
+) -> None:
+    """Once this side has failed the connection, nothing it reads is delivered (RFC 6455,
+    section 7.1.7): not even a valid message that came in the same read, behind the frame
+    (websockets' parser stops at such a frame)."""
+    async with raw_peer(PicowsTransport(), Options(max_message_size=10)) as (sock, server):
+        await send(sock, *frames, frame(Opcode.TEXT, b"after"))
+        assert (await closed_with(server)).code == code
+
+
 # How many copies of a large message picows makes while reading it
 
 

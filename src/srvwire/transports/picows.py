@@ -214,6 +214,7 @@ class PicowsConnection(WSListener, Connection):
         "_corked",
         "_corked_size",
         "_ended",
+        "_failed",
         "_flush_due",
         "_framing",
         "_gone",
@@ -274,6 +275,9 @@ class PicowsConnection(WSListener, Connection):
         # Whether the cork will be flushed without send asking: a _flush_later is scheduled,
         # or on_ws_frame is running (it flushes after the read's last frame).
         self._flush_due = False
+        # Whether this side failed the connection: nothing read after that is delivered
+        # (RFC 6455, section 7.1.7), such as a message behind the failing frame in its read.
+        self._failed = False
         # Whether the last frame of a read is being handed over: a server's first small
         # message sent meanwhile, with nothing corked, goes out at once (see send).
         self._answering = False
@@ -568,7 +572,10 @@ class PicowsConnection(WSListener, Connection):
         self._deliver(message)
 
     def _deliver(self, message: str | bytes) -> None:
-        """Hand ``message`` to the receiver, or queue it for ``recv``."""
+        """Hand ``message`` to the receiver, or queue it for ``recv``; drop it once this side
+        has failed the connection."""
+        if self._failed:
+            return
         if self._receive is not None:
             self._handed += 1
             self._receive(message)
@@ -649,6 +656,7 @@ class PicowsConnection(WSListener, Connection):
         ws = self._ws
         if ws is None or self._ended is not None:
             return
+        self._failed = True
         if not ws.is_close_frame_sent:
             self._send_close(code, reason)
         ws.disconnect(graceful)
