@@ -918,18 +918,31 @@ async def test_a_raw_reply_that_is_not_the_response_it_opens_as_fails_the_connec
     assert not client.connected
 
 
+@pytest.mark.parametrize(
+    ("bad", "split", "why"),
+    [
+        (b"\xff", False, "invalid start byte"),
+        # Half a character ends the first fragment, so each frame on its own could still be
+        # the start of valid text: only the joined message is not UTF-8.
+        (b"\xc3x", True, "invalid continuation byte"),
+    ],
+    ids=["one frame", "fragments"],
+)
 async def test_invalid_utf8_in_a_reply_routed_unparsed_still_closes_with_1007(
-    peer: FakePeer, client: Client
+    peer: FakePeer, client: Client, bad: bytes, split: bool, why: str
 ) -> None:
     task = asyncio.create_task(client.call("/trigger", timeout=scaled(30)))
     request = await peer.next("/trigger")
     ws = peer.connections[0]
-    text = compact(request["id"], '{"success":true,"message":"\xff"}').encode("latin-1")
-    await ws.send(text, text=True)  # a text frame that is not UTF-8
+    text = compact(request["id"], '{"success":true,"message":"?"}').encode().replace(b"?", bad)
+    position = text.index(bad)
+    if split:  # a text message in two frames, cut after the half character
+        await ws.send([text[: position + 1], text[position + 1 :]], text=True)
+    else:
+        await ws.send(text, text=True)  # a text frame that is not UTF-8
     with pytest.raises(ConnectionLost) as caught:
         await task
-    position = text.index(b"\xff")
-    reason = f"invalid start byte at position {position}"
+    reason = f"{why} at position {position}"
     assert caught.value.message == f"the connection closed with code 1007 ({reason})"
     assert caught.value.data == {"close_code": 1007, "close_reason": reason, "url": peer.url}
     await asyncio.wait_for(ws.wait_closed(), scaled(5))

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 from websockets.asyncio.client import connect as ws_connect
 from websockets.client import ClientProtocol
+from websockets.exceptions import ConnectionClosed
 from websockets.frames import Frame, Opcode
 from websockets.sync.client import connect as sync_connect
 from websockets.uri import parse_uri
@@ -800,6 +801,30 @@ async def test_binary_frames_are_read_as_utf8(running: RunningServer) -> None:
 async def test_invalid_utf8_in_a_text_message_closes_the_connection(wire: Wire) -> None:
     await wire.ws.send(b'"\xff"')  # bytes go out as a text message, as they are
     assert await closed_code(wire) == 1007
+
+
+@real_websockets
+async def test_fragments_not_utf8_once_joined_close_that_connection_alone_with_1007(
+    running: RunningServer,
+) -> None:
+    async with (
+        ws_connect(running.url, compression=None) as bad,
+        ws_connect(running.url, compression=None) as good,
+        asyncio.timeout(scaled(5)),
+    ):
+        for ws in (bad, good):
+            await ws.recv()  # $/services
+        # Each fragment ends where valid text could go on ("\xc3" begins a character); the
+        # joined message is not UTF-8.
+        text = json.dumps(request("echo", {"text": "?"})).encode()
+        cut = text.index(b"?")
+        await bad.send([text[:cut] + b"\xc3", b"x" + text[cut + 1 :]], text=True)
+        with pytest.raises(ConnectionClosed):
+            await bad.recv()
+        assert bad.close_code == 1007
+        assert bad.close_reason == f"invalid continuation byte at position {cut}"
+        await good.send(json.dumps(request("echo", {"text": "still here"})))
+        assert json.loads(await good.recv())["result"] == {"text": "still here"}
 
 
 async def test_bad_input_is_answered_and_the_connection_carries_on(wire: Wire) -> None:
