@@ -579,15 +579,19 @@ async def test_a_thousand_timeouts_leave_nothing_pending(peer: FakePeer, client:
     results = await asyncio.gather(*calls, return_exceptions=True)
     assert all(isinstance(r, DeadlineExceeded) for r in results)
     assert client.in_flight == 0
+    # Every call given up on sends a $/cancel; a request still waiting for room to be written
+    # when its deadline passed is never written, but cancelled all the same. The peer is read
+    # for as long as the 2 000 messages take to arrive (on a loaded machine, seconds apart):
+    # only the suite's timeout bounds it.
     requested: set[int] = set()
     cancelled: set[int] = set()
     while len(cancelled) < 1000:
-        message = await peer.next()
+        message = await peer.received.get()
         if message["method"] == "$/cancel":
             cancelled.add(message["params"]["id"])
         else:
             requested.add(message["id"])
-    assert cancelled == requested
+    assert requested <= cancelled
 
 
 async def test_cancelling_the_caller_cancels_the_call_on_the_server(
