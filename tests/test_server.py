@@ -9,14 +9,16 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 from websockets.asyncio.client import connect as ws_connect
 from websockets.client import ClientProtocol
+from websockets.exceptions import ConnectionClosed
 from websockets.frames import Frame, Opcode
 from websockets.sync.client import connect as sync_connect
 from websockets.uri import parse_uri
@@ -29,6 +31,7 @@ from srvwire.errors import RegistrationError, ServiceError
 from srvwire.loader import InterfaceLoader
 from srvwire.server import RunningServer, Server, serve
 from srvwire.serving import CallRunner, ServedConnection
+from srvwire.threads import HandlerThreads
 from srvwire.transports.base import Options, Transport, TransportClosed
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
 from srvwire.transports.picows import PicowsConnection
@@ -39,6 +42,8 @@ from support import ROOT, scaled
 Sum = build("int64 a\nint64 b\nint64 c\n---\nint64 sum\n", "Sum")
 Notify = build("int64[] values\n---\n", "Notify")
 GetData = build("---\nstring text\nint64 count\n", "GetData")
+
+T = TypeVar("T")
 
 
 def request(method: str, params: Any = None, id: Any = 1) -> dict[str, Any]:
@@ -800,6 +805,30 @@ async def test_binary_frames_are_read_as_utf8(running: RunningServer) -> None:
 async def test_invalid_utf8_in_a_text_message_closes_the_connection(wire: Wire) -> None:
     await wire.ws.send(b'"\xff"')  # bytes go out as a text message, as they are
     assert await closed_code(wire) == 1007
+
+
+@real_websockets
+async def test_fragments_not_utf8_once_joined_close_that_connection_alone_with_1007(
+    running: RunningServer,
+) -> None:
+    async with (
+        ws_connect(running.url, compression=None) as bad,
+        ws_connect(running.url, compression=None) as good,
+        asyncio.timeout(scaled(5)),
+    ):
+        for ws in (bad, good):
+            await ws.recv()  # $/services
+        # Each fragment ends where valid text could go on ("\xc3" begins a character); the
+        # joined message is not UTF-8.
+        text = json.dumps(request("echo", {"text": "?"})).encode()
+        cut = text.index(b"?")
+        await bad.send([text[:cut] + b"\xc3", b"x" + text[cut + 1 :]], text=True)
+        with pytest.raises(ConnectionClosed):
+            await bad.recv()
+        assert bad.close_code == 1007
+        assert bad.close_reason == f"invalid continuation byte at position {cut}"
+        await good.send(json.dumps(request("echo", {"text": "still here"})))
+        assert json.loads(await good.recv())["result"] == {"text": "still here"}
 
 
 async def test_bad_input_is_answered_and_the_connection_carries_on(wire: Wire) -> None:
@@ -1799,18 +1828,35 @@ async def test_a_deadline_cancels_the_handler_and_marks_its_context(
         await w.ws.close()
 
 
-async def test_a_sync_handler_past_its_deadline_sees_cancelled(
-    server: Server, transport: Transport
-) -> None:
+class StartingFirst(HandlerThreads):
+    """Handler threads whose ``submit`` returns once the handler has set ``started``: the
+    event loop, held meanwhile, cannot pass a call's deadline before its handler runs,
+    however long a loaded machine takes to schedule the thread (a call whose deadline passes
+    while it waits for its thread never runs its handler)."""
+
+    def __init__(self, started: threading.Event) -> None:
+        super().__init__()
+        self.started = started
+
+    def submit(self, fn: Callable[..., T], /, *args: Any, **kwargs: Any) -> Future[T]:
+        future = super().submit(fn, *args, **kwargs)
+        self.started.wait(scaled(10))
+        return future
+
+
+async def test_a_sync_handler_past_its_deadline_sees_cancelled(transport: Transport) -> None:
+    started = threading.Event()
     release = threading.Event()
     observed = threading.Event()
 
     def handler(request: Any, context: Context) -> Any:
+        started.set()
         release.wait(scaled(10))
         if context.cancelled:
             observed.set()
         return {"text": "late"}
 
+    server = Server(grace_period=scaled(2), executor=StartingFirst(started))
     server.add_service("/blocks", Echo, handler)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
         w = await open_wire(running)
