@@ -577,20 +577,34 @@ async def test_a_deadline_against_a_peer_that_never_answers(peer: FakePeer, clie
 
 
 async def test_a_thousand_timeouts_leave_nothing_pending(peer: FakePeer, client: Client) -> None:
+    assert client._link is not None
+    session = client._link.session
+    issued: set[int] = set()  # the ids of the calls the client wrote a request for
+    request = session.request
+
+    def recording(method: str, *args: Any) -> tuple[int, bytes]:
+        id, data = request(method, *args)
+        issued.add(id)
+        return id, data
+
+    session.request = recording  # type: ignore[method-assign]
     calls = [client.call(ADD, {"a": i, "b": 0}, timeout=scaled(0.3)) for i in range(1000)]
     results = await asyncio.gather(*calls, return_exceptions=True)
     assert all(isinstance(r, DeadlineExceeded) for r in results)
     assert client.in_flight == 0
-    # Every call given up on sends a $/cancel; a request still waiting for room to be written
-    # when its deadline passed is never written, but cancelled all the same. The peer is read
-    # for as long as the 2 000 messages take to arrive (on a loaded machine, seconds apart):
-    # only the suite's timeout bounds it.
+    # Every call given up on after its request was made sends a $/cancel; a request still
+    # waiting for room to be written when its deadline passed is never written, but cancelled
+    # all the same. On a loaded machine a call may find its deadline passed before it makes its
+    # request (all of them wait for the first to prepare the service): it has nothing to
+    # cancel. The peer is read for as long as the messages take to arrive, seconds apart on a
+    # loaded machine: only the suite's timeout bounds it.
     requested: set[int] = set()
     cancelled: set[int] = set()
-    while len(cancelled) < 1000:
+    while cancelled != issued:
         message = await peer.received.get()
         if message["method"] == "$/cancel":
             cancelled.add(message["params"]["id"])
+            assert cancelled <= issued
         else:
             requested.add(message["id"])
     assert requested <= cancelled
