@@ -1453,8 +1453,15 @@ async def test_a_picows_servers_reply_to_a_reads_last_frame_goes_out_as_it_is_ma
         msg_type: Any = WSMsgType.TEXT
         fin: bool = True
 
+        @property
+        def payload_size(self) -> int:
+            return len(self.payload)
+
         def get_payload_as_bytes(self) -> bytes:
             return self.payload
+
+        def get_payload_as_utf8_text(self) -> str:
+            return self.payload.decode()
 
     conn = PicowsConnection(Options())
     ws = FakeWS()
