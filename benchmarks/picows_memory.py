@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import sys
 from asyncio.subprocess import PIPE
 from typing import Any
 
-from srvwire.transports.base import Connection, Options, Transport
+from srvwire.transports.base import Connection, Options, Transport, TransportClosed
 from srvwire.transports.picows import PicowsTransport
 from srvwire.transports.websockets import WebSocketsTransport
 
@@ -64,6 +65,9 @@ async def child(args: argparse.Namespace) -> None:
             await connection.recv()
     print(rss_kib(), flush=True)
     await stdin.readline()
+    if args.side == "client":
+        for connection in connections:
+            await connection.close()
 
 
 async def parent(args: argparse.Namespace) -> int:
@@ -86,7 +90,8 @@ async def parent(args: argparse.Namespace) -> int:
         async def reply(connection: Connection) -> None:
             await connection.recv()
             await connection.send(payload)
-            await connection.recv()  # until the child ends
+            with contextlib.suppress(TransportClosed):
+                await connection.recv()  # until the child closes it
 
         listener = await peer.listen(reply, "127.0.0.1", 0, OPTIONS)
         command += ["--port", str(listener.port)]
