@@ -4,8 +4,10 @@ The measured process runs in a child: a server on ``--transport`` (picows or web
 ``--connections`` clients each send one message of ``--size`` bytes (answered with ``ok``),
 or, with ``--side client``, a process holding that many client connections that were each
 sent one reply of ``--size`` bytes. The peer is this process, on the websockets transport.
-Once every message has been received, the child prints its ``VmRSS`` (from
-``/proc/self/status``) in KiB; run it with a small ``--size`` for the baseline::
+Once every message has been received, the child reports its ``VmRSS`` (from
+``/proc/self/status``), its minor page faults and its CPU time since it started; run it with a
+small ``--size`` for the baseline. ``--messages`` sends each connection that many, one at a
+time, to count what reading the next large message costs once the pages are given back::
 
     python benchmarks/picows_memory.py --transport picows --connections 200 --size 1048576
     python benchmarks/picows_memory.py --transport picows --connections 200 --size 100
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import resource
 import sys
 from asyncio.subprocess import PIPE
 from typing import Any
@@ -61,19 +64,23 @@ async def child(args: argparse.Namespace) -> None:
             await transport(args.transport).connect(url, OPTIONS) for _ in range(args.connections)
         ]
         for connection in connections:  # one at a time, as the server's side
-            await connection.send("go")
-            await connection.recv()
-    print(rss_kib(), flush=True)
+            for _ in range(args.messages):
+                await connection.send("go")
+                await connection.recv()
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = usage.ru_utime + usage.ru_stime
+    print(rss_kib(), usage.ru_minflt, f"{cpu:.3f}", flush=True)
     await stdin.readline()
     if args.side == "client":
         for connection in connections:
             await connection.close()
 
 
-async def parent(args: argparse.Namespace) -> int:
+async def parent(args: argparse.Namespace) -> None:
     payload = "x" * args.size
     command = [__file__, "--child", "--side", args.side]
     command += ["--transport", args.transport, "--connections", str(args.connections)]
+    command += ["--messages", str(args.messages)]
     peer = WebSocketsTransport()
     pipes: dict[str, Any] = {"stdin": PIPE, "stdout": PIPE}
     if args.side == "server":
@@ -82,14 +89,16 @@ async def parent(args: argparse.Namespace) -> int:
         url = f"ws://127.0.0.1:{int(await process.stdout.readline())}/"
         clients = [await peer.connect(url, OPTIONS) for _ in range(args.connections)]
         for client in clients:  # one at a time: the server holds one message at once
-            await client.send(payload)
-            assert await client.recv() == "ok"
+            for _ in range(args.messages):
+                await client.send(payload)
+                assert await client.recv() == "ok"
         process.stdin.write(b"\n")
     else:
 
         async def reply(connection: Connection) -> None:
-            await connection.recv()
-            await connection.send(payload)
+            for _ in range(args.messages):
+                await connection.recv()
+                await connection.send(payload)
             with contextlib.suppress(TransportClosed):
                 await connection.recv()  # until the child closes it
 
@@ -97,13 +106,14 @@ async def parent(args: argparse.Namespace) -> int:
         command += ["--port", str(listener.port)]
         process = await asyncio.create_subprocess_exec(sys.executable, *command, **pipes)
         assert process.stdin is not None and process.stdout is not None
-    rss = int(await process.stdout.readline())
+    rss, faults, cpu = (await process.stdout.readline()).split()
     process.stdin.write(b"\n")
     process.stdin.close()
     await process.wait()
     print(f"{args.side} on {args.transport}, {args.connections} connections, "
-          f"one message of {args.size} bytes each: VmRSS {rss / 1024:.1f} MiB")  # fmt: skip
-    return rss
+          f"{args.messages} message(s) of {args.size} bytes each: "
+          f"VmRSS {int(rss) / 1024:.1f} MiB, {int(faults)} minor page faults, "
+          f"CPU {float(cpu):.3f} s")  # fmt: skip
 
 
 def main() -> None:
@@ -112,6 +122,7 @@ def main() -> None:
     parser.add_argument("--side", choices=["server", "client"], default="server")
     parser.add_argument("--connections", type=int, default=200)
     parser.add_argument("--size", type=int, default=2**20)
+    parser.add_argument("--messages", type=int, default=1, help="each connection receives")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
