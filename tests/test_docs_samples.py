@@ -121,6 +121,10 @@ COMMANDS: dict[str, str] = {
         "a benchmark of a client that never reads, tens of seconds long: tests/test_limits.py "
         "checks the same bound and the write timeout"
     ),
+    r"python benchmarks/picows_memory\.py .*": (
+        "the resident memory of idle connections after a large message, seconds long: "
+        "tests/test_picows_memory.py runs it"
+    ),
     r"python benchmarks/worst_message\.py .*": (
         "a benchmark of the worst 1 MiB messages, a minute long: tests/test_server.py checks "
         "that their replies stay small"

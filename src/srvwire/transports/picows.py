@@ -64,7 +64,9 @@ while connecting -> :class:`TransportError`, saying why as the ``websockets`` tr
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import logging
+import mmap
 import os
 import socket
 import ssl as _ssl
@@ -142,6 +144,13 @@ CLIENT_WRITE_AT = 2**12
 """Bytes of held messages at which a client writes them without waiting for the turn's end:
 a pipelined client's calls then reach the server in a few writes, and the server works on the
 first while the client makes the next, instead of the two ends taking turns."""
+RELEASE_AT = 2**16
+"""A frame larger than this, once ``picows`` is done with it, has the pages of ``picows``' read
+buffer past its first :data:`KEEP_READ` free bytes handed back to the system (see
+:func:`_release_read_buffer`): the buffer grew to hold the frame and never shrinks, so without this
+every connection that once received a large message keeps that much resident memory."""
+KEEP_READ = 2**14
+"""Free bytes of ``picows``' read buffer, past what it holds, kept resident for the next reads."""
 FRAME_SLACK = 4
 """``picows``' own frame limit is this many times ``max_message_size`` (see the module)."""
 
@@ -153,6 +162,13 @@ _CLOSE = WSMsgType.CLOSE
 _PONG = WSMsgType.PONG
 
 log = logging.getLogger(__name__)
+
+_MADV_DONTNEED: int | None = getattr(mmap, "MADV_DONTNEED", None)  # None where no madvise
+_madvise: Any = None
+if _MADV_DONTNEED is not None:
+    _madvise = ctypes.CDLL(None, use_errno=True).madvise
+    _madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    _madvise.restype = ctypes.c_int
 
 
 def _header(size: int) -> bytes:
@@ -189,6 +205,26 @@ def _masked_frames(messages: Sequence[bytes]) -> bytes:
     return b"".join(parts)
 
 
+def _release_read_buffer(protocol: WSProtocol) -> None:
+    """Hand back to the system the pages of ``protocol``'s read buffer past its first
+    :data:`KEEP_READ` free bytes (``madvise(MADV_DONTNEED)``): they stay the buffer's, and read
+    as zeros when a later read fills them, but are no longer resident. Nothing is copied.
+
+    ``picows``' ``get_buffer`` returns the buffer's free part, from the end of what it holds to
+    its end: what the next read may fill, so nothing there is read before it is written. Run
+    from the event loop between reads (never inside one: the event loops srvwire runs on take
+    a buffer and fill it within one callback)."""
+    if _madvise is None:
+        return
+    view = protocol.get_buffer(-1)
+    start = ctypes.addressof(ctypes.c_char.from_buffer(view))
+    page = mmap.PAGESIZE
+    first = -(-(start + KEEP_READ) // page) * page  # the first whole page past KEEP_READ
+    end = (start + len(view)) // page * page
+    if end > first:
+        _madvise(first, end - first, _MADV_DONTNEED)
+
+
 def _url(host: str, port: int, tls: bool = False) -> str:
     """Return the ``ws://`` (``wss://``) URL of ``host``:``port``, an IPv6 host in brackets."""
     scheme = "wss" if tls else "ws"
@@ -220,6 +256,7 @@ class PicowsConnection(WSListener, Connection):
         "_gone",
         "_handed",
         "_keepalive",
+        "_large",
         "_limit",
         "_loop",
         "_messages",
@@ -252,6 +289,8 @@ class PicowsConnection(WSListener, Connection):
         self._loop = asyncio.get_running_loop()
         self._ws: WSTransport | None = None
         self._limit = options.max_message_size
+        # A frame past this is over the limit, or grew picows' read buffer (see _whole).
+        self._large = RELEASE_AT if self._limit is None else min(self._limit, RELEASE_AT)
         self._ping_interval = options.ping_interval
         self._ping_timeout = options.ping_timeout
         self._keepalive: asyncio.TimerHandle | None = None  # the next ping, or its deadline
@@ -531,10 +570,12 @@ class PicowsConnection(WSListener, Connection):
         ``str``, with no ``bytes`` of it made first (see docs/performance.md, "Large messages
         on the picows transport")."""
         size = frame.payload_size
-        limit = self._limit
-        if limit is not None and size > limit:
-            self._fail(1009, self._too_big(size))
-            return
+        if size > self._large:  # one check on the path of small messages
+            limit = self._limit
+            if limit is not None and size > limit:
+                self._fail(1009, self._too_big(size))
+                return
+            self._loop.call_soon(self._release)  # once picows is done with this read
         if text:
             try:
                 message: str | bytes = frame.get_payload_as_utf8_text()
@@ -557,6 +598,8 @@ class PicowsConnection(WSListener, Connection):
             self._fail(1009, self._too_big(len(parts) + frame.payload_size))
             return False
         parts += frame.get_payload_as_memoryview()  # copied here, within on_ws_frame
+        if frame.payload_size > RELEASE_AT:
+            self._loop.call_soon(self._release)
         return True
 
     def _assembled(self, payload: bytearray) -> None:
@@ -592,6 +635,12 @@ class PicowsConnection(WSListener, Connection):
         side = "client" if self._ws is not None and self._ws.is_client_side else "server"
         limit = self._limit
         return f"over the {side}'s max_message_size (message of {size} bytes, limit {limit} bytes)"
+
+    def _release(self) -> None:
+        """Give back the pages of picows' read buffer that a large frame grew it by."""
+        ws = self._ws
+        if ws is not None and self._ended is None:
+            _release_read_buffer(ws.underlying_transport.get_protocol())
 
     def _wake(self) -> None:
         waiter = self._waiter
