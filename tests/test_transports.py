@@ -1380,6 +1380,29 @@ async def test_a_receiver_that_pauses_picows_reading_as_it_takes_the_queue_keeps
         assert server._reading
 
 
+class FakeSocket:
+    """What a picows connection writes to its socket, kept."""
+
+    def __init__(self) -> None:
+        self.written: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.written.append(bytes(data))
+
+
+class FakePicowsTransport:
+    """A stand-in for picows' WSTransport: what goes through its send, and its socket's writes."""
+
+    is_close_frame_sent = False
+
+    def __init__(self) -> None:
+        self.underlying_transport = FakeSocket()
+        self.sent: list[bytes] = []
+
+    def send(self, kind: Any, message: bytes) -> None:
+        self.sent.append(message)
+
+
 @pytest.mark.parametrize("size", [8192, 8193, 60_000])
 async def test_a_lone_reply_goes_through_picows_send_only_when_picows_copies_it(size: int) -> None:
     # Over 8 KiB picows' send writes the header as a view of a buffer it reuses, which asyncio
@@ -1387,26 +1410,9 @@ async def test_a_lone_reply_goes_through_picows_send_only_when_picows_copies_it(
     # larger lone reply is framed here and written as one copy, as several replies are.
     from srvwire.transports.picows import PICOWS_COPIES, PicowsConnection, _header
 
-    class Underlying:
-        def __init__(self) -> None:
-            self.written: list[bytes] = []
-
-        def write(self, data: bytes) -> None:
-            self.written.append(bytes(data))
-
-    class FakeWS:
-        is_close_frame_sent = False
-
-        def __init__(self) -> None:
-            self.underlying_transport = Underlying()
-            self.sent: list[bytes] = []
-
-        def send(self, kind: Any, message: bytes) -> None:
-            self.sent.append(message)
-
     assert PICOWS_COPIES == 8192  # the sizes straddle it
     conn = PicowsConnection(Options())
-    ws = FakeWS()
+    ws = FakePicowsTransport()
     conn._ws = ws  # type: ignore[assignment]
     conn._framing = True  # a server's: it frames its own messages
     message = b"x" * size
@@ -1429,23 +1435,6 @@ async def test_a_picows_servers_reply_to_a_reads_last_frame_goes_out_as_it_is_ma
     from srvwire.inline import first_step
     from srvwire.transports.picows import PICOWS_COPIES, _header
 
-    class Underlying:
-        def __init__(self) -> None:
-            self.written: list[bytes] = []
-
-        def write(self, data: bytes) -> None:
-            self.written.append(bytes(data))
-
-    class FakeWS:
-        is_close_frame_sent = False
-
-        def __init__(self) -> None:
-            self.underlying_transport = Underlying()
-            self.sent: list[bytes] = []
-
-        def send(self, kind: Any, message: bytes) -> None:
-            self.sent.append(message)
-
     @dataclass
     class Frame:  # what on_ws_frame reads of picows' WSFrame
         payload: bytes
@@ -1464,7 +1453,7 @@ async def test_a_picows_servers_reply_to_a_reads_last_frame_goes_out_as_it_is_ma
             return self.payload.decode()
 
     conn = PicowsConnection(Options())
-    ws = FakeWS()
+    ws = FakePicowsTransport()
     conn._ws = ws  # type: ignore[assignment]
     conn._framing = True  # a server's
     seen: list[tuple[list[bytes], list[bytes]]] = []  # what went out, as each reply was made
