@@ -354,19 +354,26 @@ async def test_bytes_that_are_not_utf8_close_with_1007(transport: Transport) -> 
 # Flow control
 
 
-async def test_send_waits_while_the_peer_does_not_read(transport: Transport) -> None:
+@pytest.mark.parametrize("from_server", [False, True], ids=["client sends", "server sends"])
+async def test_send_waits_while_the_peer_does_not_read(
+    transport: Transport, from_server: bool
+) -> None:
     # 96 MiB is more than any buffer between the two ends can hold (socket buffers, the
     # receiver's queue of 16 messages, the memory transport's 64 KiB), so only reading it
-    # lets the sender finish.
+    # lets the sender finish. Messages of 1 MiB are large: each end writes them apart from
+    # their header, and they count against the budget all the same.
     size, count = 2**20, 96
     filler = "x" * size
     async with connected(transport) as pair:
+        sender_end, receiver = (
+            (pair.server, pair.client) if from_server else (pair.client, pair.server)
+        )
         sent = 0
 
         async def send_all() -> None:
             nonlocal sent
             for i in range(count):
-                await pair.client.send(f"{i:04}" + filler[4:])
+                await sender_end.send(f"{i:04}" + filler[4:])
                 sent += 1
 
         sender = asyncio.create_task(send_all())
@@ -374,9 +381,10 @@ async def test_send_waits_while_the_peer_does_not_read(transport: Transport) -> 
             await turns()
             assert not sender.done()
             assert sent < count
+            assert sender_end.congested
             async with asyncio.timeout(scaled(20)):
                 for i in range(count):
-                    message = await pair.server.recv()
+                    message = await receiver.recv()
                     assert (message[:4], len(message)) == (f"{i:04}", size)
                 await sender
             assert sent == count
