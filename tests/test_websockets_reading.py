@@ -174,10 +174,10 @@ def feed(reader: Any, n: int, pieces: list[bytes], eof: bool = False) -> Any:
 
 
 def test_the_reader_hands_over_a_large_payload_that_fills_it_as_its_buffer() -> None:
-    """From LARGE_MESSAGE bytes, the reader hands over its whole buffer when that is exactly
-    what is asked (a new buffer takes its place), as a client's does with a payload that came
-    whole before it was asked for; with bytes behind it, or a short count, it reads as
-    websockets' reader does."""
+    """From LARGE_MESSAGE bytes, a payload that came whole before it was asked for is handed
+    over as the reader's buffer when that holds exactly it (a new buffer takes its place); with
+    bytes behind it it is read as websockets' reader reads it; so is a short count, and a
+    payload that ends early fails with websockets' words."""
     from websockets.streams import StreamReader
 
     from srvwire.transports.websockets import LARGE_MESSAGE, _WholeReader
@@ -188,14 +188,18 @@ def test_the_reader_hands_over_a_large_payload_that_fills_it_as_its_buffer() -> 
 
     reader = _WholeReader()
     buffer = reader.buffer
-    taken = feed(reader, size, pieces)
+    reader.feed_data(payload)
+    taken = feed(reader, size, [])
     assert taken is buffer and taken == payload
     assert reader.buffer is not buffer and reader.buffer == b""
 
-    for make in (StreamReader, _WholeReader, in_place):  # the same answers from each
+    for make in (StreamReader, _WholeReader):  # the same answers from each
         reader = make()
         taken = feed(reader, size, [*pieces[:2], pieces[2] + b"next"])
         assert (taken, reader.buffer) == (payload, b"next")
+        reader = make()
+        reader.feed_data(payload + b"next")
+        assert (feed(reader, size, []), reader.buffer) == (payload, b"next")
         reader = make()
         assert feed(reader, 2, [b"\x81\x7f"]) == b"\x81\x7f"
         reader = make()
@@ -204,23 +208,14 @@ def test_the_reader_hands_over_a_large_payload_that_fills_it_as_its_buffer() -> 
             feed(reader, size, pieces[:1], eof=True)
 
 
-def in_place() -> Any:
-    """A client's reader: it reads a large payload into a buffer of the payload's size."""
-    from srvwire.transports.websockets import _WholeReader
-
-    reader = _WholeReader()
-    reader.in_place = True
-    return reader
-
-
 def test_a_clients_reader_reads_a_large_payload_into_a_buffer_of_its_size() -> None:
     """Once a large payload is asked for, what arrives goes into ``target``, the payload's own
     buffer, which is what is handed over; the bytes behind it stay in the reader's buffer."""
-    from srvwire.transports.websockets import LARGE_MESSAGE
+    from srvwire.transports.websockets import LARGE_MESSAGE, _WholeReader
 
     size = LARGE_MESSAGE * 3
     payload = bytes(range(251)) * (size // 251) + bytes(size % 251)
-    reader = in_place()
+    reader = _WholeReader()
     reader.feed_data(payload[:100])  # the first read: a header's worth and a little more
     reading = reader.read_exact(size)
     next(reading)
@@ -283,7 +278,7 @@ async def test_only_a_client_with_a_size_limit_reads_in_place() -> None:
                 async with asyncio.timeout(scaled(5)):
                     server = await accept(accepted)
                 reader = client._ws.whole_reader  # type: ignore[attr-defined]
-                assert (reader is not None and reader.in_place) is in_place
+                assert (reader is not None) is in_place
                 assert server._ws.whole_reader is None  # type: ignore[attr-defined]
             finally:
                 async with asyncio.timeout(scaled(5)):

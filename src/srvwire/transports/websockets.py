@@ -258,18 +258,16 @@ class _WholeReader(StreamReader):
     without copying it out of a buffer of its own: websockets' reader gathers a payload that
     spans many reads in its buffer and returns a copy of it.
 
-    On a client's connection with a size limit (``in_place``; only those have this reader), a
-    large payload not all read yet is read into a buffer of its size (``target``, which the
-    limit bounds: websockets checks a frame's length against it before it reads the payload),
-    which the connection hands the event loop to read the socket into: the payload comes from
-    the socket straight into the bytes it is handed over as, in reads as large as what has
-    arrived. Not in place (a server's peers are not trusted with memory they have not sent), or
-    already all read, a large payload is gathered as websockets gathers it, and handed over as
-    that buffer itself when the buffer holds exactly it. Anything else (a short read, more
-    bytes behind the payload) is read as websockets reads it.
+    Only a client's connection with a size limit has one (a server's peers are not trusted
+    with memory they have not sent). A large payload not all read yet is read into a buffer of
+    its size (``target``, which the limit bounds: websockets checks a frame's length against it
+    before it reads the payload), which the connection hands the event loop to read the socket
+    into: the payload comes from the socket straight into the bytes it is handed over as, in
+    reads as large as what has arrived. One already all read is handed over as the reader's
+    buffer itself when that holds exactly it, and read as websockets reads it when more bytes
+    follow it.
     """
 
-    in_place = False
     target: bytearray | None = None  # the payload being read in place
     filled = 0  # bytes of ``target`` read so far
 
@@ -282,10 +280,8 @@ class _WholeReader(StreamReader):
         return self.read_large(n)
 
     def read_large(self, n: int) -> Generator[None, None, bytearray]:
-        if self.in_place and len(self.buffer) < n:
+        if len(self.buffer) < n:
             return (yield from self.read_in_place(n))
-        while len(self.buffer) < n and not self.eof:
-            yield
         if len(self.buffer) == n:
             whole, self.buffer = self.buffer, bytearray()
             return whole
@@ -357,7 +353,6 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             reader = protocol.reader
             reader.__class__ = _WholeReader
             assert isinstance(reader, _WholeReader)
-            reader.in_place = True
             self.whole_reader = reader
         self.reading_in_place = False  # the event loop reads into the payload read in place
 
