@@ -874,6 +874,16 @@ async def test_messages_sent_in_one_turn_go_out_in_one_write() -> None:
         assert len(writes) == 2
 
 
+async def numbered_messages_arrive_in_order(pair: Pair, sizes: list[int]) -> None:
+    """Send a message of each size (and a 4-digit number before it) from the client; check
+    that the server receives each whole, in order."""
+    for i, size in enumerate(sizes):
+        await pair.client.send(f"{i:04d}".encode() + b"x" * size)
+    received = [await pair.server.recv() for _ in sizes]
+    assert [m[:4] for m in received] == [f"{i:04d}" for i in range(len(sizes))]
+    assert [len(m) for m in received] == [size + 4 for size in sizes]
+
+
 def count_writes(connection: Connection) -> list[bytes]:
     """The bytes of every socket write ``connection`` makes from now on, in order.
 
@@ -1097,11 +1107,7 @@ async def test_messages_past_the_cork_limit_write_through_in_order() -> None:
 
     async with connected(WebSocketsTransport()) as pair, asyncio.timeout(scaled(5)):
         sizes = [CORK_LIMIT // 4, CORK_LIMIT * 2, 10, CORK_LIMIT + 1, CORK_LIMIT // 2] * 3
-        for i, size in enumerate(sizes):  # held ones and ones that write through, mixed
-            await pair.client.send(f"{i:04d}".encode() + b"x" * size)
-        received = [await pair.server.recv() for _ in sizes]
-        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(len(sizes))]
-        assert [len(m) for m in received] == [size + 4 for size in sizes]
+        await numbered_messages_arrive_in_order(pair, sizes)  # held ones and others, mixed
 
 
 async def test_a_message_held_when_the_connection_closes_is_delivered_first() -> None:
@@ -1581,11 +1587,7 @@ async def test_a_picows_client_writes_larger_messages_at_once_after_what_it_held
 
     async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
         sizes = [10, CLIENT_CORK_LIMIT - 4, CLIENT_CORK_LIMIT - 3, 100, 70_000, 5] * 3
-        for i, size in enumerate(sizes):  # held ones and ones written at once, mixed
-            await pair.client.send(f"{i:04d}".encode() + b"x" * size)
-        received = [await pair.server.recv() for _ in sizes]
-        assert [m[:4] for m in received] == [f"{i:04d}" for i in range(len(sizes))]
-        assert [len(m) for m in received] == [size + 4 for size in sizes]
+        await numbered_messages_arrive_in_order(pair, sizes)  # held ones and others, mixed
 
 
 async def test_a_picows_client_writes_what_it_holds_past_a_quarter_of_its_budget() -> None:
