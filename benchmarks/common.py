@@ -163,6 +163,11 @@ def add_process_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="call srvwire.keep_freed_heap() first, as a user would (the srvwire scripts only)",
     )
+    parser.add_argument(
+        "--no-deadline",
+        action="store_true",
+        help="await each reply bare, without asyncio.wait_for (floor_picows_client.py only)",
+    )
 
 
 def run(main: Callable[[], Coroutine[Any, Any, T]], args: argparse.Namespace) -> T:

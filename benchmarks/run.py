@@ -12,9 +12,11 @@ framework must do per call), ``srvwire``, and on the native transport ``picows``
 ``picows``, nothing typed: that transport's own floor) and ``srvwire-picows``; and ``peer``, a
 JSON-RPC peer (an ``aiohttp-json-rpc`` server and a ``jsonrpc-websocket`` client);
 ``srvwire-heap`` and ``srvwire-picows-heap`` are srvwire with ``keep_freed_heap()`` called
-first on both sides, as an application of large messages would. Given several
-times, every implementation named is measured once per repeat, in the same alternation, and
-one table is printed per pair.
+first on both sides, as an application of large messages would; ``floor-picows`` is the
+floor on the native transport (the floor's typed work on both ends, on raw ``picows``' shape,
+each wait under ``asyncio.wait_for``) and ``floor-picows-bare`` the same with the futures
+awaited bare, without a deadline. Given several times, every implementation named is measured
+once per repeat, in the same alternation, and one table is printed per pair.
 
 Every measurement starts a fresh server process (on 127.0.0.1, port 0, its port read from its
 stdout) and a fresh client process, pinned to different CPUs when there are two. The client
@@ -70,6 +72,12 @@ IMPLEMENTATIONS: dict[str, tuple[Path, Path, tuple[str, ...]]] = {
         HERE / "srvwire_server.py",
         HERE / "srvwire_client.py",
         ("--transport", "picows", "--keep-heap"),
+    ),
+    "floor-picows": (HERE / "floor_picows_server.py", HERE / "floor_picows_client.py", ()),
+    "floor-picows-bare": (
+        HERE / "floor_picows_server.py",
+        HERE / "floor_picows_client.py",
+        ("--no-deadline",),
     ),
 }
 """Each implementation's server script, client script, and the options both take."""

@@ -8,15 +8,23 @@ own runs.
 
 from __future__ import annotations
 
+import asyncio
+import importlib
 import importlib.util
 import json
 import statistics
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import AsyncExitStack
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import pytest
+from picows import ws_create_server
+from websockets.asyncio.client import connect
+from websockets.asyncio.server import serve
 
 from support import ROOT, run_benchmark, scaled
 
@@ -146,6 +154,7 @@ def test_a_bad_choice_is_refused_before_anything_runs() -> None:
         "--compare takes two of: baseline, floor, srvwire, picows, srvwire-picows, peer"
         in done.stderr
     )
+    assert "srvwire-picows-heap, floor-picows, floor-picows-bare" in done.stderr
     done = harness("--workloads", "W9")
     assert done.returncode == 2 and "unknown workload 'W9'" in done.stderr
 
@@ -348,3 +357,151 @@ def test_the_deadline_cost_benchmark_measures_every_way_of_waiting() -> None:
     for row in rows:
         assert float(row[1]) > 0 and row[2] == "extra"
     assert float(rows[0][3]) == 0.0
+
+
+def test_the_typed_floor_on_picows_runs_every_workload_with_and_without_its_deadline(
+    tmp_path: Path,
+) -> None:
+    # One pass of both: the typed floor on picows, each wait under asyncio.wait_for, and the
+    # same awaiting its futures bare; each makes every call and gets every typed reply.
+    out = tmp_path / "report.json"
+    done = harness(
+        "--quick", "--repeat", "1", "--workloads", "W1,W2,W3,W4", "--loop", "asyncio",
+        "--compare", "floor-picows,floor-picows-bare",
+        "--no-pin", "--max-other-load", "64", "--json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(out.read_text())["asyncio"]
+    impls = ["floor-picows", "floor-picows-bare"]
+    check_quick_runs(report["runs"], impls)
+    pipelined = [run for run in report["runs"] if run["workload"] == "W2"]
+    assert [run["calls"] for run in pipelined] == [100_000 // 20] * 2
+    fan_in = [run for run in report["runs"] if run["workload"] == "W3"]
+    assert sorted(run["impl"] for run in fan_in) == impls
+    assert all(run["calls"] > 0 and run["server_cpu_s"] > 0 for run in fan_in)
+    assert list(report["summaries"]) == ["floor-picows,floor-picows-bare"]
+    assert "ratio = floor-picows-bare / floor-picows" in done.stdout
+
+
+@pytest.fixture
+def floors(monkeypatch: pytest.MonkeyPatch) -> Iterator[dict[str, ModuleType]]:
+    """The floor's server and the typed floor on picows' server and client, imported from
+    benchmarks/ as its scripts import one another, and forgotten afterwards."""
+    folder = ROOT / "benchmarks"
+    monkeypatch.syspath_prepend(str(folder))
+    names = ("floor_server", "floor_picows_server", "floor_picows_client")
+    yield {name: importlib.import_module(name) for name in names}
+    for name, module in list(sys.modules.items()):
+        if Path(getattr(module, "__file__", None) or "/").parent == folder:
+            del sys.modules[name]
+
+
+AFTER = '{"jsonrpc":"2.0","id":"after","method":"/get_robot_state","params":{}}'
+"""A call sent after each message: the replies before its own are that message's."""
+FLOOR_ERRORS = [
+    ("not json", [-32700]),
+    ("[]", []),  # a batch: out of the floor's scope, no reply
+    ('{"jsonrpc":"2.0","method":"/get_robot_state"}', []),  # a notification
+    ('{"jsonrpc":"2.0","id":[1],"method":"/get_robot_state"}', [-32600]),
+    ('{"jsonrpc":"1.0","id":1,"method":"/get_robot_state"}', [-32600]),
+    ('{"jsonrpc":"2.0","id":"a\\"b","method":"/nothing"}', [-32601]),
+    ('{"jsonrpc":"2.0","id":2,"method":"/get_robot_state","params":[1]}', [-32602]),
+    ('{"jsonrpc":"2.0","id":3,"method":"get_robot_state","params":{"_meta":1}}', [-32602]),
+    ('{"jsonrpc":"2.0","id":4,"method":"/get_robot_state","params":{"_meta":{"timeout":-1}}}',
+     [-32602]),
+    ('{"jsonrpc":"2.0","id":5,"method":"/get_robot_state","params":{"query_type":5}}', [-32602]),
+    ('{"jsonrpc":"2.0","id":6,"method":"/get_robot_state","params":{"_meta":{"timeout":0}}}',
+     [-32001]),  # its deadline has passed once the params are validated
+    ('{"jsonrpc":"2.0","id":null,"method":"/get_robot_state","params":{"query_type":"x"}}', [0]),
+]  # fmt: skip
+
+
+async def exchange(url: str, messages: list[str]) -> list[list[bytes]]:
+    """Send each message, then AFTER; return the replies each message got, as sent."""
+    got: list[list[bytes]] = []
+    async with connect(url, compression=None) as websocket:
+        for message in messages:
+            await websocket.send(message)
+            await websocket.send(AFTER)
+            replies: list[bytes] = []
+            while json.loads(reply := await websocket.recv(decode=False)).get("id") != "after":
+                replies.append(reply)
+            got.append(replies)
+    return got
+
+
+async def test_the_typed_floor_on_picows_answers_every_message_as_the_floor_does(
+    floors: dict[str, ModuleType],
+) -> None:
+    messages = [message for message, _ in FLOOR_ERRORS]
+    floor = floors["floor_server"]
+    async with serve(floor.respond, "127.0.0.1", 0, compression=None) as server:
+        port = next(iter(server.sockets)).getsockname()[1]
+        on_websockets = await exchange(f"ws://127.0.0.1:{port}", messages)
+    picows_server = await ws_create_server(floors["floor_picows_server"].accept, "127.0.0.1", 0)
+    try:
+        port = picows_server.sockets[0].getsockname()[1]
+        on_picows = await exchange(f"ws://127.0.0.1:{port}", messages)
+    finally:
+        picows_server.close()
+        await picows_server.wait_closed()
+    assert on_picows == on_websockets  # byte for byte
+    codes = [
+        [json.loads(reply).get("error", {"code": 0})["code"] for reply in replies]
+        for replies in on_picows
+    ]
+    assert codes == [expected for _, expected in FLOOR_ERRORS]
+    assert json.loads(on_picows[-1][0])["result"]["values"] == [
+        1.0 / 3.0, -2.718281828459045, 0.001, 3.141592653589793, 98.5
+    ]  # fmt: skip
+
+
+async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadlines_its_waits(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    floor, client = floors["floor_server"], floors["floor_picows_client"]
+    arrived, release = asyncio.Event(), asyncio.Event()
+
+    async def held(request: Any) -> Any:
+        # The benchmark's handler, except that a call for the frame "hold" waits to be let go.
+        if request.target_frame == "hold":
+            arrived.set()
+            await release.wait()
+        return await floor.get_robot_state(request)
+
+    robot_state = floor.ROBOT_STATE
+    monkeypatch.setitem(
+        floor.SERVICES, "/get_robot_state",
+        floor.Service(robot_state.validate, held, robot_state.serialize),
+    )  # fmt: skip
+    held_request = client.make_request({"query_type": "position", "target_frame": "hold"})
+    request = client.make_request({"query_type": "position", "target_frame": ""})
+    server = await ws_create_server(floors["floor_picows_server"].accept, "127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+    # With no time at all for a reply, only a wait without a deadline gets one.
+    monkeypatch.setattr(client, "CALL_TIMEOUT", 0.0)
+    try:
+        async with AsyncExitStack() as stack:
+            # Bare waits: the server answers another call while the held handler waits, then
+            # finishes the held one once it is let go.
+            call = await client.adapter(deadline=False).open(url, stack)
+            waiting = asyncio.ensure_future(call(held_request))
+            await arrived.wait()
+            assert client.values_of(await call(request)) == 5
+            assert not waiting.done()
+            release.set()
+            assert client.values_of(await waiting) == 5
+            # Waits under asyncio.wait_for: a reply later than the deadline is a TimeoutError,
+            # and that reply, when it comes, is dropped without disturbing the next call.
+            arrived.clear()
+            release.clear()
+            call = await client.adapter(deadline=True).open(url, stack)
+            with pytest.raises(TimeoutError):
+                await call(held_request)
+            await arrived.wait()
+            release.set()
+            monkeypatch.setattr(client, "CALL_TIMEOUT", 30.0)
+            assert client.values_of(await call(request)) == 5
+    finally:
+        server.close()
+        await server.wait_closed()
