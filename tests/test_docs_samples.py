@@ -80,6 +80,14 @@ COMMANDS: dict[str, str] = {
         "a sampling profile of a benchmark script: py-spy comes with the bench extra (make "
         "bench), not with the tests' environment; tests/test_push.py runs the script itself"
     ),
+    r"\.venv/bin/python benchmarks/floor_picows_server\.py": (
+        "the typed floor's picows server, serving until its stdin closes: "
+        "tests/test_benchmarks.py runs it through the harness, and in-process"
+    ),
+    r"echo go \| PYTHONHASHSEED=\d+ valgrind --tool=callgrind .* benchmarks/\w+_client\.py .*": (
+        "a benchmark client counted under callgrind against a server started by hand: minutes "
+        "long, and valgrind is no dependency; tests/test_benchmarks.py runs the clients"
+    ),
     r"\.venv/bin/python benchmarks/topics\.py( .*)?": (
         "the topic benchmark: minutes long; tests/test_benchmarks.py runs its --quick mode"
     ),
