@@ -15,6 +15,7 @@ import re
 import subprocess
 import sys
 import sysconfig
+import tomllib
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -157,3 +158,24 @@ def test_the_installation_page_names_this_version() -> None:
         f"srvwire-{version}-py3-none-any.whl"
     }
     assert f"srvwire --version          # srvwire {version}\n" in page
+
+
+def test_the_supported_pythons_agree_everywhere() -> None:
+    # pyproject's requires-python and classifiers, the Makefile's guard, and the pages that tell
+    # a user which Python to bring all name the same versions: the oldest, and every one.
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    classifiers = " ".join(project["classifiers"])
+    listed = re.findall(r"Programming Language :: Python :: (3\.\d+)\b", classifiers)
+    assert listed, "pyproject.toml lists no Python version among its classifiers"
+    oldest = listed[0]
+    assert project["requires-python"] == f">={oldest}"
+    major, minor = oldest.split(".")
+    makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
+    assert f"sys.version_info < ({major}, {minor})" in makefile
+    assert f'"srvwire needs Python {oldest} or newer"' in makefile
+    for page in ("README.md", "docs/index.md", "docs/installation.md"):
+        text = " ".join((ROOT / page).read_text(encoding="utf-8").split())
+        assert f"Python {oldest} or newer" in text, page
+    installation = " ".join((ROOT / "docs" / "installation.md").read_text(encoding="utf-8").split())
+    [runs_on] = re.findall(r"srvwire runs on Python ([\d., and]+?),? and their", installation)
+    assert re.split(r",? and |, ", runs_on.strip()) == listed
