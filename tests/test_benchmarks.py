@@ -383,13 +383,27 @@ def test_the_typed_floor_on_picows_runs_every_workload_with_and_without_its_dead
     assert "ratio = floor-picows-bare / floor-picows" in done.stdout
 
 
+def test_the_bare_typed_floor_on_picows_is_the_floor_with_its_deadline_switched_off(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run, client = floors["run"], floors["floor_picows_client"]
+    server, script, options = run.IMPLEMENTATIONS["floor-picows-bare"]
+    assert (server, script) == run.IMPLEMENTATIONS["floor-picows"][:2]
+    assert options == ("--no-deadline",) and run.IMPLEMENTATIONS["floor-picows"][2] == ()
+    command = ["floor_picows_client.py", "--url", "ws://127.0.0.1:1", "--workload", "W1"]
+    monkeypatch.setattr(sys, "argv", command)
+    assert client.deadline_asked()
+    monkeypatch.setattr(sys, "argv", [*command, *options])
+    assert not client.deadline_asked()
+
+
 @pytest.fixture
 def floors(monkeypatch: pytest.MonkeyPatch) -> Iterator[dict[str, ModuleType]]:
     """The floor's server and the typed floor on picows' server and client, imported from
     benchmarks/ as its scripts import one another, and forgotten afterwards."""
     folder = ROOT / "benchmarks"
     monkeypatch.syspath_prepend(str(folder))
-    names = ("floor_server", "floor_picows_server", "floor_picows_client")
+    names = ("floor_server", "floor_picows_server", "floor_picows_client", "run")
     yield {name: importlib.import_module(name) for name in names}
     for name, module in list(sys.modules.items()):
         if Path(getattr(module, "__file__", None) or "/").parent == folder:
@@ -460,14 +474,31 @@ async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadline
     floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     floor, client = floors["floor_server"], floors["floor_picows_client"]
+    picows_server = floors["floor_picows_server"]
     arrived, release = asyncio.Event(), asyncio.Event()
 
     async def held(request: Any) -> Any:
-        # The benchmark's handler, except that a call for the frame "hold" waits to be let go.
+        # The benchmark's handler, except that a call for the frame "hold" waits to be let go,
+        # and its reply holds one value (the others' hold five): a reply that reached the
+        # wrong call would show.
+        response = await floor.get_robot_state(request)
         if request.target_frame == "hold":
             arrived.set()
             await release.wait()
-        return await floor.get_robot_state(request)
+            return response.model_copy(update={"values": response.values[:1]})
+        return response
+
+    # What the server schedules: a task only for an answer whose handler waits (the rest of
+    # it, in floor_picows_server.finish); an answer that does not is sent inside on_ws_frame.
+    tasks: list[Any] = []
+    ensure_future = asyncio.ensure_future
+
+    def counted(awaitable: Any) -> Any:
+        if getattr(awaitable, "cr_code", None) is picows_server.finish.__code__:
+            tasks.append(awaitable)
+        return ensure_future(awaitable)
+
+    monkeypatch.setattr(picows_server.asyncio, "ensure_future", counted)
 
     robot_state = floor.ROBOT_STATE
     monkeypatch.setitem(
@@ -476,21 +507,26 @@ async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadline
     )  # fmt: skip
     held_request = client.make_request({"query_type": "position", "target_frame": "hold"})
     request = client.make_request({"query_type": "position", "target_frame": ""})
-    server = await ws_create_server(floors["floor_picows_server"].accept, "127.0.0.1", 0)
+    server = await ws_create_server(picows_server.accept, "127.0.0.1", 0)
     url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}"
-    # With no time at all for a reply, only a wait without a deadline gets one.
-    monkeypatch.setattr(client, "CALL_TIMEOUT", 0.0)
+    # A deadline far shorter than the held handler's wait: only a wait without one gets the
+    # held reply. Above zero, so that wait_for arms its timer and the timer ends the wait.
+    monkeypatch.setattr(client, "CALL_TIMEOUT", 0.05)
     try:
         async with AsyncExitStack() as stack:
             # Bare waits: the server answers another call while the held handler waits, then
             # finishes the held one once it is let go.
             call = await client.adapter(deadline=False).open(url, stack)
+            assert client.values_of(await call(request)) == 5
+            assert tasks == []  # answered inside the callback
             waiting = asyncio.ensure_future(call(held_request))
             await arrived.wait()
+            assert len(tasks) == 1  # the held answer, finished by a task
             assert client.values_of(await call(request)) == 5
             assert not waiting.done()
             release.set()
-            assert client.values_of(await waiting) == 5
+            assert client.values_of(await waiting) == 1
+            assert len(tasks) == 1
             # Waits under asyncio.wait_for: a reply later than the deadline is a TimeoutError,
             # and that reply, when it comes, is dropped without disturbing the next call.
             arrived.clear()
@@ -501,6 +537,7 @@ async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadline
             await arrived.wait()
             release.set()
             monkeypatch.setattr(client, "CALL_TIMEOUT", 30.0)
+            assert client.values_of(await call(request)) == 5
             assert client.values_of(await call(request)) == 5
     finally:
         server.close()
