@@ -21,36 +21,30 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import itertools
 from contextlib import AsyncExitStack
 from typing import Any
 
-from picows import WSFrame, WSListener, WSMsgType, WSTransport, ws_connect
+from picows import WSFrame, WSMsgType, WSTransport, ws_connect
 from pydantic_core import from_json
 
 from srvwire.link import Answer
 
 from common import CALL_TIMEOUT, MAX_MESSAGE
 from floor_client import PARAMS_PREFIX, serialize_request, validate_response
+from picows_client import Caller
 from typed import make_request, values_of
 from workloads import Adapter, Call, main
 
 
-class TypedCaller(WSListener):  # type: ignore[misc]
-    """Pending calls by id over one connection, resolved as their replies arrive."""
+class TypedCaller(Caller):
+    """Pending calls by id over one connection, resolved as their replies arrive: raw picows'
+    caller (its connection, its close, its futures failed when the connection ends), typed."""
 
     def __init__(self, deadline: bool) -> None:
         super().__init__()
-        self.transport: WSTransport | None = None
         self._deadline = deadline
-        self._loop = asyncio.get_running_loop()
-        self._pending: dict[int, asyncio.Future[Any]] = {}
-        self._ids = itertools.count(1)
 
-    def on_ws_connected(self, transport: WSTransport) -> None:
-        self.transport = transport
-
-    async def call(self, request: Any) -> Any:
+    async def call(self, request: Any) -> Any:  # type: ignore[override]
         assert self.transport is not None
         fields = serialize_request(request, by_alias=True)  # b'{"query_type":...}'
         rest = fields[1:] if fields == b"{}" else b"," + fields[1:]
@@ -82,17 +76,6 @@ class TypedCaller(WSListener):  # type: ignore[misc]
         future = self._pending.pop(message.get("id", 0), None)
         if future is not None and not future.done():
             future.set_result(message)
-
-    def on_ws_disconnected(self, transport: WSTransport) -> None:
-        for future in self._pending.values():
-            if not future.done():
-                future.set_exception(ConnectionResetError("the connection closed"))
-
-    async def close(self) -> None:
-        assert self.transport is not None
-        self.transport.send_close()
-        self.transport.disconnect()
-        await self.transport.wait_disconnected()
 
 
 def adapter(deadline: bool) -> Adapter:

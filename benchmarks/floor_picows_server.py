@@ -11,7 +11,8 @@ pydantic serializes it into the reply envelope. Every error reply is the floor's
 The handler is a coroutine, and ``on_ws_frame`` cannot await: each message's answer is stepped
 inline as far as it goes. A handler that returns without waiting (the benchmark's) is answered
 in that one step, inside the callback, with nothing scheduled. One that waits has the rest of
-its answer driven by a task, started at that point, while later frames are answered meanwhile.
+its answer driven by a task (``srvwire.inline.finish``, as srvwire's server finishes a call
+that waits), started at that point, while later frames are answered meanwhile.
 
 It does nothing more than the floor (no batches, notifications, cancellation, ``$/services``),
 and, as the raw picows server, reads only whole, unfragmented messages.
@@ -19,17 +20,17 @@ and, as the raw picows server, reads only whole, unfragmented messages.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import functools
-import types
-from collections.abc import Coroutine, Generator
-from typing import Any
 
-from picows import WSFrame, WSListener, WSMsgType, WSTransport, WSUpgradeRequest, ws_create_server
+from picows import WSFrame, WSListener, WSMsgType, WSTransport, WSUpgradeRequest
 
-from common import MAX_MESSAGE, ServerControl, emit, run, server_parser
+from srvwire import inline
+from srvwire.inline import Pending
+
+from common import run, server_parser
 from floor_server import reply_to
+from picows_server import main as serve
 
 DONE = object()  # what ``next`` returns for an answer that finished in its first step
 
@@ -41,26 +42,9 @@ async def answer(transport: WSTransport, data: bytes) -> None:
         transport.send(WSMsgType.TEXT, reply)
 
 
-@types.coroutine
-def rest_of(steps: Generator[Any, Any, None], yielded: Any) -> Generator[Any, Any, None]:
-    """Drive an answer that waited at its first step to its end, as ``await`` would have."""
-    while True:
-        try:
-            sent = yield yielded
-        except BaseException as exc:  # a cancellation of the task, passed on to the answer
-            step: Any = steps.throw
-            argument: Any = exc
-        else:
-            step = steps.send
-            argument = sent
-        try:
-            yielded = step(argument)
-        except StopIteration:
-            return
-
-
-async def finish(steps: Generator[Any, Any, None], yielded: Any) -> None:
-    await rest_of(steps, yielded)
+async def finish(pending: Pending) -> None:
+    """Drive an answer that waited at its first step to its end, in a task of its own."""
+    await inline.finish(pending)
 
 
 class TypedResponder(WSListener):  # type: ignore[misc]
@@ -80,12 +64,11 @@ class TypedResponder(WSListener):  # type: ignore[misc]
             return
         # pydantic_core decodes bytes, not a view of picows' buffer: one copy, as websockets'
         # recv(decode=False) makes for the floor.
-        coroutine: Coroutine[Any, Any, None] = answer(transport, frame.get_payload_as_bytes())
-        steps = coroutine.__await__()
+        coroutine = answer(transport, frame.get_payload_as_bytes())
         # Stepped with ``next``, which ends without raising StopIteration when it finishes.
-        yielded = next(steps, DONE)
+        yielded = next(coroutine.__await__(), DONE)
         if yielded is not DONE:
-            task = asyncio.ensure_future(finish(steps, yielded))
+            task = asyncio.ensure_future(finish(Pending(coroutine, yielded, None)))
             self._waiting.add(task)
             task.add_done_callback(self._waiting.discard)
 
@@ -94,14 +77,6 @@ def accept(request: WSUpgradeRequest) -> WSListener:
     return TypedResponder()
 
 
-async def main(args: argparse.Namespace) -> None:
-    control = ServerControl()
-    server = await ws_create_server(accept, args.host, 0, max_frame_size=MAX_MESSAGE)
-    emit("listening", port=server.sockets[0].getsockname()[1])
-    await control.stopped.wait()
-    server.close()
-
-
 if __name__ == "__main__":
     args = server_parser(__doc__ or "").parse_args()
-    run(functools.partial(main, args), args)
+    run(functools.partial(serve, args, accept), args)

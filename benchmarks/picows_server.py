@@ -65,7 +65,11 @@ def accept(request: WSUpgradeRequest) -> WSListener:
     return Responder()
 
 
-async def main(args: argparse.Namespace) -> None:
+async def main(
+    args: argparse.Namespace, accept: Callable[[WSUpgradeRequest], WSListener] = accept
+) -> None:
+    """Serve ``accept``'s listeners until ``run.py`` says stop (``floor_picows_server.py``
+    serves its own with this too)."""
     control = ServerControl()
     server = await ws_create_server(accept, args.host, 0, max_frame_size=MAX_MESSAGE)
     emit("listening", port=server.sockets[0].getsockname()[1])
