@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import json
 import logging
+from asyncio.tasks import _enter_task, _leave_task
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from ssl import SSLContext
@@ -248,29 +249,51 @@ class Pair:
     server: Connection
 
 
-async def test_a_close_begun_as_the_clients_close_is_answered_waits_for_that_answer(
-    caplog: pytest.LogCaptureFixture,
+@pytest.mark.parametrize(
+    ("fragmented", "first_close"),
+    [(True, 1000), (False, 1001)],
+    ids=["parsed-by-websockets", "taken-directly"],
+)
+async def test_a_close_begun_from_a_message_that_came_with_the_clients_close(
+    fragmented: bool, first_close: int, caplog: pytest.LogCaptureFixture
 ) -> None:
     """A server's close begun from a message that came with the client's close (as a handler's
-    first step, run in the read callback, or an eager task would begin it) finds the client's
-    close being answered: that answer is the one close the server sends, and the close returns
-    once the connection has ended."""
+    first step, run in the read callback, or an eager task would begin it).
+
+    A message websockets' parser reads (here, one in two fragments) is handed over as the
+    client's close is being answered: that answer is the one close the server sends. A whole
+    frame at the start of the read is taken before websockets reads the close, as when the
+    close comes in a later read: the server's own close goes first. Either way the server's
+    close returns once the connection has ended, and nothing is logged."""
     closing: list[Pending | None] = []
+    loop = asyncio.get_running_loop()
+    # The step runs with a task current, as a server runs a handler's first step with its
+    # connection's reader task current (websockets' close needs one).
+    reader = asyncio.create_task(asyncio.Event().wait())
 
     def receive(server: Connection, message: str | bytes) -> None:
         if message == "close-me":
-            closing.append(first_step(server.close(1001, "going away")))
+            _enter_task(loop, reader)
+            try:
+                closing.append(first_step(server.close(1001, "going away")))
+            finally:
+                _leave_task(loop, reader)
 
     async with raw_pair(receive) as pair:
-        pair.client.protocol.send_text(b"close-me")
+        if fragmented:
+            pair.client.protocol.send_text(b"close-", fin=False)
+            pair.client.protocol.send_continuation(b"me", fin=True)
+        else:
+            pair.client.protocol.send_text(b"close-me")
         pair.client.protocol.send_close(1000)
         pair.client.write()
-        assert await pair.client.to_the_end() == [("close", 1000)]
+        assert await pair.client.to_the_end() == [("close", first_close)]
         [pending] = closing
         if pending is not None:
             async with asyncio.timeout(scaled(5)):
                 await finish(pending)
-        assert pair.server.close_code == 1000
+        assert pair.server.close_code == 1000  # the client's, which it received
+    reader.cancel()
     assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
 
 

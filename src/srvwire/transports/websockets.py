@@ -79,6 +79,26 @@ a server with a receiver hands the frames before the close over first
 (:meth:`_Watched.send_close_last`), so the replies they make at once go out ahead of the
 answer, as when the close comes in a later read and as on picows.
 
+**With a receiver, the whole frames that begin a read are taken without websockets' parser.**
+websockets parses every frame with a chain of Python generators, a ``Frame`` and an event for
+each: a sixth to a fifth of a small call's instructions, both ends. Between two frames, the
+parser waits in its reader's ``at_eof`` with no byte buffered; a read that arrives then begins
+with a frame's first byte. :meth:`_Watched.take_frames` takes the frames at the start of such
+a read that the parser would turn into a whole message as they are: final, text or binary, no
+reserved bit, masked as the peer's side must mask (a client's frames, not a server's), a
+length in one or three bytes within the size limit the parser would check, the whole frame
+in the read; it unmasks the payload with websockets' own ``apply_mask`` and hands it over as
+:meth:`~_Watched.process_event` would (text decoded, not UTF-8: 1007). At the first byte that
+is not such a frame (a control frame, a fragment, a large or an invalid frame, a frame cut by
+the end of the read) it stops, and the rest of the read goes to websockets' parser from that
+frame's start, which then keeps every rule as before: pings, closes, fragments, 1002, 1009.
+Messages taken so were handed over before the parser reads a close frame after them in the
+same read, as when the close comes in a later read: what they begin (a reply, the server's
+own close) goes first.
+The parser is not asked anything new: nothing is taken unless it is found waiting between
+frames, open, and not inside a fragmented message, and with compression on, or websockets'
+debug log of frames, it parses every frame itself.
+
 **Every read goes into one buffer per thread.** asyncio reads a socket into a new bytes object
 of :data:`READ_SIZE` (256 KiB), which the C library maps from the kernel and gives back on every
 read, however little arrived: three system calls and a page fault per read, more than the
@@ -230,6 +250,11 @@ class _MaskingKeys(threading.local):
         return supply[at : at + 4]
 
 
+# What websockets' parser is suspended in between two frames: its loop, waiting for a frame's
+# first byte (see _Watched.take_frames).
+_PARSE = Protocol.parse.__code__
+_AT_EOF = StreamReader.at_eof.__code__
+
 _masking_keys = _MaskingKeys()
 os.register_at_fork(after_in_child=_masking_keys.forget)  # the forking thread's, the only one
 
@@ -355,6 +380,9 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             assert isinstance(reader, _WholeReader)
             self.whole_reader = reader
         self.reading_in_place = False  # the event loop reads into the payload read in place
+        # Whether a read's leading frames may be taken here rather than by websockets' parser
+        # (see take_frames): set with a receiver, once the handshake settled the extensions.
+        self.direct = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -395,7 +423,11 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         self.handed = 0
         pushing.read_begins()
         try:
-            super().data_received(data)
+            taken = self.take_frames(data) if self.direct and data else 0
+            if not taken:  # websockets' to parse (b"": a payload read in place grew)
+                super().data_received(data)
+            elif taken < len(data):  # the rest is, from a frame's start
+                super().data_received(data[taken:])
         finally:
             pushing.read_ends()
         if self.refused is not None:  # websockets took its echo of the peer's close as sent
@@ -428,6 +460,16 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         else:
             data = event.data
             text = opcode is TEXT
+        self.hand_over(receive, data, text)
+
+    def hand_over(
+        self,
+        receive: Callable[[str | bytes], None],
+        data: bytes | bytearray | memoryview,
+        text: bool,
+    ) -> None:
+        """Hand a whole message's payload to ``receive``: text decoded (not UTF-8: 1007, with
+        websockets' reason), binary as bytes; a receiver that raises closes with 1011."""
         message: str | bytes
         if text:
             try:
@@ -445,6 +487,64 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
                 "the receiver of messages failed; closing the connection", exc_info=True
             )
             self.refuse(CloseCode.INTERNAL_ERROR, "", exc)
+
+    def take_frames(self, data: bytes | memoryview) -> int:
+        """Hand over the whole messages at the start of a read that websockets' parser would
+        return as single final frames, and return how many bytes they took (the rest is the
+        parser's). See the module: only between frames, and only frames it would take as
+        they are."""
+        protocol = self.protocol
+        # The parser is a generator; what it waits in is the innermost one it delegates to.
+        parsing: Any = protocol.parser
+        if parsing.gi_code is not _PARSE:  # the handshake's parser, which delegates to it
+            parsing = parsing.gi_yieldfrom
+        waiting: Any = None if parsing is None else parsing.gi_yieldfrom
+        if (
+            protocol.state is not OPEN
+            or protocol.current_size is not None
+            or waiting is None
+            or waiting.gi_code is not _AT_EOF  # which waits only on an empty buffer
+        ):
+            return 0  # inside a frame or a fragmented message, or closing
+        limit = protocol.max_message_size
+        if protocol.max_fragment_size is not None and (
+            limit is None or protocol.max_fragment_size < limit
+        ):
+            limit = protocol.max_fragment_size
+        masked = protocol.side is Side.SERVER  # a client's frames are masked, a server's not
+        expected = 0x80 if masked else 0
+        receive = self.receive
+        assert receive is not None
+        size = len(data)
+        at = 0
+        while at + 2 <= size and protocol.state is OPEN:
+            first = data[at]
+            if first != 0x81 and first != 0x82:  # FIN, no RSV bit, text or binary
+                break
+            length = data[at + 1]
+            if length & 0x80 != expected:
+                break
+            length &= 0x7F
+            start = at + 2
+            if length == 126:
+                if start + 2 > size:
+                    break
+                length = data[start] << 8 | data[start + 1]
+                start += 2
+            elif length == 127:
+                break
+            if limit is not None and length > limit:
+                break
+            if masked:
+                key = bytes(data[start : start + 4])
+                start += 4
+            end = start + length
+            if end > size:
+                break
+            payload = data[start:end]
+            at = end
+            self.hand_over(receive, apply_mask(payload, key) if masked else payload, first == 0x81)
+        return at
 
     def send_close_last(self, frame: Frame) -> None:
         """The protocol's ``send_frame`` on a server that hands messages over. websockets
@@ -810,6 +910,7 @@ class WebSocketsConnection(Connection):
         queued = ws.recv_messages.frames.queue
         ws.receive = receive
         ws.pushing = self
+        ws.direct = not ws.protocol.extensions and not ws.protocol.debug
         while queued:
             ws.process_event(queued.popleft())
         ws.recv_messages.maybe_resume()  # the queue is empty: it reads again, if it had paused
