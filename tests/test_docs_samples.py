@@ -84,9 +84,11 @@ COMMANDS: dict[str, str] = {
         "the typed floor's picows server, serving until its stdin closes: "
         "tests/test_benchmarks.py runs it through the harness, and in-process"
     ),
-    r"echo go \| PYTHONHASHSEED=\d+ valgrind --tool=callgrind .* benchmarks/\w+_client\.py .*": (
-        "a benchmark client counted under callgrind against a server started by hand: minutes "
-        "long, and valgrind is no dependency; tests/test_benchmarks.py runs the clients"
+    r"echo go \| PYTHONHASHSEED=\d+ valgrind --tool=(callgrind|cachegrind) .* "
+    r"benchmarks/\w+_client\.py .*": (
+        "a benchmark client counted under callgrind or cachegrind against a server started by "
+        "hand: minutes long, and valgrind is no dependency; tests/test_benchmarks.py runs the "
+        "clients"
     ),
     r"\.venv/bin/python benchmarks/topics\.py( .*)?": (
         "the topic benchmark: minutes long; tests/test_benchmarks.py runs its --quick mode"
