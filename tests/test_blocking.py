@@ -95,7 +95,11 @@ async def test_handlers_past_their_deadline_do_not_starve_a_fast_service(
         replies = [await w.recv_reply() for _ in range(8)]
         assert [status(r) for r in replies] == ["DEADLINE_EXCEEDED"] * 8
         # A replacement may have taken a call whose deadline had not quite passed yet. Every
-        # handler that runs still blocks its thread, and was abandoned.
+        # handler that runs still blocks its thread, and was abandoned. A thread is abandoned
+        # once it has taken its call, which may be before it has entered the handler: wait
+        # for each abandoned thread's handler to start.
+        while blocker.runs < threads.abandoned:
+            await blocker.next_start()
         assert 2 <= blocker.runs == blocker.running == threads.abandoned
         reply = await w.call(call("fast", 100, timeout=scaled(5)))
         assert reply["result"] == {"difference": 1}
