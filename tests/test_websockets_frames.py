@@ -3,13 +3,18 @@
 A connection that hands its messages to a receiver takes the final text and binary frames at
 the start of a read without websockets' parser, and leaves the rest of the read to it. What
 arrives must end the same either way: the same messages handed over, the same frames the
-connection sends of itself (pongs, closes, with their codes and reasons), the same state. Each
-test feeds crafted bytes to a connection's ``data_received``, as the event loop hands it a
-read, split into reads at every offset where a split can matter, and compares the outcome with
-that of the same connection with the direct path off (websockets' parser for every frame).
+connection writes of itself (pongs, closes, with their codes and reasons), the same state.
+Each test feeds crafted bytes to a connection as the event loop hands it a read (into the
+buffer it asks for, as asyncio reads; or as bytes, as uvloop does), split into reads at every
+offset where a split can matter, and compares the outcome with that of the same connection
+with the direct path off (websockets' parser for every frame). One rule differs, and is
+tested as such: what a message taken directly begins when it is handed over (a receiver that
+fails, a close) comes before what the parser does with the frames after it, as if those came
+in a later read.
 
 The connections are real ones, on 127.0.0.1, opened by a real handshake; the crafted reads
 stand in for what the peer would send, so that where a read ends is the test's to choose.
+The last tests send real messages over real sockets, TCP and TLS, on asyncio and uvloop.
 """
 
 from __future__ import annotations
@@ -17,17 +22,24 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import random
 import struct
+from asyncio.tasks import _enter_task, _leave_task
 from collections.abc import AsyncIterator, Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import pytest
+import uvloop
+from websockets.frames import Frame
+from websockets.protocol import Side
+from websockets.streams import StreamReader
 
+from srvwire.inline import first_step
 from srvwire.transports.base import Options
 from srvwire.transports.websockets import WebSocketsConnection, WebSocketsTransport, _Watched
-from support import scaled
-from test_transports import connected
+from support import scaled, tls_on_localhost
+from test_transports import connected, listening
 from test_websockets_push import Taker
 
 KEY = b"\x37\xfa\x21\x3d"
@@ -67,44 +79,89 @@ class Outcome:
 
 
 class Fed:
-    """One end of a real connection that hands its messages to a receiver, fed crafted reads."""
+    """One end of a real connection that hands its messages to a receiver, fed crafted reads.
 
-    def __init__(self, connection: WebSocketsConnection, direct: bool) -> None:
+    ``bytes``: each read handed over as ``bytes`` (``data_received``, as uvloop hands them);
+    ``buffer``: read into the buffer the connection asks for (``get_buffer`` and
+    ``buffer_updated``, as asyncio reads a socket), which is then overwritten, as the next
+    read of any connection of the thread would."""
+
+    def __init__(
+        self,
+        connection: WebSocketsConnection,
+        direct: bool,
+        how: str,
+        receive: Callable[[Fed, str | bytes], None] | None = None,
+    ) -> None:
+        self.connection = connection
         self.ws: _Watched = connection._ws
+        self.how = how
         self.messages: list[str | bytes] = []
-        assert connection.deliver_to(self.messages.append)
+        assert connection.deliver_to(self.take if receive is None else lambda m: receive(self, m))
         assert self.ws.direct  # no compression, no debug log: the direct path is on
         self.ws.direct = direct
+        self.written = bytearray()  # what the connection wrote to its socket
+        transport = self.ws.transport
+        write = transport.write
+
+        def recording(data: Any) -> None:
+            self.written += data
+            write(data)
+
+        transport.write = recording  # type: ignore[method-assign]
         protocol = self.ws.protocol
-        self.sent: list[tuple[int, bytes]] = []
-        send_frame = protocol.send_frame
         self.parsed = 0
         receive_data = protocol.receive_data
-
-        def recording(frame: Any) -> None:
-            self.sent.append((frame.opcode.value, bytes(frame.data)))
-            send_frame(frame)
 
         def counting(data: bytes | bytearray) -> None:
             self.parsed += 1
             receive_data(data)
 
-        protocol.send_frame = recording  # type: ignore[method-assign]
         protocol.receive_data = counting  # type: ignore[method-assign]
+
+    def take(self, message: str | bytes) -> None:
+        self.messages.append(message)
+
+    def sent(self) -> list[tuple[int, bytes]]:
+        """The frames written to the socket so far: opcode and payload."""
+        reader = StreamReader()
+        reader.feed_data(bytes(self.written))
+        reader.feed_eof()
+        frames = []
+        masked = self.ws.protocol.side is Side.CLIENT
+        while reader.buffer:
+            parsing = Frame.parse(reader.read_exact, mask=masked)
+            try:
+                while True:
+                    next(parsing)
+            except StopIteration as done:
+                frames.append((done.value.opcode.value, bytes(done.value.data)))
+        return frames
+
+    def read(self, data: bytes) -> None:
+        """One read of ``data``, handed over as the event loop would."""
+        ws = self.ws
+        if self.how == "bytes":
+            ws.data_received(data)
+            return
+        while data:  # a read is at most the size of the buffer it goes into
+            buffer = ws.get_buffer(-1)
+            n = min(len(buffer), len(data))
+            buffer[:n] = data[:n]
+            ws.buffer_updated(n)
+            buffer[:n] = b"\xee" * n  # the next read overwrites it: nothing may keep it
+            data = data[n:]
 
     def feed(self, reads: Iterable[bytes]) -> Outcome:
         """Hand ``reads`` to the connection as the event loop would; what came of them."""
-        first_message, first_sent, parsed = len(self.messages), len(self.sent), self.parsed
+        first_message, first_sent, parsed = len(self.messages), len(self.sent()), self.parsed
         for read in reads:
-            # As buffer_updated hands a read over: a view of the thread's read buffer.
-            buffer = bytearray(read)
-            self.ws.data_received(memoryview(buffer))  # type: ignore[arg-type]
-            buffer[:] = b"\xee" * len(buffer)  # the next read overwrites it: nothing may keep it
+            self.read(read)
         protocol = self.ws.protocol
         close = protocol.close_sent
         return Outcome(
             self.messages[first_message:],
-            self.sent[first_sent:],
+            self.sent()[first_sent:],
             protocol.state.name,
             None if close is None else (close.code, close.reason),
             self.parsed - parsed,
@@ -112,13 +169,19 @@ class Fed:
 
 
 @contextlib.asynccontextmanager
-async def fed(side: str, direct: bool, options: Options | None = None) -> AsyncIterator[Fed]:
+async def fed(
+    side: str,
+    direct: bool,
+    options: Options | None = None,
+    how: str = "buffer",
+    receive: Callable[[Fed, str | bytes], None] | None = None,
+) -> AsyncIterator[Fed]:
     """The server end (fed a client's frames) or the client end (fed a server's) of a real
     connection, direct path on or off."""
     async with connected(WebSocketsTransport(), options) as pair, asyncio.timeout(scaled(10)):
         end = pair.server if side == "server" else pair.client
         assert isinstance(end, WebSocketsConnection)
-        yield Fed(end, direct)
+        yield Fed(end, direct, how, receive)
 
 
 def splits(frames: list[bytes], large: bool = False) -> list[list[bytes]]:
@@ -151,29 +214,39 @@ async def compare(
     """Feed ``frames`` to both paths in every split (one connection each, kept: the frames
     leave it open); assert the outcomes agree; return the first."""
     outcomes = []
-    async with fed(side, True, options) as direct, fed(side, False, options) as parser:
-        for reads in splits(frames, large):
-            outcomes.append(agree(direct.feed(reads), parser.feed(reads), reads))
-            assert outcomes[-1].state == "OPEN"
-    assert all(o == outcomes[0] for o in outcomes)  # however the bytes were cut
+    for how in HOW:
+        async with (
+            fed(side, True, options, how) as direct,
+            fed(side, False, options, how) as parser,
+        ):
+            for reads in splits(frames, large):
+                outcomes.append(agree(direct.feed(reads), parser.feed(reads), reads))
+                assert outcomes[-1].state == "OPEN"
+    assert all(o == outcomes[0] for o in outcomes)  # however the bytes were cut and fed
     return outcomes[0]
 
 
 async def compare_ending(side: str, frames: list[bytes], options: Options | None = None) -> Outcome:
     """As :func:`compare`, for frames that end the connection: new connections for each
-    split, cut only around the last two frames' headers."""
+    split, cut only around the last two frames' headers; return the outcome of one read."""
     outcomes = []
     head = len(b"".join(frames[:-2]))
     for reads in splits(frames):
         if len(reads) == 2 and not head - 1 <= len(reads[0]) <= len(b"".join(frames)):
             continue
-        async with fed(side, True, options) as direct, fed(side, False, options) as parser:
-            outcomes.append(agree(direct.feed(reads), parser.feed(reads), reads))
-    assert all(o == outcomes[0] for o in outcomes)
+        for how in HOW:
+            async with (
+                fed(side, True, options, how) as direct,
+                fed(side, False, options, how) as parser,
+            ):
+                outcomes.append(agree(direct.feed(reads), parser.feed(reads), reads))
+    # Where the reads are cut may change how it ends (a frame in the failing read is parsed,
+    # in a later read discarded), on either path alike: the frames in one read.
     return outcomes[0]
 
 
 SIDES = ["server", "client"]
+HOW = ["buffer", "bytes"]  # as asyncio reads, as uvloop does
 
 
 def on(side: str) -> Callable[..., bytes]:
@@ -313,11 +386,29 @@ async def test_frames_that_end_the_connection(
     side: str, last: tuple[int, bytes], close: tuple[int, str]
 ) -> None:
     f = on(side)
-    after = f(TEXT, b"never")
-    outcome = await compare_ending(side, [f(TEXT, b"a"), f(*last), after])
+    outcome = await compare_ending(side, [f(TEXT, b"a"), f(*last), f(TEXT, b"never")])
     assert outcome.messages == ["a"]
     assert outcome.close == close
     assert outcome.state != "OPEN"
+
+
+@pytest.mark.parametrize("side", SIDES)
+@pytest.mark.parametrize("after", ["ping", "close", "rsv1"])
+async def test_what_follows_a_text_that_is_not_utf8_in_its_read(side: str, after: str) -> None:
+    """A ping to answer, the peer's own close or an invalid frame after it, in the same read:
+    the connection ends as websockets' parser ends it (the text goes to the parser)."""
+    f = on(side)
+    following = {
+        "ping": f(PING, b"p"),
+        "close": f(CLOSE, close_payload(1001, "me too")),
+        "rsv1": f(0xC1, b"x"),
+    }[after]
+    outcome = await compare_ending(side, [f(TEXT, b"a"), f(TEXT, b"\xff"), following])
+    assert outcome.messages == ["a"]
+    assert outcome.state != "OPEN"
+    if after == "ping":
+        assert outcome.sent[0] == (0x0A, b"p")  # answered before the 1007
+        assert outcome.close == (1007, "invalid start byte at position 0")
 
 
 @pytest.mark.parametrize("side", SIDES)
@@ -348,3 +439,140 @@ async def test_a_data_frame_inside_a_fragmented_message_ends_the_connection(side
     outcome = await compare_ending(side, [f(TEXT_PART, b"x"), f(TEXT, b"y"), f(TEXT, b"z")])
     assert outcome.messages == []
     assert outcome.close == (1002, "expected a continuation frame")
+
+
+async def test_a_fragment_limit_leaves_every_frame_to_websockets() -> None:
+    """websockets bounds a fragment only when told to (srvwire never tells it): with such a
+    bound, the direct path takes nothing and websockets checks it."""
+    async with fed("server", True) as end:
+        end.ws.protocol.max_fragment_size = 10
+        outcome = end.feed([on("server")(TEXT, b"a") + on("server")(TEXT, b"b" * 11)])
+    assert outcome.parsed == 1
+    assert outcome.messages == ["a"]
+    assert outcome.close is not None and outcome.close[0] == 1009
+
+
+# What a message taken directly begins comes before what the parser does with the rest
+
+
+async def later_read(side: str, frames: list[bytes], receive: Any) -> None:
+    """Feed ``frames`` in one read to the direct path, and the first and the rest in two
+    reads to the parser; assert the two did the same: a message taken directly acts as if
+    what follows it came in a later read."""
+    together, apart = [b"".join(frames)], [frames[0], b"".join(frames[1:])]
+    for how in HOW:
+        async with (
+            fed(side, True, how=how, receive=receive) as direct,
+            fed(side, False, how=how, receive=receive) as parser,
+        ):
+            agree(direct.feed(together), parser.feed(apart), together)
+
+
+@pytest.mark.parametrize("side", SIDES)
+async def test_a_receiver_that_raises_acts_before_the_frames_after_its_message(
+    side: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    def receive(end: Fed, message: str | bytes) -> None:
+        end.take(message)
+        raise RuntimeError("the receiver broke")
+
+    f = on(side)
+    await later_read(side, [f(TEXT, b"boom"), f(TEXT, b"never"), f(PING, b"p")], receive)
+    await later_read(side, [f(TEXT, b"boom"), f(PING, b"p"), f(TEXT, b"never")], receive)
+    assert any(r.getMessage().startswith("the receiver of messages failed") for r in caplog.records)
+
+
+async def test_the_error_a_connection_keeps_holds_no_view_of_the_read_buffer(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The receiver's error, kept as the connection's (the cause of what ``recv`` and ``send``
+    raise), without its traceback: its frames would hold views of the thread's read buffer,
+    which every connection's next read fills."""
+
+    def receive(end: Fed, message: str | bytes) -> None:
+        raise RuntimeError("the receiver broke")
+
+    async with fed("server", True, receive=receive) as end:
+        end.feed([on("server")(TEXT, b"boom")])
+        kept = end.ws.connection_exc
+        assert isinstance(kept, RuntimeError) and str(kept) == "the receiver broke"
+        assert kept.__traceback__ is None
+    [record] = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert record.exc_info is not None and record.exc_info[2] is not None  # logged with it
+
+
+@pytest.mark.parametrize("side", SIDES)
+async def test_a_close_begun_from_a_message_comes_before_the_frames_after_it(side: str) -> None:
+    loop = asyncio.get_running_loop()
+    # The step runs with a task current, as a server runs a handler's first step.
+    reader = asyncio.create_task(asyncio.Event().wait())
+
+    def receive(end: Fed, message: str | bytes) -> None:
+        end.take(message)
+        if message != "close-me":
+            return
+        _enter_task(loop, reader)
+        try:
+            first_step(end.connection.close(1001, "going away"))  # finishes as the pair closes
+        finally:
+            _leave_task(loop, reader)
+
+    f = on(side)
+    await later_read(side, [f(TEXT, b"close-me"), f(PING, b"p"), f(TEXT, b"more")], receive)
+    reader.cancel()
+
+
+# On real sockets
+
+
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+@pytest.mark.parametrize("tls", [False, True], ids=["tcp", "tls"])
+def test_messages_of_every_size_cross_real_sockets_whole_and_in_order(loop: str, tls: bool) -> None:
+    """Both ends hand messages over, taken directly or by websockets' parser as each read
+    falls: every message arrives whole and in order, both ways, on asyncio (which reads into
+    the thread's buffer) and uvloop (which hands over bytes), over TCP and TLS."""
+    rng = random.Random(7)
+    sizes = [
+        rng.choice([0, 1, 125, 126, 127, 300, 4_000, 65_535, 65_536, 100_000]) for _ in range(120)
+    ]
+    texts = [("é" * (n // 2) + f"#{i}") for i, n in enumerate(sizes)]
+    blobs = [rng.randbytes(n) + i.to_bytes(2, "big") for i, n in enumerate(sizes)]
+    taken: dict[str, int] = {"taken": 0}
+    take_frames = _Watched.take_frames
+
+    async def exchange() -> tuple[list[str | bytes], list[str | bytes]]:
+        server_ssl, client_ssl = tls_on_localhost(tls)
+        options = Options(max_message_size=2**20)
+        transport = WebSocketsTransport()
+        async with listening(transport, options, ssl=server_ssl) as (listener, accepted):
+            client = await transport.connect(listener.url, options, ssl=client_ssl)
+            try:
+                async with asyncio.timeout(scaled(20)):
+                    server = await accepted.get()
+                    at_server, at_client = Taker(), Taker()
+                    assert server.deliver_to(at_server) and client.deliver_to(at_client)
+                    for text, blob in zip(texts, blobs, strict=True):
+                        await client.send(text)
+                        await server._ws.send(blob)  # type: ignore[attr-defined]  # binary
+                        if rng.random() < 0.2:
+                            await asyncio.sleep(0)  # let some reads end between messages
+                    return (
+                        await at_server.until(len(texts)),
+                        await at_client.until(len(blobs)),
+                    )
+            finally:
+                await client.close()
+
+    def counting(self: _Watched, data: bytes | memoryview) -> int:
+        n = take_frames(self, data)
+        taken["taken"] += n > 0
+        return n
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(_Watched, "take_frames", counting)
+        factory = uvloop.new_event_loop if loop == "uvloop" else None
+        with asyncio.Runner(loop_factory=factory) as runner:
+            at_server, at_client = runner.run(exchange())
+    assert at_server == texts
+    assert at_client == blobs
+    assert taken["taken"] > 0  # the direct path was taken

@@ -87,14 +87,15 @@ with a frame's first byte. :meth:`_Watched.take_frames` takes the frames at the 
 a read that the parser would turn into a whole message as they are: final, text or binary, no
 reserved bit, masked as the peer's side must mask (a client's frames, not a server's), a
 length in one or three bytes within the size limit the parser would check, the whole frame
-in the read; it unmasks the payload with websockets' own ``apply_mask`` and hands it over as
-:meth:`~_Watched.process_event` would (text decoded, not UTF-8: 1007). At the first byte that
-is not such a frame (a control frame, a fragment, a large or an invalid frame, a frame cut by
-the end of the read) it stops, and the rest of the read goes to websockets' parser from that
-frame's start, which then keeps every rule as before: pings, closes, fragments, 1002, 1009.
-Messages taken so were handed over before the parser reads a close frame after them in the
-same read, as when the close comes in a later read: what they begin (a reply, the server's
-own close) goes first.
+in the read, text that is UTF-8; it unmasks the payload with websockets' own ``apply_mask``
+and hands it over as :meth:`~_Watched.process_event` would. At the first byte that is not
+such a frame (a control frame, a fragment, a large or an invalid frame, text that is not
+UTF-8, a frame cut by the end of the read) it stops, and the rest of the read goes to
+websockets' parser from that frame's start, which then keeps every rule as before: pings,
+closes, fragments, 1002, 1007, 1009. One thing moves: a message taken so is handed over
+before the parser reads the frames after it in the same read, as if they came in a later
+read, so what it begins (a reply, the server's own close, the 1011 of a receiver that
+raises) goes out before the parser's answer to them (a pong, the echo of a close).
 The parser is not asked anything new: nothing is taken unless it is found waiting between
 frames, open, and not inside a fragmented message, and with compression on, or websockets'
 debug log of frames, it parses every frame itself.
@@ -460,25 +461,20 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         else:
             data = event.data
             text = opcode is TEXT
-        self.hand_over(receive, data, text)
-
-    def hand_over(
-        self,
-        receive: Callable[[str | bytes], None],
-        data: bytes | bytearray | memoryview,
-        text: bool,
-    ) -> None:
-        """Hand a whole message's payload to ``receive``: text decoded (not UTF-8: 1007, with
-        websockets' reason), binary as bytes; a receiver that raises closes with 1011."""
         message: str | bytes
         if text:
             try:
                 message = str(data, "utf-8")
             except UnicodeDecodeError as exc:  # what websockets' recv says of it
-                self.refuse(CloseCode.INVALID_DATA, f"{exc.reason} at position {exc.start}", exc)
+                reason = f"{exc.reason} at position {exc.start}"
+                self.refuse(CloseCode.INVALID_DATA, reason, exc.with_traceback(None))
                 return
         else:
             message = data if type(data) is bytes else bytes(data)
+        self.hand_over(receive, message)
+
+    def hand_over(self, receive: Callable[[str | bytes], None], message: str | bytes) -> None:
+        """Hand a whole message to ``receive``; a receiver that raises closes with 1011."""
         self.handed += 1
         try:
             receive(message)
@@ -486,13 +482,15 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             self.logger.error(
                 "the receiver of messages failed; closing the connection", exc_info=True
             )
-            self.refuse(CloseCode.INTERNAL_ERROR, "", exc)
+            # Kept as the connection's error without its traceback, whose frames hold views of
+            # the thread's read buffer (take_frames), which other connections' reads refill.
+            self.refuse(CloseCode.INTERNAL_ERROR, "", exc.with_traceback(None))
 
     def take_frames(self, data: bytes | memoryview) -> int:
         """Hand over the whole messages at the start of a read that websockets' parser would
         return as single final frames, and return how many bytes they took (the rest is the
         parser's). See the module: only between frames, and only frames it would take as
-        they are."""
+        they are, text only when it is UTF-8."""
         protocol = self.protocol
         # The parser is a generator; what it waits in is the innermost one it delegates to.
         parsing: Any = protocol.parser
@@ -500,17 +498,13 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             parsing = parsing.gi_yieldfrom
         waiting: Any = None if parsing is None else parsing.gi_yieldfrom
         if (
-            protocol.state is not OPEN
-            or protocol.current_size is not None
-            or waiting is None
+            waiting is None
             or waiting.gi_code is not _AT_EOF  # which waits only on an empty buffer
+            or protocol.current_size is not None
+            or protocol.max_fragment_size is not None  # websockets' own; srvwire sets none
         ):
             return 0  # inside a frame or a fragmented message, or closing
         limit = protocol.max_message_size
-        if protocol.max_fragment_size is not None and (
-            limit is None or protocol.max_fragment_size < limit
-        ):
-            limit = protocol.max_fragment_size
         masked = protocol.side is Side.SERVER  # a client's frames are masked, a server's not
         expected = 0x80 if masked else 0
         receive = self.receive
@@ -541,9 +535,17 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             end = start + length
             if end > size:
                 break
-            payload = data[start:end]
+            payload = apply_mask(data[start:end], key) if masked else data[start:end]
+            message: str | bytes
+            if first == 0x81:
+                try:
+                    message = str(payload, "utf-8")
+                except UnicodeDecodeError:  # the parser's, with what follows: then 1007
+                    break
+            else:
+                message = payload if type(payload) is bytes else bytes(payload)
             at = end
-            self.hand_over(receive, apply_mask(payload, key) if masked else payload, first == 0x81)
+            self.hand_over(receive, message)
         return at
 
     def send_close_last(self, frame: Frame) -> None:
