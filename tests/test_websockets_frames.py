@@ -14,7 +14,8 @@ in a later read.
 
 The connections are real ones, on 127.0.0.1, opened by a real handshake; the crafted reads
 stand in for what the peer would send, so that where a read ends is the test's to choose.
-The last tests send real messages over real sockets, TCP and TLS, on asyncio and uvloop.
+Real messages cross real sockets, TCP and TLS, on asyncio and uvloop; and random streams of
+valid and invalid frames, cut at random, end the same either way.
 """
 
 from __future__ import annotations
@@ -576,3 +577,53 @@ def test_messages_of_every_size_cross_real_sockets_whole_and_in_order(loop: str,
     assert at_server == texts
     assert at_client == blobs
     assert taken["taken"] > 0  # the direct path was taken
+
+
+# Random streams
+
+
+def random_frame(rng: random.Random, side: str, limit: int) -> bytes:
+    """One frame as a peer of ``side`` might send it, valid or not: any opcode (data most
+    often), FIN or not, a reserved bit now and then, masked as its side must or not, its length
+    in any form and around the limit, text that is UTF-8 or not, a close with any payload."""
+    kind = rng.random()
+    opcode = (
+        rng.choice([1, 2]) if kind < 0.6 else rng.choice([0, 8, 9, 10]) if kind < 0.9
+        else rng.randrange(16)
+    )  # fmt: skip
+    first = opcode | (0x80 if rng.random() < 0.85 else 0)
+    if rng.random() < 0.05:
+        first |= rng.choice([0x40, 0x20, 0x10])
+    size = rng.choice([0, 1, 2, 5, 40, 125, 126, 127, 300, limit, limit + 1])
+    if opcode == 8:
+        code = rng.choice([1000, 1001, 1002, 1011, 3000, 999, 5000])
+        payload = rng.choice([b"", b"\x03", struct.pack("!H", code) + rng.choice([b"", b"bye"])])
+    elif rng.random() < 0.6:
+        text = "aé☃" * (size // 3 + 1)
+        payload = text.encode()[:size]  # may end inside a character: not UTF-8
+    else:
+        payload = rng.randbytes(size)
+    masked = (side == "server") != (rng.random() < 0.03)
+    form = rng.choice([None] * 8 + [126, 127])
+    return frame(first, payload, masked=masked, form=form)
+
+
+@pytest.mark.parametrize("side", SIDES)
+async def test_random_streams_end_the_same_either_way(side: str) -> None:
+    """Random streams of frames, cut at random, each fed to a new connection with the direct
+    path and without, in both ways of feeding: the same messages, frames written and state."""
+    rng = random.Random(f"frames-{side}")
+    limit = 200
+    for case in range(500):
+        stream = b"".join(random_frame(rng, side, limit) for _ in range(rng.randrange(1, 8)))
+        if rng.random() < 0.1:
+            reads = [stream[i : i + 1] for i in range(len(stream))]
+        else:
+            cuts = sorted(rng.sample(range(1, len(stream)), min(len(stream) - 1, 3)))
+            reads = [stream[a:b] for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True)]
+        how = HOW[case % 2]
+        async with (
+            fed(side, True, Options(max_message_size=limit), how) as direct,
+            fed(side, False, Options(max_message_size=limit), how) as parser,
+        ):
+            agree(direct.feed(reads), parser.feed(reads), reads)
