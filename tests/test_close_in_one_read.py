@@ -294,6 +294,8 @@ async def test_a_close_begun_from_a_message_that_came_with_the_clients_close(
                 await finish(pending)
         assert pair.server.close_code == 1000  # the client's, which it received
     reader.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await reader
     assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
 
 

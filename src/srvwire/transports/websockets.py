@@ -94,11 +94,14 @@ UTF-8, a frame cut by the end of the read) it stops, and the rest of the read go
 websockets' parser from that frame's start, which then keeps every rule as before: pings,
 closes, fragments, 1002, 1007, 1009. One thing moves: a message taken so is handed over
 before the parser reads the frames after it in the same read, as if they came in a later
-read, so what it begins (a reply, the server's own close, the 1011 of a receiver that
-raises) goes out before the parser's answer to them (a pong, the echo of a close).
+read. What it begins goes out first: a reply, or the server's own close (a ping after it is
+still answered, the peer's close is not echoed); a receiver that raises on it closes with
+1011, and the rest of the read is discarded, as a later read would be.
 The parser is not asked anything new: nothing is taken unless it is found waiting between
-frames, open, and not inside a fragmented message, and with compression on, or websockets'
-debug log of frames, it parses every frame itself.
+frames, open, not inside a fragmented message and with no fragment limit (websockets' own,
+which srvwire does not set); with compression on, or websockets' debug log of frames, or a
+websockets whose parser is not built as this module expects (:func:`_takes_frames`), it
+parses every frame itself.
 
 **Every read goes into one buffer per thread.** asyncio reads a socket into a new bytes object
 of :data:`READ_SIZE` (256 KiB), which the C library maps from the kernel and gives back on every
@@ -143,6 +146,7 @@ import sys
 import threading
 import weakref
 from collections.abc import Callable, Generator, Sequence
+from types import GeneratorType
 from typing import Any
 
 from websockets.asyncio.client import ClientConnection, connect
@@ -253,8 +257,28 @@ class _MaskingKeys(threading.local):
 
 # What websockets' parser is suspended in between two frames: its loop, waiting for a frame's
 # first byte (see _Watched.take_frames).
-_PARSE = Protocol.parse.__code__
-_AT_EOF = StreamReader.at_eof.__code__
+_PARSE = getattr(getattr(Protocol, "parse", None), "__code__", None)
+_AT_EOF = getattr(getattr(StreamReader, "at_eof", None), "__code__", None)
+
+
+def _takes_frames(protocol: Protocol) -> bool:
+    """Whether a connection of ``protocol`` may take whole frames itself: no extension (a
+    frame may be compressed), no debug log of frames (websockets' own), and websockets'
+    parser built as :meth:`_Watched.take_frames` reads it (websockets 17: a ``parse``
+    generator waiting in its reader's ``at_eof`` between frames, ``current_size`` and the two
+    size limits on the protocol). Another build leaves every frame to websockets."""
+    return (
+        not protocol.extensions
+        and not protocol.debug
+        and _PARSE is not None
+        and _AT_EOF is not None
+        and isinstance(protocol.parser, GeneratorType)
+        and all(
+            hasattr(protocol, name)
+            for name in ("current_size", "max_message_size", "max_fragment_size")
+        )
+    )
+
 
 _masking_keys = _MaskingKeys()
 os.register_at_fork(after_in_child=_masking_keys.forget)  # the forking thread's, the only one
@@ -482,8 +506,9 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             self.logger.error(
                 "the receiver of messages failed; closing the connection", exc_info=True
             )
-            # Kept as the connection's error without its traceback, whose frames hold views of
-            # the thread's read buffer (take_frames), which other connections' reads refill.
+            # Kept as the connection's error without its own traceback, whose frames hold views
+            # of the thread's read buffer (take_frames), which other connections' reads refill;
+            # the log record keeps it, with the exceptions chained to it.
             self.refuse(CloseCode.INTERNAL_ERROR, "", exc.with_traceback(None))
 
     def take_frames(self, data: bytes | memoryview) -> int:
@@ -503,7 +528,7 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             or protocol.current_size is not None
             or protocol.max_fragment_size is not None  # websockets' own; srvwire sets none
         ):
-            return 0  # inside a frame or a fragmented message, or closing
+            return 0  # not between frames, inside a fragmented message, or a fragment limit
         limit = protocol.max_message_size
         masked = protocol.side is Side.SERVER  # a client's frames are masked, a server's not
         expected = 0x80 if masked else 0
@@ -511,6 +536,8 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         assert receive is not None
         size = len(data)
         at = 0
+        # The receiver is read once; what may end it (refuse, which sets another, a close
+        # the receiver begins) leaves the connection not open, which stops the loop.
         while at + 2 <= size and protocol.state is OPEN:
             first = data[at]
             if first != 0x81 and first != 0x82:  # FIN, no RSV bit, text or binary
@@ -912,7 +939,7 @@ class WebSocketsConnection(Connection):
         queued = ws.recv_messages.frames.queue
         ws.receive = receive
         ws.pushing = self
-        ws.direct = not ws.protocol.extensions and not ws.protocol.debug
+        ws.direct = _takes_frames(ws.protocol)
         while queued:
             ws.process_event(queued.popleft())
         ws.recv_messages.maybe_resume()  # the queue is empty: it reads again, if it had paused
