@@ -73,7 +73,7 @@ class Outcome:
     """What a connection did with the reads it was fed."""
 
     messages: list[str | bytes]
-    sent: list[tuple[int, bytes]]  # the frames its protocol sent of itself: opcode, payload
+    sent: list[tuple[int, bytes]]  # the frames it wrote to its socket: opcode, payload
     state: str
     close: tuple[int, str] | None  # the close frame it sent, if any
     parsed: int  # reads websockets' parser was given
