@@ -100,7 +100,7 @@ still answered, the peer's close is not echoed); a receiver that raises on it cl
 The parser is not asked anything new: nothing is taken unless it is found waiting between
 frames, open, not inside a fragmented message and with no fragment limit (websockets' own,
 which srvwire does not set); with compression on, or websockets' debug log of frames, or a
-websockets whose parser is not built as this module expects (:func:`_takes_frames`), it
+websockets whose parser is not built as this module expects (:func:`_parser_as_expected`), it
 parses every frame itself.
 
 **Every read goes into one buffer per thread.** asyncio reads a socket into a new bytes object
@@ -261,16 +261,13 @@ _PARSE = getattr(getattr(Protocol, "parse", None), "__code__", None)
 _AT_EOF = getattr(getattr(StreamReader, "at_eof", None), "__code__", None)
 
 
-def _takes_frames(protocol: Protocol) -> bool:
-    """Whether a connection of ``protocol`` may take whole frames itself: no extension (a
-    frame may be compressed), no debug log of frames (websockets' own), and websockets'
-    parser built as :meth:`_Watched.take_frames` reads it (websockets 17: a ``parse``
-    generator waiting in its reader's ``at_eof`` between frames, ``current_size`` and the two
-    size limits on the protocol). Another build leaves every frame to websockets."""
+def _parser_as_expected(protocol: Protocol) -> bool:
+    """Whether websockets' parser of ``protocol`` is built as :meth:`_Watched.take_frames`
+    reads it (websockets 17: a ``parse`` generator waiting in its reader's ``at_eof`` between
+    frames, ``current_size`` and the two size limits on the protocol). Another build leaves
+    every frame to websockets."""
     return (
-        not protocol.extensions
-        and not protocol.debug
-        and _PARSE is not None
+        _PARSE is not None
         and _AT_EOF is not None
         and isinstance(protocol.parser, GeneratorType)
         and all(
@@ -939,7 +936,9 @@ class WebSocketsConnection(Connection):
         queued = ws.recv_messages.frames.queue
         ws.receive = receive
         ws.pushing = self
-        ws.direct = _takes_frames(ws.protocol)
+        # Frames are taken where they are framed here (no compression, no debug log of
+        # frames: see __init__), and the parser is the one take_frames knows.
+        ws.direct = self._frames and _parser_as_expected(ws.protocol)
         while queued:
             ws.process_event(queued.popleft())
         ws.recv_messages.maybe_resume()  # the queue is empty: it reads again, if it had paused
