@@ -183,6 +183,40 @@ def test_reliable_ends_a_subscriber_that_cannot_keep_up() -> None:
     )
 
 
+@pytest.mark.parametrize("reliability", ["reliable", "best_effort"])
+def test_depth_bounds_a_queue_only_while_the_connection_takes_no_more(reliability: str) -> None:
+    writable = True
+    chatter = topic(qos=QoS(depth=3, reliability=reliability))
+    outbox = Outbox(writable=lambda: writable)
+    outbox.subscribe(1, chatter, chatter.qos)
+    drain(outbox)
+    # A burst while the connection takes more: queued whole, whatever the depth.
+    assert [chatter.publish(data(n)) for n in range(1, 11)] == [1] * 10
+    assert len(outbox.subscriptions[1].queue) == 10
+    assert [m["params"]["seq"] for m in drain(outbox)] == list(range(1, 11))
+    for n in range(11, 16):  # five more wait for the writer's turn...
+        chatter.publish(data(n))
+    writable = False  # ...when the connection congests: the peer stopped reading
+    chatter.publish(data(16))  # past the depth, on a connection that takes no more
+    messages = drain(outbox)
+    if reliability == "best_effort":  # the oldest go, down to the depth, counted
+        assert [(m["params"]["seq"], m["params"]["dropped"]) for m in messages] == [
+            (14, 3),
+            (15, 0),
+            (16, 0),
+        ]
+    else:  # never silently: ended, with what to do about it
+        [ended] = messages
+        assert ended["error"]["data"]["status"] == "RESOURCE_EXHAUSTED"
+        assert ended["error"]["message"] == (
+            "the subscriber to /chatter did not keep up: its queue of 3 messages was full while "
+            "its connection took no more (the peer did not read what was sent), and the "
+            "subscription is reliable; read faster, or subscribe with a larger depth, or "
+            "best_effort to drop the oldest instead"
+        )
+        assert not chatter.subscriptions
+
+
 def test_the_bytes_queued_on_a_connection_are_bounded() -> None:
     chatter = topic(qos=QoS(depth=100, reliability="best_effort"))
     outbox = Outbox(budget=10 * len(data(0)))
@@ -239,7 +273,8 @@ def test_a_reliable_subscriber_is_ended_where_the_budget_is_spent() -> None:
     assert ended["error"]["message"] == (
         "the subscriber to /chatter did not keep up: 48 bytes of topic data queued and 112 "
         "bytes waiting to be sent spent the connection's budget of 160 bytes "
-        "(max_queued_bytes), and the subscription is reliable"
+        "(max_queued_bytes), and the subscription is reliable; read faster, or subscribe with "
+        "best_effort to drop the oldest instead, or give the server a larger max_queued_bytes"
     )
     assert ended["error"]["data"] == {
         "status": "RESOURCE_EXHAUSTED",

@@ -438,15 +438,15 @@ class Writer:
     """Sends what one connection's :class:`~srvwire.topics.Outbox` holds, one message at a time.
 
     The outbox decides the order (control messages first, then subscriptions round-robin) and
-    the bounds (``depth`` per subscription; what it holds and what the transport holds share
-    the connection's ``budget``); the writer only takes the next message and sends it, and
-    takes none while the connection is :attr:`~srvwire.transports.base.Connection.congested`
-    (past its budget of bytes waiting to be sent). So what a slow reader costs is the
-    connection's budget, and while the writer waits, the outbox keeps deciding what to drop
-    (best effort) or end (reliable). Replies to calls do not go through it: they are sent at
-    once, never behind the data the outbox holds (which then gives up what no longer fits,
-    :meth:`~srvwire.topics.Outbox.fit`), and when a drain wakes a reply and the writer
-    together, the reply goes first.
+    the bounds (``depth`` per subscription while the connection is congested; what it holds
+    and what the transport holds share the connection's ``budget``); the writer only takes
+    the next message and sends it, and takes none while the connection is
+    :attr:`~srvwire.transports.base.Connection.congested` (past its budget of bytes waiting
+    to be sent). So what a slow reader costs is the connection's budget, and while the writer
+    waits, the outbox keeps deciding what to drop (best effort) or end (reliable). Replies to
+    calls do not go through it: they are sent at once, never behind the data the outbox holds
+    (which then gives up what no longer fits, :meth:`~srvwire.topics.Outbox.fit`), and when a
+    drain wakes a reply and the writer together, the reply goes first.
 
     It runs as a task from the first :meth:`wake` until :meth:`stop`; anything that keeps
     low-priority data in an outbox (topics, feedback) reuses it by calling ``outbox.wake``.
@@ -469,7 +469,7 @@ class Writer:
         self.loop = loop
         # What the transport holds; a stand-in connection without it (a test's) holds nothing.
         buffered = getattr(conn, "buffered", None) or (lambda: 0)
-        self.outbox = make_outbox(self.wake, budget, buffered)
+        self.outbox = make_outbox(self.wake, budget, buffered, lambda: not conn.congested)
         self.feedback = FeedbackOutbox()
         self.feedback_sent: Callable[[Any], object] = lambda call: None
         self.turn = False  # whether feedback goes before topic data next time both wait
@@ -614,10 +614,11 @@ class AccessLoggedOutbox(Outbox):
         wake: Callable[[], object],
         budget: int,
         buffered: Callable[[], int],
+        writable: Callable[[], bool],
         *,
         access: AccessLog,
     ) -> None:
-        super().__init__(wake, budget, buffered)
+        super().__init__(wake, budget, buffered, writable)
         self.access = access
         # Each running subscription's start (on perf_counter), messages delivered and dropped.
         self.counts: dict[Subscription, list[Any]] = {}

@@ -17,16 +17,23 @@ Invariants:
   data only when none does.
 * **Round-robin.** Subscriptions with data take turns, one message each, so a flooded topic
   cannot starve another on the same connection.
-* **One budget per connection.** A subscription holds at most ``depth`` messages; the topic
-  data an outbox holds and the bytes its connection's transport holds (replies, and data
-  already sent) share the connection's ``budget`` (the server's ``max_queued_bytes``): topic
-  data may take what the transport leaves, ``budget - buffered()``, checked as each message is
-  offered (a message is always accepted into an empty outbox, so that one message can always
-  pass). When a message does not fit, ``best_effort`` drops the subscription's oldest (counted
-  in the next ``dropped``; the ``seq`` numbers show the gap); ``reliable`` ends the
-  subscription with ``RESOURCE_EXHAUSTED`` and never drops silently. A reply is never refused:
-  once it is queued, :meth:`Outbox.fit` gives up topic data until the two fit again, best
-  effort's oldest messages first, then whole reliable subscriptions, which end as above.
+* **Depth bounds what waits on a connection that takes no more.** While the connection's
+  transport takes more (:attr:`Outbox.writable`: it is not congested), a message is queued
+  whatever the count, bounded by the budget below alone: a burst published within one turn of
+  the event loop, before the writer runs, is what the writer sends next, not a subscriber
+  that did not keep up. While the transport is congested (the peer does not read what was
+  sent), a subscription holds at most ``depth`` messages.
+* **One budget per connection.** The topic data an outbox holds and the bytes its
+  connection's transport holds (replies, and data already sent) share the connection's
+  ``budget`` (the server's ``max_queued_bytes``): topic data may take what the transport
+  leaves, ``budget - buffered()``, checked as each message is offered (a message is always
+  accepted into an empty outbox, so that one message can always pass). When a message does
+  not fit (the budget, or the depth of a congested connection), ``best_effort`` drops the
+  subscription's oldest (counted in the next ``dropped``; the ``seq`` numbers show the gap);
+  ``reliable`` ends the subscription with ``RESOURCE_EXHAUSTED`` and never drops silently. A
+  reply is never refused: once it is queued, :meth:`Outbox.fit` gives up topic data until the
+  two fit again, best effort's oldest messages first, then whole reliable subscriptions, which
+  end as above.
 * **Sequence numbers per topic.** Every publication takes the next ``seq`` (from 1); a
   subscriber sees them increasing, and ``seq - previous - 1 == dropped`` for each message of
   a best-effort subscription.
@@ -233,7 +240,7 @@ class Subscription:
         queue = self.queue
         size = len(data)
         queued = outbox.queued
-        if len(queue) >= self.qos.depth or (
+        if (len(queue) >= self.qos.depth and not outbox.writable()) or (
             queued and queued + size > outbox.budget - outbox.buffered()
         ):
             if not self.make_room(seq, size):
@@ -253,9 +260,12 @@ class Subscription:
         outbox = self.outbox
         queue = self.queue
         room = outbox.budget - outbox.buffered()
-        while len(queue) >= self.qos.depth or (outbox.queued and outbox.queued + size > room):
+        depth = None if outbox.writable() else self.qos.depth  # None: no count bound now
+        while (depth is not None and len(queue) >= depth) or (
+            outbox.queued and outbox.queued + size > room
+        ):
             if not self.qos.best_effort:
-                full = len(queue) >= self.qos.depth
+                full = depth is not None and len(queue) >= depth
                 outbox.end(self, self.exhausted(seq, None if full else room))
                 return False
             if not queue:  # the connection's budget is held by other subscriptions
@@ -271,16 +281,22 @@ class Subscription:
         None), or the connection's budget was spent, with ``room`` bytes left for topic data."""
         outbox = self.outbox
         if room is None:
-            why = f"its queue of {self.qos.depth} messages was full"
+            why = (
+                f"its queue of {self.qos.depth} messages was full while its connection took no "
+                "more (the peer did not read what was sent), and the subscription is reliable; "
+                "read faster, or subscribe with a larger depth, or best_effort to drop the "
+                "oldest instead"
+            )
         else:
             why = (
                 f"{outbox.queued} bytes of topic data queued and {outbox.budget - room} bytes "
                 f"waiting to be sent spent the connection's budget of {outbox.budget} bytes "
-                "(max_queued_bytes)"
+                "(max_queued_bytes), and the subscription is reliable; read faster, or "
+                "subscribe with best_effort to drop the oldest instead, or give the server a "
+                "larger max_queued_bytes"
             )
         return ResourceExhausted(
-            f"the subscriber to {self.topic.name} did not keep up: {why}, and the subscription "
-            "is reliable",
+            f"the subscriber to {self.topic.name} did not keep up: {why}",
             {"depth": self.qos.depth, "seq": seq, "max_queued_bytes": outbox.budget},
             service=self.topic.name,
         )
@@ -295,8 +311,10 @@ class Outbox:
     ``wake`` is called when the outbox goes from empty to not empty; the writer of the
     connection then takes :meth:`next` until it returns None (which resets :attr:`woken`),
     sending each, and waits for the next ``wake``. ``budget`` is the connection's budget of
-    bytes (the server's ``max_queued_bytes``; 4 MiB, its default, when not given) and
-    ``buffered`` says how many of them its transport holds now (see the module).
+    bytes (the server's ``max_queued_bytes``; 4 MiB, its default, when not given),
+    ``buffered`` says how many of them its transport holds now, and ``writable`` whether its
+    transport takes more now (is not congested; an outbox no writer drains never is), which
+    decides whether ``depth`` bounds a subscription's queue (see the module).
     """
 
     __slots__ = (
@@ -308,6 +326,7 @@ class Outbox:
         "subscriptions",
         "wake",
         "woken",
+        "writable",
     )
 
     def __init__(
@@ -315,10 +334,12 @@ class Outbox:
         wake: Callable[[], object] = lambda: None,
         budget: int = 4 * 2**20,
         buffered: Callable[[], int] = lambda: 0,
+        writable: Callable[[], bool] = lambda: False,
     ) -> None:
         self.wake = wake
         self.budget = budget
         self.buffered = buffered
+        self.writable = writable
         self.control: deque[bytes] = deque()
         self.ready: deque[Subscription] = deque()
         self.queued = 0  # bytes of topic data in the subscriptions' queues
