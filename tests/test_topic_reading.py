@@ -185,8 +185,10 @@ async def test_a_reliable_subscriber_that_falls_behind_is_ended(
         subscribe = await peer.next("$/subscribe")
         assert (await peer.next("$/cancel"))["params"] == {"id": subscribe["id"]}
     assert caught.value.message == (
-        "this subscriber to /chatter did not keep up: its queue of 2 messages was full, and "
-        "the subscription is reliable"
+        "this subscriber to /chatter did not keep up: its queue of 2 messages was full while "
+        "the code reading it was busy elsewhere, and the subscription is reliable; take each "
+        "message as it comes, or subscribe with a larger depth, or best_effort to drop the "
+        "oldest instead"
     )
     assert caught.value.data == {"depth": 2, "seq": 3}
 

@@ -28,6 +28,7 @@ from srvwire import (
     TokenAuth,
     connect,
     load_message,
+    load_service,
     serve,
 )
 from srvwire.errors import RegistrationError
@@ -344,12 +345,16 @@ async def test_a_reliable_subscriber_that_does_not_keep_up_is_ended(
     async with client_of(running) as client:
         await client.wait_for_topic("/joint_states")
         async with client.subscribe("/joint_states") as sub:
-            for n in range(5):  # at once: the server's queue of 2 overflows
+            for n in range(5):
                 pub.publish(joints(n))
+            # Busy elsewhere while the five arrive (the server wrote them before it read the
+            # call, so they come before its reply): the subscriber's queue of 2 overflows.
+            assert (await client.call("/subtract", {"minuend": 3})).difference == 3
+            assert [(await sub.receive()).position for _ in range(2)] == [[0.0], [1.0]]
             with pytest.raises(ResourceExhausted) as caught:
-                while True:
-                    await sub.receive()
-            assert "did not keep up" in caught.value.message
+                await sub.receive()
+            assert "did not keep up: its queue of 2 messages was full" in caught.value.message
+            assert "subscribe with a larger depth, or best_effort" in caught.value.message
         assert pub.subscription_count == 0
 
 
@@ -362,10 +367,63 @@ async def test_a_best_effort_subscriber_is_told_what_it_missed(
         async with client.subscribe("/joint_states") as sub:
             for n in range(1, 6):
                 pub.publish(joints(n))
+            assert (await client.call("/subtract", {"minuend": 3})).difference == 3  # busy
             first = await sub.receive()
             second = await sub.receive()
             assert [first.position, second.position] == [[4.0], [5.0]]
             assert sub.dropped == 3 and sub.seq == 5
+
+
+# --- bursts --------------------------------------------------------------------------------------
+
+
+async def read_all(sub: Any, count: int) -> list[Any]:
+    """What a subscriber that reads as messages come receives: ``count`` messages."""
+    return [await sub.receive() for _ in range(count)]
+
+
+@pytest.mark.parametrize("reliability", ["reliable", "best_effort"])
+async def test_a_burst_from_a_handler_reaches_a_reading_subscriber_whole_and_in_order(
+    robot: Server, running: RunningServer, reliability: str
+) -> None:
+    # Several times the depth, published in one turn of the loop: the connection takes it all,
+    # so nothing is dropped and no reliable subscriber is ended (depth bounds what waits on a
+    # connection that takes no more, not what one turn publishes).
+    pub = robot.topic("/detections", String, qos={"depth": 10, "reliability": reliability})
+    Trigger = load_service("std_srvs/srv/Trigger")
+    reached = []
+
+    @robot.service("/scan", Trigger)
+    async def scan(request: Any) -> Any:
+        for n in range(50):
+            reached.append(pub.publish({"data": f"object {n}"}))
+        return {"success": True}
+
+    async with client_of(running) as client:
+        await client.wait_for_topic("/detections")
+        async with client.subscribe("/detections") as sub:
+            reader = asyncio.ensure_future(read_all(sub, 50))
+            assert (await client.call("/scan")).success
+            got = await asyncio.wait_for(reader, scaled(10))
+            assert [m.data for m in got] == [f"object {n}" for n in range(50)]
+            assert (sub.seq, sub.dropped) == (50, 0)
+            assert pub.subscription_count == 1
+    assert reached == [1] * 50
+
+
+async def test_a_burst_of_client_publications_reaches_a_reading_subscriber_whole_and_in_order(
+    robot: Server, running: RunningServer
+) -> None:
+    robot.subscription("/commands", String)(lambda msg: None)  # clients may publish on it
+    async with client_of(running) as listener, client_of(running) as publisher:
+        await publisher.wait_for_topic("/commands")
+        async with listener.subscribe("/commands", qos={"depth": 2}) as sub:
+            reader = asyncio.ensure_future(read_all(sub, 50))
+            for n in range(50):  # notifications, none waiting for the server
+                await publisher.publish("/commands", {"data": f"r{n}"})
+            got = await asyncio.wait_for(reader, scaled(10))
+            assert [m.data for m in got] == [f"r{n}" for n in range(50)]
+            assert (sub.seq, sub.dropped) == (50, 0)
 
 
 async def test_reconnecting_resumes_subscriptions_and_reports_the_gap() -> None:
@@ -688,6 +746,33 @@ async def test_a_reliable_subscriber_that_never_reads_is_ended_where_the_budget_
             assert error["data"]["status"] == "RESOURCE_EXHAUSTED"
             assert error["data"]["max_queued_bytes"] == budget
             assert f"spent the connection's budget of {budget} bytes" in error["message"]
+        finally:
+            writer.close()
+
+
+async def test_a_reliable_subscriber_that_never_reads_is_ended_at_its_depth_once_congested() -> (
+    None
+):
+    server = Server(max_queued_bytes=64 * KIB)
+    flood = server.topic("/flood", String)
+    async with serve(server, "127.0.0.1", 0) as running:
+        reader, writer = await stalled_subscriber(running.port, {"depth": 1})
+        served = small_send_buffer(running)
+        try:
+            published = 0
+            while flood.subscription_count:
+                flood.publish(TEN_KB)
+                published += 1
+                if not served.conn.congested:
+                    assert flood.subscription_count == 1  # while it takes more, never ended
+                await asyncio.sleep(0)  # a turn of the loop: the writer sends, the socket fills
+            assert published * FRAME >= 64 * KIB  # ended only once the transport held the budget
+            while "id" not in (ended := await read_frame(reader)):
+                pass
+            error = ended["error"]
+            assert error["data"]["status"] == "RESOURCE_EXHAUSTED"
+            why = "its queue of 1 messages was full while its connection took no more"
+            assert why in error["message"]
         finally:
             writer.close()
 

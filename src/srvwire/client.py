@@ -1141,7 +1141,9 @@ class Subscription:
 
     Messages arrive in a queue of the granted ``depth``: a best-effort subscriber that does
     not keep up loses the oldest (counted in :attr:`dropped`), a reliable one is ended with
-    :class:`~srvwire.errors.ResourceExhausted`, as on the server.
+    :class:`~srvwire.errors.ResourceExhausted`, as on the server. Not keeping up means more
+    than ``depth`` messages came while the code reading the subscription was not waiting for
+    one; whatever arrives while it waits (a burst read at once) is kept for it.
     """
 
     def __init__(
@@ -1370,12 +1372,18 @@ class Subscription:
                 self._link.violation(exc)
             return
         queue = self._queue
-        if len(queue) >= self._limit:
+        # Depth bounds what waits while the code reading the subscription is busy elsewhere;
+        # while it waits in receive() (or was woken and has not run yet), it takes the whole
+        # queue at its next turn, so what arrives meanwhile (a burst, read at once) is kept.
+        if len(queue) >= self._limit and self._wakeup is None:
             if not self._best_effort:
                 self._abandon(
                     ResourceExhausted(
                         f"this subscriber to {self.name} did not keep up: its queue of "
-                        f"{self._limit} messages was full, and the subscription is reliable",
+                        f"{self._limit} messages was full while the code reading it was busy "
+                        "elsewhere, and the subscription is reliable; take each message as it "
+                        "comes, or subscribe with a larger depth, or best_effort to drop the "
+                        "oldest instead",
                         {"depth": self._limit, "seq": seq},
                         service=self.name,
                     )
