@@ -2,11 +2,12 @@
 
 A :class:`Topic` numbers what is published on it and keeps the last ``depth`` messages when
 it is ``transient_local``. A :class:`Subscription` is one client's request to receive a topic:
-a keep-last queue of ``depth`` messages. An :class:`Outbox` is what one connection has to
-write: control messages (replies that end subscriptions, ``$/subscribed``) first, then the
-queued topic data, one subscription after the other. The asyncio shell
-(:class:`srvwire.serving.Writer`) takes :meth:`Outbox.next` and sends it, one message at a time,
-and takes nothing while the connection is past its budget of bytes waiting to be sent.
+a keep-last queue of ``depth`` messages while its connection takes no more. An
+:class:`Outbox` is what one connection has to write: control messages (replies that end
+subscriptions, ``$/subscribed``) first, then the queued topic data, one subscription after the
+other. The asyncio shell (:class:`srvwire.serving.Writer`) takes :meth:`Outbox.next` and sends
+it, one message at a time, and takes nothing while the connection is past its budget of bytes
+waiting to be sent.
 
 Invariants:
 
