@@ -168,6 +168,11 @@ def add_process_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="await each reply bare, without asyncio.wait_for (floor_picows_client.py only)",
     )
+    parser.add_argument(
+        "--cork",
+        action="store_true",
+        help="write what one turn makes in one system call (the floor_picows scripts only)",
+    )
 
 
 def run(main: Callable[[], Coroutine[Any, Any, T]], args: argparse.Namespace) -> T:

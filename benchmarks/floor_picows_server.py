@@ -16,12 +16,18 @@ that waits), started at that point, while later frames are answered meanwhile.
 
 It does nothing more than the floor (no batches, notifications, cancellation, ``$/services``),
 and, as the raw picows server, reads only whole, unfragmented messages.
+
+With ``--cork`` (``floor-picows-corked`` in ``run.py``) the replies made while picows hands
+over the frames of one read are held and written together when the read's last frame has been
+answered: one system call for them all, as srvwire's server writes the replies of one read. A
+lone reply still goes through picows' ``send``; a reply made later, by a task, is sent at once.
 """
 
 from __future__ import annotations
 
 import asyncio
 import functools
+from collections.abc import Callable
 
 from picows import WSFrame, WSListener, WSMsgType, WSTransport, WSUpgradeRequest
 
@@ -35,11 +41,20 @@ from picows_server import main as serve
 DONE = object()  # what ``next`` returns for an answer that finished in its first step
 
 
-async def answer(transport: WSTransport, data: bytes) -> None:
+async def answer(send: Callable[[bytes], None], data: bytes) -> None:
     """Send the reply to one message, if it takes one; nothing of the call outlives this."""
     reply = await reply_to(data)
     if reply is not None:
-        transport.send(WSMsgType.TEXT, reply)
+        send(reply)
+
+
+def header(size: int) -> bytes:
+    """The header of a server's final, unmasked text frame of ``size`` bytes (RFC 6455, 5.2)."""
+    if size < 126:
+        return bytes((0x81, size))
+    if size < 2**16:
+        return bytes((0x81, 126)) + size.to_bytes(2, "big")
+    return bytes((0x81, 127)) + size.to_bytes(8, "big")
 
 
 async def finish(pending: Pending) -> None:
@@ -50,33 +65,67 @@ async def finish(pending: Pending) -> None:
 class TypedResponder(WSListener):  # type: ignore[misc]
     """One connection: answer each request frame as it arrives, typed as the floor's."""
 
-    def __init__(self) -> None:
+    def __init__(self, cork: bool = False) -> None:
         super().__init__()
         self._waiting: set[asyncio.Task[None]] = set()  # answers whose handler waits
+        self._cork = cork
+        self._transport: WSTransport | None = None
+        self._stepping = False  # whether a frame's answer is being stepped in on_ws_frame
+        self._held: list[bytes] = []  # with --cork: the framed replies of this read so far
+
+    def on_ws_connected(self, transport: WSTransport) -> None:
+        self._transport = transport
+
+    def send(self, reply: bytes) -> None:
+        """Write ``reply``, or with ``--cork`` hold it while a read's frames are answered."""
+        assert self._transport is not None
+        if self._stepping:
+            self._held += (header(len(reply)), reply)
+        else:
+            self._transport.send(WSMsgType.TEXT, reply)
+
+    def flush(self, transport: WSTransport) -> None:
+        """Write the replies held while answering one read's frames, in one system call."""
+        held = self._held
+        if len(held) == 2:
+            transport.send(WSMsgType.TEXT, held[1])  # picows frames a lone reply itself
+        elif held:
+            transport.underlying_transport.write(b"".join(held))
+        held.clear()
 
     def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
         kind = frame.msg_type
         if kind == WSMsgType.CLOSE:
+            self.flush(transport)  # the replies before the close go first
             transport.send_close(frame.get_close_code(), frame.get_close_message())
             transport.disconnect()
             return
         if kind != WSMsgType.TEXT and kind != WSMsgType.BINARY:
+            if self._held and frame.last_in_buffer:
+                self.flush(transport)
             return
         # pydantic_core decodes bytes, not a view of picows' buffer: one copy, as websockets'
         # recv(decode=False) makes for the floor.
-        coroutine = answer(transport, frame.get_payload_as_bytes())
+        coroutine = answer(self.send, frame.get_payload_as_bytes())
         # Stepped with ``next``, which ends without raising StopIteration when it finishes.
-        yielded = next(coroutine.__await__(), DONE)
+        self._stepping = self._cork
+        try:
+            yielded = next(coroutine.__await__(), DONE)
+        finally:
+            self._stepping = False
         if yielded is not DONE:
             task = asyncio.ensure_future(finish(Pending(coroutine, yielded, None)))
             self._waiting.add(task)
             task.add_done_callback(self._waiting.discard)
+        if self._held and frame.last_in_buffer:
+            self.flush(transport)
 
 
-def accept(request: WSUpgradeRequest) -> WSListener:
-    return TypedResponder()
+def accept(request: WSUpgradeRequest, cork: bool = False) -> WSListener:
+    """A listener for each connection; with ``cork``, one that holds the replies of a read."""
+    return TypedResponder(cork)
 
 
 if __name__ == "__main__":
     args = server_parser(__doc__ or "").parse_args()
-    run(functools.partial(serve, args, accept), args)
+    run(functools.partial(serve, args, functools.partial(accept, cork=args.cork)), args)

@@ -15,7 +15,9 @@ JSON-RPC peer (an ``aiohttp-json-rpc`` server and a ``jsonrpc-websocket`` client
 first on both sides, as an application of large messages would; ``floor-picows`` is the
 floor on the native transport (the floor's typed work on both ends, on raw ``picows``' shape,
 each wait under ``asyncio.wait_for``) and ``floor-picows-bare`` the same with the futures
-awaited bare, without a deadline. Given several times, every implementation named is measured
+awaited bare, without a deadline; ``floor-picows-corked`` (and ``-corked-bare``) the same with
+what one turn or one read makes written in one system call on both ends, as srvwire writes it.
+Given several times, every implementation named is measured
 once per repeat, in the same alternation, and one table is printed per pair.
 
 Every measurement starts a fresh server process (on 127.0.0.1, port 0, its port read from its
@@ -78,6 +80,16 @@ IMPLEMENTATIONS: dict[str, tuple[Path, Path, tuple[str, ...]]] = {
         HERE / "floor_picows_server.py",
         HERE / "floor_picows_client.py",
         ("--no-deadline",),
+    ),
+    "floor-picows-corked": (
+        HERE / "floor_picows_server.py",
+        HERE / "floor_picows_client.py",
+        ("--cork",),
+    ),
+    "floor-picows-corked-bare": (
+        HERE / "floor_picows_server.py",
+        HERE / "floor_picows_client.py",
+        ("--cork", "--no-deadline"),
     ),
 }
 """Each implementation's server script, client script, and the options both take."""

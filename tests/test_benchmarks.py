@@ -9,6 +9,7 @@ own runs.
 from __future__ import annotations
 
 import asyncio
+import functools
 import importlib
 import importlib.util
 import json
@@ -395,6 +396,13 @@ def test_the_bare_typed_floor_on_picows_is_the_floor_with_its_deadline_switched_
     assert client.deadline_asked()
     monkeypatch.setattr(sys, "argv", [*command, *options])
     assert not client.deadline_asked()
+    # The corked pair: the same scripts, both sides told --cork (the server holds a read's
+    # replies, the client a turn's calls), the second without its deadline.
+    for name, deadline in (("floor-picows-corked", True), ("floor-picows-corked-bare", False)):
+        server_script, client_script, options = run.IMPLEMENTATIONS[name]
+        assert (server_script, client_script) == (server, script)
+        monkeypatch.setattr(sys, "argv", [*command, *options])
+        assert client.asked().cork and client.deadline_asked() == deadline
 
 
 @pytest.fixture
@@ -444,15 +452,17 @@ async def exchange(url: str, messages: list[str]) -> list[list[bytes]]:
     return got
 
 
+@pytest.mark.parametrize("cork", [False, True], ids=["each reply alone", "corked"])
 async def test_the_typed_floor_on_picows_answers_every_message_as_the_floor_does(
-    floors: dict[str, ModuleType],
+    floors: dict[str, ModuleType], cork: bool
 ) -> None:
     messages = [message for message, _ in FLOOR_ERRORS]
     floor = floors["floor_server"]
     async with serve(floor.respond, "127.0.0.1", 0, compression=None) as server:
         port = next(iter(server.sockets)).getsockname()[1]
         on_websockets = await exchange(f"ws://127.0.0.1:{port}", messages)
-    picows_server = await ws_create_server(floors["floor_picows_server"].accept, "127.0.0.1", 0)
+    accept = functools.partial(floors["floor_picows_server"].accept, cork=cork)
+    picows_server = await ws_create_server(accept, "127.0.0.1", 0)
     try:
         port = picows_server.sockets[0].getsockname()[1]
         on_picows = await exchange(f"ws://127.0.0.1:{port}", messages)
@@ -542,3 +552,103 @@ async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadline
     finally:
         server.close()
         await server.wait_closed()
+
+
+async def test_the_corked_typed_floor_on_picows_writes_a_turns_calls_and_a_reads_replies_at_once(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    floor = floors["floor_server"]
+    client, picows_server = floors["floor_picows_client"], floors["floor_picows_server"]
+
+    async def echoed(request: Any) -> Any:
+        # The benchmark's handler, whose reply names the frame its request asked for: a reply
+        # that reached the wrong call would show.
+        response = await floor.get_robot_state(request)
+        return response.model_copy(update={"message": request.target_frame})
+
+    robot_state = floor.ROBOT_STATE
+    monkeypatch.setitem(
+        floor.SERVICES, "/get_robot_state",
+        floor.Service(robot_state.validate, echoed, robot_state.serialize),
+    )  # fmt: skip
+    # Each write either end makes, as the frames it holds (a lone message sent through picows'
+    # own send counts as one).
+    client_writes: list[int] = []
+    server_writes: list[int] = []
+    caller_flush, responder_flush = client.TypedCaller.flush, picows_server.TypedResponder.flush
+
+    def counted_caller_flush(self: Any) -> None:
+        if self._held:
+            client_writes.append(len(self._held))
+        caller_flush(self)
+
+    def counted_responder_flush(self: Any, transport: Any) -> None:
+        if self._held:
+            server_writes.append(len(self._held) // 2)  # a header and a reply each
+        responder_flush(self, transport)
+
+    monkeypatch.setattr(client.TypedCaller, "flush", counted_caller_flush)
+    monkeypatch.setattr(picows_server.TypedResponder, "flush", counted_responder_flush)
+    accept = functools.partial(picows_server.accept, cork=True)
+    server = await ws_create_server(accept, "127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+    frames = [f"frame{index}" for index in range(8)]
+    try:
+        async with AsyncExitStack() as stack:
+            call = await client.adapter(deadline=True, cork=True).open(url, stack)
+
+            async def answered(frame: str) -> str:
+                request = client.make_request({"query_type": "position", "target_frame": frame})
+                response = await call(request)
+                assert client.values_of(response) == 5
+                return str(response.message)
+
+            # Eight calls made in one turn: one write of eight masked frames, which picows'
+            # server unmasks (a wrong mask would be a parse error, and every wait a TimeoutError),
+            # and each reply reaches its own call.
+            assert await asyncio.gather(*map(answered, frames)) == frames
+            assert client_writes == [8]
+            assert sum(server_writes) == 8 and max(server_writes) > 1
+            # One call at a time: the first, after a read of several replies, is held to the
+            # turn's end; each after a read of one reply is written at once, not held. Each
+            # read brings the server one call, whose reply is written alone.
+            client_writes.clear()
+            server_writes.clear()
+            assert [await answered(frame) for frame in frames[:3]] == frames[:3]
+            assert client_writes == [1] and server_writes == [1, 1, 1]
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
+def test_the_corked_typed_floor_on_picows_masks_each_frame_with_its_own_key(
+    floors: dict[str, ModuleType],
+) -> None:
+    client = floors["floor_picows_client"]
+    written: list[bytes] = []
+
+    class Underlying:
+        def write(self, data: bytes) -> None:
+            written.append(data)
+
+    class Transport:
+        underlying_transport = Underlying()
+        is_close_frame_sent = False
+
+    caller = client.TypedCaller.__new__(client.TypedCaller)
+    caller.transport = Transport()
+    caller._held, caller._held_size = [b"x" * 3, b"y" * 125, b"z" * 300], 0
+    caller.flush()
+    assert caller._held == [] and len(written) == 1
+    data, payloads, keys = written[0], [], []
+    while data:  # RFC 6455, 5.2: final text frames, masked, 7- or 16-bit lengths
+        assert data[0] == 0x81 and data[1] & 0x80
+        size, data = data[1] & 0x7F, data[2:]
+        if size == 126:
+            size, data = int.from_bytes(data[:2], "big"), data[2:]
+        key, payload, data = data[:4], data[4 : 4 + size], data[4 + size :]
+        assert len(payload) == size
+        payloads.append(bytes(byte ^ key[index % 4] for index, byte in enumerate(payload)))
+        keys.append(key)
+    assert payloads == [b"x" * 3, b"y" * 125, b"z" * 300]
+    assert len(set(keys)) == 3

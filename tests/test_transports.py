@@ -1588,6 +1588,20 @@ async def test_a_picows_client_writes_larger_messages_at_once_after_what_it_held
     async with connected(PicowsTransport()) as pair, asyncio.timeout(scaled(5)):
         sizes = [10, CLIENT_CORK_LIMIT - 4, CLIENT_CORK_LIMIT - 3, 100, 70_000, 5] * 3
         await numbered_messages_arrive_in_order(pair, sizes)  # held ones and others, mixed
+        # In one turn: up to the limit, held; past it, what is held goes first, then it. The
+        # websockets transport's client holds the same messages (those below its CORK_LIMIT).
+        from srvwire.transports.websockets import CORK_LIMIT
+
+        assert CLIENT_CORK_LIMIT == CORK_LIMIT - 1
+        client = pair.client
+        writes = count_writes(client)
+        await client.send(b"a" * CLIENT_CORK_LIMIT)
+        assert client._corked == [b"a" * CLIENT_CORK_LIMIT]  # type: ignore[attr-defined]
+        await client.send(b"b" * (CLIENT_CORK_LIMIT + 1))
+        assert client._corked == []  # type: ignore[attr-defined]
+        assert writes == []  # a lone held message and the larger one: both through picows
+        assert await pair.server.recv() == "a" * CLIENT_CORK_LIMIT  # a client writes text
+        assert await pair.server.recv() == "b" * (CLIENT_CORK_LIMIT + 1)
 
 
 async def test_a_picows_client_writes_what_it_holds_past_a_quarter_of_its_budget() -> None:

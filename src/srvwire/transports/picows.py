@@ -28,7 +28,8 @@ leaves to its user:
   messages too (at most :data:`CLIENT_CORK_LIMIT` bytes), until the loop's next turn or
   :data:`CLIENT_WRITE_AT` bytes: the calls its callers
   make in one turn (a pipelined client woken by a read of many replies) go out in a few
-  writes, each frame masked with a fresh key from ``os.urandom``, as RFC 6455 asks. The first
+  writes, each frame masked with a fresh key from ``os.urandom``, as RFC 6455 asks (by
+  ``websockets``' masking in C, the one thing of that library used here). The first
   message sent after a read that brought a single one is written at once instead, by
   ``picows`` (a caller that waited for its reply and calls again: nothing else is coming this
   turn), and so is a larger message, or a lone one when the turn ends.
@@ -91,6 +92,11 @@ from picows import (
 )
 from picows.picows import WSAutoPingStrategy, WSProtocol  # type: ignore[attr-defined]
 
+try:  # websockets' C masking (websockets is a dependency of srvwire in any case): nothing else
+    from websockets.speedups import apply_mask  # of websockets is used here
+except ImportError:  # websockets ships it compiled for the common platforms
+    from websockets.utils import apply_mask
+
 from srvwire.transports.base import (
     Admitted,
     Answered,
@@ -136,14 +142,14 @@ what precedes it: the frames before it, its header and its first ``WRITE_APART``
 one write, then a view of the rest in a second, which the socket takes straight from the
 message. Joined, every byte of it was copied once more (see docs/performance.md, "Large
 messages on the picows transport")."""
-CLIENT_CORK_LIMIT = 512
-"""The largest message a client corks (see the module); a larger one is written at once by
-``picows``, which masks it in C: masking it here, in Python, would cost about what the system
-call saved does."""
 CLIENT_WRITE_AT = 2**12
 """Bytes of held messages at which a client writes them without waiting for the turn's end:
 a pipelined client's calls then reach the server in a few writes, and the server works on the
 first while the client makes the next, instead of the two ends taking turns."""
+CLIENT_CORK_LIMIT = CLIENT_WRITE_AT - 1
+"""The largest message a client corks (see the module), as the ``websockets`` transport's
+client: one that reaches :data:`CLIENT_WRITE_AT` alone is written at once by ``picows``, after
+what is held."""
 RELEASE_AT = 2**16
 """A frame larger than this, once ``picows`` is done with it, has the pages of ``picows``' read
 buffer past its first :data:`KEEP_READ` free bytes handed back to the system (see
@@ -187,21 +193,20 @@ _MASKED_HEADER = [bytes((0x81, 0x80 | size)) for size in range(126)]
 
 def _masked_frames(messages: Sequence[bytes]) -> bytes:
     """Frame ``messages`` as a client must (RFC 6455, 5.3): each a final text frame whose
-    payload is masked with its own fresh key, all in one ``bytes`` to write at once."""
+    payload is masked with its own fresh key (``picows`` has no masking of its own to call;
+    websockets' is in C), all in one ``bytes`` to write at once."""
     keys = os.urandom(4 * len(messages))
     parts: list[bytes] = []
-    for index, data in enumerate(messages):
+    at = 0
+    for data in messages:
         size = len(data)
-        key = keys[4 * index : 4 * index + 4]
-        if size < 126:
-            parts.append(_MASKED_HEADER[size])
-        else:
-            parts.append(struct.pack("!BBH", 0x81, 0x80 | 126, size))
-        parts.append(key)
-        # XOR with the key repeated, as one integer operation: little-endian, so the first
-        # byte of the payload meets the first byte of the key.
-        pad = int.from_bytes(key * ((size >> 2) + 1), "little")
-        parts.append((int.from_bytes(data, "little") ^ pad).to_bytes(size + 4, "little")[:size])
+        key = keys[at : at + 4]
+        at += 4
+        parts += (
+            _MASKED_HEADER[size] if size < 126 else struct.pack("!BBH", 0x81, 0x80 | 126, size),
+            key,
+            apply_mask(data, key),
+        )
     return b"".join(parts)
 
 
