@@ -462,7 +462,7 @@ async def test_the_same_local_type_is_compared_without_a_round_trip(
             link = client._link
             assert link is not None
             assert link.fingerprints == {"/set_speed": fingerprint(full_definition(SetSpeed) or {})}
-            assert link.verified == {"/set_speed"}
+            assert link.verified == {("/set_speed", SetSpeed)}
     assert asked == []  # no rpc.discover: the types are local, and the fingerprints agree
 
 

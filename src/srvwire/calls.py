@@ -64,6 +64,7 @@ __all__ = [
     "encode_message",
     "encode_request",
     "remote_message",
+    "typed_by_request",
     "validate_request",
 ]
 
@@ -125,6 +126,30 @@ def validate_request(method: str, srv: type[Service], request: Mapping[str, Any]
         raise _refused(method, error_data(exc)) from None
 
 
+def typed_by_request(method: str, codec: ServiceCodec, request: Any) -> type[Service] | None:
+    """The service that types a call of ``method`` (whose type is ``codec``'s) given ``request``
+    and no ``srv_type``: the service a ``Request`` of another class names
+    (:attr:`~srvwire.models.ServiceRequest.service_`, a class ``srvwire gen`` wrote, say) when
+    it has ``codec``'s type name; None for anything else, which :func:`encode_request` checks.
+
+    Raise ``TypeError`` naming both types when the request's service is of another type.
+    """
+    service: type[Service] | None = getattr(type(request), "service_", None)
+    if service is None or not isinstance(request, BaseModel) or service is codec.service:
+        return None
+    if service.type_name != codec.service.type_name:
+        raise TypeError(
+            f"{method} takes {codec.service.type_name} requests, not {service.type_name} "
+            f"requests ({_model_name(type(request))})"
+        )
+    return service
+
+
+def _model_name(cls: type[Any]) -> str:
+    """How an error names a model class: its module and name."""
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
 def encode_request(
     method: str, codec: ServiceCodec | None, request: BaseModel | Mapping[str, Any] | None
 ) -> str:
@@ -142,8 +167,10 @@ def encode_request(
     value: BaseModel | Mapping[str, Any] = {} if request is None else request
     if srv is not None and not isinstance(value, srv.Request):
         if isinstance(value, BaseModel):
+            named = getattr(type(value), "type_name", None)
             raise TypeError(
-                f"{method} takes {srv.type_name} requests, not {type(value).__qualname__}"
+                f"{method} takes {srv.type_name} requests, not "
+                + (f"{named} ({_model_name(type(value))})" if named else _model_name(type(value)))
             )
         value = validate_request(method, srv, value)
     if not isinstance(value, BaseModel | Mapping):
@@ -332,6 +359,8 @@ class ServiceTypes:
         else:
             name, difference = service.type_name, "their fingerprints differ"
         known = self._types.get(name)
+        if known is not None and known.definition != ours.get(name):
+            known = None  # the process's class is not the local one that differs (a copy's)
         spec_path = getattr(getattr(service, "spec", None), "path", None)
         local = known.source if known is not None else (spec_path or "the local class")
         return InterfaceConflictError(name, local, source, difference)

@@ -73,6 +73,7 @@ from srvwire.calls import (
     encode_message,
     encode_request,
     remote_message,
+    typed_by_request,
 )
 from srvwire.dispatch import service_not_found
 from srvwire.errors import (
@@ -404,9 +405,12 @@ class Client:
         ``request`` is a ``Request`` model or a mapping of its fields (left out: every field
         takes its default). The result is the typed ``Response`` of the service's type:
         ``srv_type``, or the type the server advertised, found as :func:`connect` says (local
-        first, then the server's description). For fields as keywords, use :meth:`proxy`.
-        Statically, a generated ``Request`` or a generated service class as ``srv_type`` makes
-        the result that service's ``Response``; otherwise it is ``Any``.
+        first, then the server's description). A ``Request`` of a class of that type other
+        than the one found (a generated module's) types the call by its own service, as
+        ``srv_type=`` that service would; one of another type is a ``TypeError`` naming both.
+        For fields as keywords, use :meth:`proxy`. Statically, a generated ``Request`` or a
+        generated service class as ``srv_type`` makes the result that service's ``Response``;
+        otherwise it is ``Any``.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -433,6 +437,13 @@ class Client:
         params: str | bytes | None = None
         if codec is not None and type(request) is codec.request:  # the common case
             params = codec.params(request)
+        elif codec is not None and srv_type is None:
+            typed_by = typed_by_request(method, codec, request)
+            if typed_by is not None:  # a Request of its own class: typed as srv_type=its service
+                ready = link.ready.get((name, typed_by))
+                if ready is None:
+                    link, ready = await self._prepare(name, typed_by, False, deadline, budget)
+                method, codec = ready
         if params is None:
             params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
@@ -484,7 +495,7 @@ class Client:
                     raise
         if codec is None:
             return link, (method, None)
-        if method not in link.verified:
+        if (method, codec.service) not in link.verified:
             await self._verify(link, method, codec, advertised, deadline, budget)
         if link.ready is generation:  # not when $/services came while this looked or compared
             link.remember(name if srv_type is None else (name, srv_type), (method, codec))
@@ -527,7 +538,7 @@ class Client:
         action = await self._action_of(link, method, named, deadline, budget)
         service = goal_service(action)
         codec = ServiceCodec(service, self.options.inf_nan)
-        if method not in link.verified:
+        if (method, service) not in link.verified:
             await self._verify(link, method, codec, self._services.get(method), deadline, budget)
         params = encode_request(method, codec, goal)
         remaining = deadline - loop.time()
@@ -799,7 +810,7 @@ class Client:
                     methods = []
                 definitions = _described(methods).get(method)
                 raise self._types.conflict(service, definitions, f"server {self.url}")
-        link.verified.add(method)
+        link.verified.add((method, service))
 
     # --- topics -----------------------------------------------------------------------------
 
