@@ -273,7 +273,7 @@ class ServiceTypes:
         self._inf_nan: InfNan = inf_nan
         self._by_name: dict[str, ServiceCodec] = {}
         self._by_class: dict[type[Service], ServiceCodec] = {}
-        self._fingerprints: dict[type[Service], str | None] = {}
+        self._fingerprints: dict[type[Any], str | None] = {}
 
     def known(self, srv_type: SrvType | None, advertised: str | None) -> ServiceCodec | None:
         """Return the type of a call when it is known already (the quick path), else None."""
@@ -331,18 +331,20 @@ class ServiceTypes:
             nested.load(other)
         return nested
 
-    def fingerprint(self, service: type[Service]) -> str | None:
-        """The fingerprint of ``service``'s full definition, computed once per class; None
-        for a class with no spec (written by hand), which has nothing to compare."""
+    def fingerprint(self, service: type[Any]) -> str | None:
+        """The fingerprint of ``service``'s full definition (a service, action or message
+        class), computed once per class; None for a class with no spec (written by hand),
+        which has nothing to compare."""
         if service not in self._fingerprints:
             definition = full_definition(service)
             self._fingerprints[service] = None if definition is None else fingerprint(definition)
         return self._fingerprints[service]
 
     def conflict(
-        self, service: type[Service], definitions: Mapping[str, str] | None, source: str
+        self, service: type[Any], definitions: Mapping[str, str] | None, source: str
     ) -> InterfaceConflictError:
-        """The error for a local ``service`` whose fingerprint differs from the server's.
+        """The error for a local ``service`` (or action, or a topic's message) whose
+        fingerprint differs from the server's.
 
         ``definitions`` is the server's description (text by full name), when it could be
         had, to say which type differs and how; ``source`` says where it came from.

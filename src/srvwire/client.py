@@ -1007,6 +1007,34 @@ class Client:
         deadline: float,
         budget: float,
     ) -> type[BaseModel]:
+        """The message class of ``topic`` (see :meth:`_find_topic_type`), compared with the
+        server's by the fingerprint ``$/topics`` announced, as :meth:`_verify` compares a
+        service's: equal, or not announced, it is used; different, it is an
+        :class:`~srvwire.errors.InterfaceConflictError` naming the first declaration that
+        differs, read from the server's description (asked for only then)."""
+        cls = await self._find_topic_type(link, topic, msg_type, deadline, budget)
+        announced = self._topics.get(topic, {})
+        theirs = announced.get("fingerprint")
+        if isinstance(theirs, str) and getattr(cls, "type_name", None) == announced.get("type"):
+            ours = self._types.fingerprint(cls)
+            if ours is not None and ours != theirs:
+                try:
+                    methods = await self._methods(link, deadline, budget)
+                except RPCError:
+                    methods = []
+                entry = _topic_entry(methods, topic)
+                definitions = None if entry is None else _definitions_of(entry)
+                raise self._types.conflict(cls, definitions, f"server {self.url}")
+        return cls
+
+    async def _find_topic_type(
+        self,
+        link: Link,
+        topic: str,
+        msg_type: type[BaseModel] | str | None,
+        deadline: float,
+        budget: float,
+    ) -> type[BaseModel]:
         """The message class of ``topic``: given, else by its name from the local search path,
         else from the server's description (``rpc.discover``)."""
         if msg_type is not None and not isinstance(msg_type, str):
@@ -1020,17 +1048,7 @@ class Client:
             methods = await self._methods(link, deadline, budget)
         except (ServiceNotFound, InternalError):  # a server that does not describe types
             methods = []
-        entry = next(
-            (
-                m
-                for m in methods
-                if isinstance(m, dict)
-                and m.get("x-srvwire-kind") == "topic"
-                and isinstance(m.get("name"), str)
-                and canonical_name(m["name"]) == topic
-            ),
-            None,
-        )
+        entry = _topic_entry(methods, topic)
         if named is None:
             if entry is None or not isinstance(entry.get("x-srvwire-type"), str):
                 topics = ", ".join(sorted(self._topics)) or "none"
@@ -1105,6 +1123,21 @@ def _definitions_of(entry: Any) -> dict[str, str]:
     if not isinstance(texts, dict):
         return {}
     return {k: v for k, v in texts.items() if isinstance(k, str) and isinstance(v, str)}
+
+
+def _topic_entry(methods: list[Any], topic: str) -> dict[str, Any] | None:
+    """The method object of the topic ``topic`` in an ``rpc.discover`` document, if any."""
+    return next(
+        (
+            m
+            for m in methods
+            if isinstance(m, dict)
+            and m.get("x-srvwire-kind") == "topic"
+            and isinstance(m.get("name"), str)
+            and canonical_name(m["name"]) == topic
+        ),
+        None,
+    )
 
 
 def _described(methods: list[Any]) -> dict[str, dict[str, str]]:
