@@ -31,6 +31,7 @@ from srvwire.models import (
     Message,
     ModelDecoder,
     Service,
+    ServiceRequest,
     build_action,
     build_message,
     build_service,
@@ -134,8 +135,10 @@ def typed_by_request(method: str, codec: ServiceCodec, request: Any) -> type[Ser
 
     Raise ``TypeError`` naming both types when the request's service is of another type.
     """
+    if not isinstance(request, ServiceRequest):  # a mapping, say: quickly
+        return None
     service: type[Service] | None = getattr(type(request), "service_", None)
-    if service is None or not isinstance(request, BaseModel) or service is codec.service:
+    if service is None or service is codec.service:
         return None
     if service.type_name != codec.service.type_name:
         raise TypeError(
