@@ -110,7 +110,7 @@ def serving_app(app: Path) -> Iterator[str]:
         try:
             assert process.stdout is not None and process.stderr is not None
             first = process.stdout.readline()
-            assert first.startswith("serving 1 service on ws://"), first + process.stderr.read()
+            assert first.startswith("serving 1 "), first + process.stderr.read()
             yield first.split(" on ")[1].strip()
         finally:
             process.kill()
@@ -586,3 +586,38 @@ async def test_a_server_that_announces_no_topic_fingerprint_is_not_compared(
                 message = await sub.receive()
             assert (message.name, message.mode) == ("r1", 7)
     assert asked == []
+
+
+TURN_APP = """
+import srvwire
+
+Turn = srvwire.InterfaceLoader([{folder!r}]).load_action("fp_turns/action/Turn")
+AddTwoInts = srvwire.load_service("example_interfaces/srv/AddTwoInts")
+server = srvwire.Server()
+server.add_service("/add", AddTwoInts, lambda request: {{}})
+
+
+@server.action("/turn", Turn)
+async def turn(goal, handle):
+    return {{"done": True}}
+"""
+
+
+async def test_an_actions_local_type_found_by_name_that_differs_is_an_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # No action_type: the client finds its own copy by the advertised name, and compares it.
+    server_interfaces = tmp_path / "server_interfaces"
+    write(server_interfaces, "fp_turns/action/Turn.action", "int32 turns\n---\nbool done\n---\n")
+    mine = tmp_path / "client_interfaces"
+    local = write(mine, "fp_turns/action/Turn.action", "int64 turns\n---\nbool done\n---\n")
+    app = write(tmp_path, "turn_app.py", TURN_APP.format(folder=str(server_interfaces)))
+    for url in serving_app(app):
+        async with srvwire.connect(url, timeout=scaled(10), search_path=[mine]) as client:
+            with pytest.raises(InterfaceConflictError) as excinfo:
+                await client.send_goal("/turn", {"turns": 1})
+    assert str(excinfo.value) == (
+        f"two different definitions of fp_turns/action/Turn: {local} and server {url} "
+        "(declaration 1: 'int64 turns' against 'int32 turns'); a type name has one definition "
+        "per process"
+    )
