@@ -3,6 +3,11 @@
 The user file, for the async client and the blocking one, imports classes written by
 ``srvwire gen`` (the typed path) and one loaded with
 ``load_service`` (known to mypy only as ``type[Service]``), as a user's project would.
+
+At run time, over a real connection, a call with a generated ``Request`` returns that
+module's ``Response``, as ``srv_type=`` its service would, for the async and the blocking
+client; a ``Request`` of another type is refused naming both, and one that differs from the
+server's definition is a conflict.
 """
 
 from __future__ import annotations
