@@ -400,7 +400,9 @@ async def test_a_local_action_type_is_checked_against_the_servers_fingerprint(
         assert client._link.fingerprints == {"/turn": fingerprint(full_definition(Turn) or {})}
         handle = await client.send_goal("/turn", {"turns": 1}, action_type=Same)
         assert (await handle.result()).status == "succeeded"
-        assert asked == [] and client._link.verified == {"/turn"}  # no description asked for
+        assert asked == [] and client._link.verified == {
+            ("/turn", goal_service(Same))
+        }  # no description asked for
     async with (
         serve(server, "127.0.0.1", 0, transport=transport) as running,
         connect(running.url, transport=transport, timeout=scaled(5)) as client,

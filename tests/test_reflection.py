@@ -110,7 +110,7 @@ def serving_app(app: Path) -> Iterator[str]:
         try:
             assert process.stdout is not None and process.stderr is not None
             first = process.stdout.readline()
-            assert first.startswith("serving 1 service on ws://"), first + process.stderr.read()
+            assert first.startswith("serving 1 "), first + process.stderr.read()
             yield first.split(" on ")[1].strip()
         finally:
             process.kill()
@@ -462,7 +462,7 @@ async def test_the_same_local_type_is_compared_without_a_round_trip(
             link = client._link
             assert link is not None
             assert link.fingerprints == {"/set_speed": fingerprint(full_definition(SetSpeed) or {})}
-            assert link.verified == {"/set_speed"}
+            assert link.verified == {("/set_speed", SetSpeed)}
     assert asked == []  # no rpc.discover: the types are local, and the fingerprints agree
 
 
@@ -480,3 +480,144 @@ async def test_a_server_that_announces_no_fingerprint_is_not_compared(
             assert (await client.call("/set_speed", {"limits": {"max_speed": 1.0}})).ok
             assert client._link is not None and client._link.fingerprints == {}
     assert asked == []
+
+
+# --- a topic's local type that differs from the server's ----------------------------------------
+
+STATUS_APP = """
+import srvwire
+
+loader = srvwire.InterfaceLoader([{folder!r}])
+Status = loader.load_message("{package}/msg/Status")
+server = srvwire.Server()
+AddTwoInts = srvwire.load_service("example_interfaces/srv/AddTwoInts")
+server.add_service("/add", AddTwoInts, lambda request: {{}})
+status = server.topic("/status", Status, qos={{"durability": "transient_local", "depth": 1}})
+status.publish(Status(name="r1", battery=0.5))
+server.subscription("/report", Status)(lambda message: None)
+{older}
+"""
+
+OLDER_TOPICS = """
+import srvwire.topics
+
+described = srvwire.topics.Topic.describe
+srvwire.topics.Topic.describe = lambda topic: {
+    key: value for key, value in described(topic).items() if key != "fingerprint"
+}  # as a server from before topics had fingerprints
+"""
+
+TOPIC_STATUS = "# What the robot says.\nstring name\nfloat64 battery\n"
+
+
+def serving_status(tmp_path: Path, package: str, older: str = "") -> Iterator[str]:
+    interfaces = tmp_path / "server_interfaces"
+    write(interfaces, f"{package}/msg/Status.msg", TOPIC_STATUS)
+    app = STATUS_APP.format(folder=str(interfaces), package=package, older=older)
+    yield from serving_app(write(tmp_path, "status_app.py", app))
+
+
+async def test_a_topics_local_type_that_differs_from_the_servers_is_an_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # The client's Status has one more field, with a default: a message of the server's would
+    # validate as it, and show a value the server never sent.
+    mine = tmp_path / "client_interfaces"
+    local = write(mine, "fp_topics/msg/Status.msg", TOPIC_STATUS + "uint8 mode 7\n")
+    asked = counting_descriptions(monkeypatch)
+    for url in serving_status(tmp_path, "fp_topics"):
+        async with srvwire.connect(url, timeout=scaled(10), search_path=[mine]) as client:
+            await client.wait_for_topic("/status")
+            with pytest.raises(InterfaceConflictError) as excinfo:
+                async for message in client.subscribe("/status"):
+                    pytest.fail(f"a message typed by the wrong class arrived: {message!r}")
+            assert asked == [url]  # the description, asked for only to say what differs
+            with pytest.raises(InterfaceConflictError) as published:
+                await client.publish("/report", {"name": "r2"}, ack=True)
+            with pytest.raises(InterfaceConflictError):  # the class itself: the same
+                await client.subscribe(
+                    "/status", srvwire.load_message("fp_topics/msg/Status", search_path=[mine])
+                ).start()
+            with pytest.raises(InterfaceConflictError):
+                await client.topic_type("/status")
+    assert (
+        str(excinfo.value)
+        == str(published.value)
+        == (
+            f"two different definitions of fp_topics/msg/Status: {local} and server {url} "
+            "(declaration 3: 'uint8 mode 7' against nothing); a type name has one definition per "
+            "process"
+        )
+    )
+
+
+async def test_a_topics_same_local_type_is_compared_without_a_round_trip(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    mine = tmp_path / "client_interfaces"
+    write(mine, "fp_topics_same/msg/Status.msg", "string name  # which robot\nfloat64 battery\n")
+    Status = srvwire.load_message("fp_topics_same/msg/Status", search_path=[mine])
+    asked = counting_descriptions(monkeypatch)
+    for url in serving_status(tmp_path, "fp_topics_same"):
+        async with srvwire.connect(url, timeout=scaled(10), search_path=[mine]) as client:
+            await client.wait_for_topic("/status")
+            assert client._topics["/status"]["fingerprint"] == fingerprint(
+                full_definition(Status) or {}
+            )
+            async with client.subscribe("/status") as sub:
+                message = await sub.receive()
+            assert type(message) is Status and (message.name, message.battery) == ("r1", 0.5)
+            await client.publish("/report", {"name": "r2"}, ack=True)
+    assert asked == []  # no rpc.discover: the type is local, and the fingerprints agree
+
+
+async def test_a_server_that_announces_no_topic_fingerprint_is_not_compared(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # The local Status differs, but nothing says so: its messages arrive as before fingerprints.
+    mine = tmp_path / "client_interfaces"
+    write(mine, "fp_topics_older/msg/Status.msg", TOPIC_STATUS + "uint8 mode 7\n")
+    asked = counting_descriptions(monkeypatch)
+    for url in serving_status(tmp_path, "fp_topics_older", OLDER_TOPICS):
+        async with srvwire.connect(url, timeout=scaled(10), search_path=[mine]) as client:
+            await client.wait_for_topic("/status")
+            assert "fingerprint" not in client._topics["/status"]
+            async with client.subscribe("/status") as sub:
+                message = await sub.receive()
+            assert (message.name, message.mode) == ("r1", 7)
+    assert asked == []
+
+
+TURN_APP = """
+import srvwire
+
+Turn = srvwire.InterfaceLoader([{folder!r}]).load_action("fp_turns/action/Turn")
+AddTwoInts = srvwire.load_service("example_interfaces/srv/AddTwoInts")
+server = srvwire.Server()
+server.add_service("/add", AddTwoInts, lambda request: {{}})
+
+
+@server.action("/turn", Turn)
+async def turn(goal, handle):
+    return {{"done": True}}
+"""
+
+
+async def test_an_actions_local_type_found_by_name_that_differs_is_an_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, no_path_variable: None
+) -> None:
+    # No action_type: the client finds its own copy by the advertised name, and compares it.
+    server_interfaces = tmp_path / "server_interfaces"
+    write(server_interfaces, "fp_turns/action/Turn.action", "int32 turns\n---\nbool done\n---\n")
+    mine = tmp_path / "client_interfaces"
+    local = write(mine, "fp_turns/action/Turn.action", "int64 turns\n---\nbool done\n---\n")
+    app = write(tmp_path, "turn_app.py", TURN_APP.format(folder=str(server_interfaces)))
+    for url in serving_app(app):
+        async with srvwire.connect(url, timeout=scaled(10), search_path=[mine]) as client:
+            with pytest.raises(InterfaceConflictError) as excinfo:
+                await client.send_goal("/turn", {"turns": 1})
+    assert str(excinfo.value) == (
+        f"two different definitions of fp_turns/action/Turn: {local} and server {url} "
+        "(declaration 1: 'int64 turns' against 'int32 turns'); a type name has one definition "
+        "per process"
+    )

@@ -36,6 +36,7 @@ from srvwire.server import RunningServer
 from srvwire.serving import ServedConnection
 from srvwire.transports.base import Connection, Transport, TransportClosed
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
+from srvwire.typeregistry import fingerprint, full_definition
 from support import scaled
 
 JointState = load_message("sensor_msgs/msg/JointState")
@@ -217,6 +218,9 @@ async def test_discovery_lists_topics_apart_from_services(
             "durability": "volatile",
         }
         assert "std_msgs/msg/Header" in topic["x-srvwire-definitions"]
+        digest = fingerprint(full_definition(JointState) or {})
+        assert topic["x-srvwire-fingerprint"] == client._topics["/joint_states"]["fingerprint"]
+        assert topic["x-srvwire-fingerprint"] == digest
         await wire.ws.close()
 
 

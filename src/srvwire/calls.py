@@ -31,6 +31,7 @@ from srvwire.models import (
     Message,
     ModelDecoder,
     Service,
+    ServiceRequest,
     build_action,
     build_message,
     build_service,
@@ -64,6 +65,7 @@ __all__ = [
     "encode_message",
     "encode_request",
     "remote_message",
+    "typed_by_request",
     "validate_request",
 ]
 
@@ -125,6 +127,32 @@ def validate_request(method: str, srv: type[Service], request: Mapping[str, Any]
         raise _refused(method, error_data(exc)) from None
 
 
+def typed_by_request(method: str, codec: ServiceCodec, request: Any) -> type[Service] | None:
+    """The service that types a call of ``method`` (whose type is ``codec``'s) given ``request``
+    and no ``srv_type``: the service a ``Request`` of another class names
+    (:attr:`~srvwire.models.ServiceRequest.service_`, a class ``srvwire gen`` wrote, say) when
+    it has ``codec``'s type name; None for anything else, which :func:`encode_request` checks.
+
+    Raise ``TypeError`` naming both types when the request's service is of another type.
+    """
+    if not isinstance(request, ServiceRequest):  # a mapping, say: quickly
+        return None
+    service: type[Service] | None = getattr(type(request), "service_", None)
+    if service is None or service is codec.service:
+        return None
+    if service.type_name != codec.service.type_name:
+        raise TypeError(
+            f"{method} takes {codec.service.type_name} requests, not {service.type_name} "
+            f"requests ({_model_name(type(request))})"
+        )
+    return service
+
+
+def _model_name(cls: type[Any]) -> str:
+    """How an error names a model class: its module and name."""
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
 def encode_request(
     method: str, codec: ServiceCodec | None, request: BaseModel | Mapping[str, Any] | None
 ) -> str:
@@ -142,8 +170,10 @@ def encode_request(
     value: BaseModel | Mapping[str, Any] = {} if request is None else request
     if srv is not None and not isinstance(value, srv.Request):
         if isinstance(value, BaseModel):
+            named = getattr(type(value), "type_name", None)
             raise TypeError(
-                f"{method} takes {srv.type_name} requests, not {type(value).__qualname__}"
+                f"{method} takes {srv.type_name} requests, not "
+                + (f"{named} ({_model_name(type(value))})" if named else _model_name(type(value)))
             )
         value = validate_request(method, srv, value)
     if not isinstance(value, BaseModel | Mapping):
@@ -246,7 +276,7 @@ class ServiceTypes:
         self._inf_nan: InfNan = inf_nan
         self._by_name: dict[str, ServiceCodec] = {}
         self._by_class: dict[type[Service], ServiceCodec] = {}
-        self._fingerprints: dict[type[Service], str | None] = {}
+        self._fingerprints: dict[type[Any], str | None] = {}
 
     def known(self, srv_type: SrvType | None, advertised: str | None) -> ServiceCodec | None:
         """Return the type of a call when it is known already (the quick path), else None."""
@@ -304,18 +334,20 @@ class ServiceTypes:
             nested.load(other)
         return nested
 
-    def fingerprint(self, service: type[Service]) -> str | None:
-        """The fingerprint of ``service``'s full definition, computed once per class; None
-        for a class with no spec (written by hand), which has nothing to compare."""
+    def fingerprint(self, service: type[Any]) -> str | None:
+        """The fingerprint of ``service``'s full definition (a service, action or message
+        class), computed once per class; None for a class with no spec (written by hand),
+        which has nothing to compare."""
         if service not in self._fingerprints:
             definition = full_definition(service)
             self._fingerprints[service] = None if definition is None else fingerprint(definition)
         return self._fingerprints[service]
 
     def conflict(
-        self, service: type[Service], definitions: Mapping[str, str] | None, source: str
+        self, service: type[Any], definitions: Mapping[str, str] | None, source: str
     ) -> InterfaceConflictError:
-        """The error for a local ``service`` whose fingerprint differs from the server's.
+        """The error for a local ``service`` (or action, or a topic's message) whose
+        fingerprint differs from the server's.
 
         ``definitions`` is the server's description (text by full name), when it could be
         had, to say which type differs and how; ``source`` says where it came from.
@@ -332,6 +364,8 @@ class ServiceTypes:
         else:
             name, difference = service.type_name, "their fingerprints differ"
         known = self._types.get(name)
+        if known is not None and known.definition != ours.get(name):
+            known = None  # the process's class is not the local one that differs (a copy's)
         spec_path = getattr(getattr(service, "spec", None), "path", None)
         local = known.source if known is not None else (spec_path or "the local class")
         return InterfaceConflictError(name, local, source, difference)

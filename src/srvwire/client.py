@@ -73,6 +73,7 @@ from srvwire.calls import (
     encode_message,
     encode_request,
     remote_message,
+    typed_by_request,
 )
 from srvwire.dispatch import service_not_found
 from srvwire.errors import (
@@ -404,9 +405,12 @@ class Client:
         ``request`` is a ``Request`` model or a mapping of its fields (left out: every field
         takes its default). The result is the typed ``Response`` of the service's type:
         ``srv_type``, or the type the server advertised, found as :func:`connect` says (local
-        first, then the server's description). For fields as keywords, use :meth:`proxy`.
-        Statically, a generated ``Request`` or a generated service class as ``srv_type`` makes
-        the result that service's ``Response``; otherwise it is ``Any``.
+        first, then the server's description). A ``Request`` of a class of that type other
+        than the one found (a generated module's) types the call by its own service, as
+        ``srv_type=`` that service would; one of another type is a ``TypeError`` naming both.
+        For fields as keywords, use :meth:`proxy`. Statically, a generated ``Request`` or a
+        generated service class as ``srv_type`` makes the result that service's ``Response``;
+        otherwise it is ``Any``.
 
         ``timeout`` (seconds) overrides the client's default deadline. ``wait_for_ready=True``
         first waits, within that deadline, for the connection and for the service to be
@@ -433,6 +437,13 @@ class Client:
         params: str | bytes | None = None
         if codec is not None and type(request) is codec.request:  # the common case
             params = codec.params(request)
+        elif codec is not None and srv_type is None:
+            typed_by = typed_by_request(method, codec, request)
+            if typed_by is not None:  # a Request of its own class: typed as srv_type=its service
+                ready = link.ready.get((name, typed_by))
+                if ready is None:
+                    link, ready = await self._prepare(name, typed_by, False, deadline, budget)
+                method, codec = ready
         if params is None:
             params = encode_request(method, codec, request)
         reply = await link.roundtrip(method, params, deadline, budget)
@@ -484,7 +495,7 @@ class Client:
                     raise
         if codec is None:
             return link, (method, None)
-        if method not in link.verified:
+        if (method, codec.service) not in link.verified:
             await self._verify(link, method, codec, advertised, deadline, budget)
         if link.ready is generation:  # not when $/services came while this looked or compared
             link.remember(name if srv_type is None else (name, srv_type), (method, codec))
@@ -527,7 +538,7 @@ class Client:
         action = await self._action_of(link, method, named, deadline, budget)
         service = goal_service(action)
         codec = ServiceCodec(service, self.options.inf_nan)
-        if method not in link.verified:
+        if (method, service) not in link.verified:
             await self._verify(link, method, codec, self._services.get(method), deadline, budget)
         params = encode_request(method, codec, goal)
         remaining = deadline - loop.time()
@@ -799,7 +810,7 @@ class Client:
                     methods = []
                 definitions = _described(methods).get(method)
                 raise self._types.conflict(service, definitions, f"server {self.url}")
-        link.verified.add(method)
+        link.verified.add((method, service))
 
     # --- topics -----------------------------------------------------------------------------
 
@@ -996,6 +1007,34 @@ class Client:
         deadline: float,
         budget: float,
     ) -> type[BaseModel]:
+        """The message class of ``topic`` (see :meth:`_find_topic_type`), compared with the
+        server's by the fingerprint ``$/topics`` announced, as :meth:`_verify` compares a
+        service's: equal, or not announced, it is used; different, it is an
+        :class:`~srvwire.errors.InterfaceConflictError` naming the first declaration that
+        differs, read from the server's description (asked for only then)."""
+        cls = await self._find_topic_type(link, topic, msg_type, deadline, budget)
+        announced = self._topics.get(topic, {})
+        theirs = announced.get("fingerprint")
+        if isinstance(theirs, str) and getattr(cls, "type_name", None) == announced.get("type"):
+            ours = self._types.fingerprint(cls)
+            if ours is not None and ours != theirs:
+                try:
+                    methods = await self._methods(link, deadline, budget)
+                except RPCError:
+                    methods = []
+                entry = _topic_entry(methods, topic)
+                definitions = None if entry is None else _definitions_of(entry)
+                raise self._types.conflict(cls, definitions, f"server {self.url}")
+        return cls
+
+    async def _find_topic_type(
+        self,
+        link: Link,
+        topic: str,
+        msg_type: type[BaseModel] | str | None,
+        deadline: float,
+        budget: float,
+    ) -> type[BaseModel]:
         """The message class of ``topic``: given, else by its name from the local search path,
         else from the server's description (``rpc.discover``)."""
         if msg_type is not None and not isinstance(msg_type, str):
@@ -1009,17 +1048,7 @@ class Client:
             methods = await self._methods(link, deadline, budget)
         except (ServiceNotFound, InternalError):  # a server that does not describe types
             methods = []
-        entry = next(
-            (
-                m
-                for m in methods
-                if isinstance(m, dict)
-                and m.get("x-srvwire-kind") == "topic"
-                and isinstance(m.get("name"), str)
-                and canonical_name(m["name"]) == topic
-            ),
-            None,
-        )
+        entry = _topic_entry(methods, topic)
         if named is None:
             if entry is None or not isinstance(entry.get("x-srvwire-type"), str):
                 topics = ", ".join(sorted(self._topics)) or "none"
@@ -1094,6 +1123,21 @@ def _definitions_of(entry: Any) -> dict[str, str]:
     if not isinstance(texts, dict):
         return {}
     return {k: v for k, v in texts.items() if isinstance(k, str) and isinstance(v, str)}
+
+
+def _topic_entry(methods: list[Any], topic: str) -> dict[str, Any] | None:
+    """The method object of the topic ``topic`` in an ``rpc.discover`` document, if any."""
+    return next(
+        (
+            m
+            for m in methods
+            if isinstance(m, dict)
+            and m.get("x-srvwire-kind") == "topic"
+            and isinstance(m.get("name"), str)
+            and canonical_name(m["name"]) == topic
+        ),
+        None,
+    )
 
 
 def _described(methods: list[Any]) -> dict[str, dict[str, str]]:

@@ -220,9 +220,9 @@ class Link:
         self.live = True  # False once the connection ended or this side failed it
         self.goals: dict[int, Follower] = {}  # the goals waiting for news, by call id
         # What the latest $/services says of each service's definition, and the services
-        # whose local type the client has compared with it since.
+        # and local types the client has compared with it since.
         self.fingerprints: dict[str, str] = {}
-        self.verified: set[str] = set()
+        self.verified: set[tuple[str, type]] = set()
         # What the client found for a call (its service's name and type), by what the call
         # named, once compared: the next call finds it here; forgotten with ``verified``.
         self.ready: dict[Hashable, Any] = {}

@@ -32,11 +32,15 @@ Invariants
   locations use the name the input used.
 * **No module state.** Each ``build_*`` call builds new classes; callers that want one class per
   type (the loader) cache them.
-* **A request knows its response, statically.** A service's ``Request`` class also derives
-  from :class:`ServiceRequest` parametrized with its ``Response`` class, and the service class
-  from :class:`TypedService` parametrized with both, so that a type checker can tell what
-  ``client.call(name, SetSpeed.Request(...))`` returns. These generic bases hold nothing at
-  run time (pydantic sees no field or config in them).
+* **A request knows its response, statically, and its service at run time.** A service's
+  ``Request`` class also derives from :class:`ServiceRequest` parametrized with its ``Response``
+  class, and the service class from :class:`TypedService` parametrized with both, so that a
+  type checker can tell what ``client.call(name, SetSpeed.Request(...))`` returns. These
+  generic bases add no field or config (pydantic sees none in them). Making a service class
+  whose ``Request`` is a :class:`ServiceRequest` sets that class's
+  :attr:`~ServiceRequest.service_` to the service (the first one made with it), so that a
+  client types a call by the request it is given; no field can have that name (a field name
+  never ends with ``_`` unless it is reserved, and ``service`` is not).
 
 Decisions (``docs/types.md`` explains them for users): integers, floats, booleans and strings
 are strict (no ``"5"`` for an int, no ``5.0`` or ``True`` for an int, no ``1`` for a bool; an
@@ -246,16 +250,31 @@ Resp_co = TypeVar("Resp_co", bound=Message, covariant=True)
 class ServiceRequest(Generic[Resp_co]):
     """The second base of a service's ``Request`` class, naming its ``Response`` class.
 
-    ``class SetSpeed_Request(Message, ServiceRequest["SetSpeed_Response"])``: for type checkers
-    only, so that ``await client.call(name, SetSpeed.Request(...))`` is a ``SetSpeed.Response``.
-    It adds no field, method or state.
+    ``class SetSpeed_Request(Message, ServiceRequest["SetSpeed_Response"])``: for type checkers,
+    so that ``await client.call(name, SetSpeed.Request(...))`` is a ``SetSpeed.Response``. It
+    adds no field or method; the class gets :attr:`service_` when its service class is made.
     """
 
     __slots__ = ()
 
+    service_: ClassVar[type[Service]]
+    """The service class whose ``Request`` this is: set by :class:`Service` when that class
+    is made (the first one made with it), so that ``client.call(name, SetSpeed.Request())``
+    is typed by ``SetSpeed`` as ``srv_type=SetSpeed`` would type it."""
+
 
 class Service:
     """The base of every service class: a request type and a response type under one name."""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        request = cls.__dict__.get("Request")
+        if (
+            isinstance(request, type)
+            and issubclass(request, ServiceRequest)
+            and "service_" not in request.__dict__
+        ):
+            request.service_ = cls
 
     Request: ClassVar[type[Message]]
     Response: ClassVar[type[Message]]

@@ -20,6 +20,7 @@ from srvwire.dispatch import _standalone_schema, nested_messages_of
 from srvwire.errors import InvalidParams, RegistrationError
 from srvwire.models import error_data, json_writer, summarize_errors, validate_python
 from srvwire.topics import QoS, Topic
+from srvwire.typeregistry import fingerprint, full_definition
 
 __all__ = [
     "Publisher",
@@ -67,6 +68,8 @@ class TopicEntry:
     write: Callable[[Any], bytes]
     handlers: list[TopicHandler] = field(default_factory=list)
     _description: dict[str, Any] = field(default_factory=dict, repr=False)
+    fingerprint: str | None = None
+    """Of the message type's full definition, for ``$/topics``; None for a class with no spec."""
 
     @classmethod
     def of(cls, name: str, msg_type: type[BaseModel]) -> TopicEntry:
@@ -75,7 +78,9 @@ class TopicEntry:
                 f"the type of the topic {name} must be a message type (such as "
                 f"load_message('sensor_msgs/msg/JointState')), not {msg_type!r}"
             )
-        return cls(name, msg_type, json_writer(msg_type))
+        definition = full_definition(msg_type)
+        digest = None if definition is None else fingerprint(definition)
+        return cls(name, msg_type, json_writer(msg_type), fingerprint=digest)
 
     @property
     def type_name(self) -> str:
@@ -118,6 +123,8 @@ class TopicEntry:
                     "x-srvwire-definitions": message_definitions(self.msg_type),
                 }
             )
+            if self.fingerprint is not None:
+                self._description["x-srvwire-fingerprint"] = self.fingerprint
         return {
             **self._description,
             "x-srvwire-qos": topic.qos.to_json(),

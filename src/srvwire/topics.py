@@ -206,13 +206,18 @@ class Topic(Generic[T]):
         return len(subscriptions)
 
     def describe(self) -> dict[str, Any]:
-        """What ``$/topics`` says of it (the type name comes from the entry's ``type_name``)."""
-        return {
+        """What ``$/topics`` says of it (the type name comes from the entry's ``type_name``,
+        the type's fingerprint from its ``fingerprint``, when it has one)."""
+        described = {
             "name": self.name,
             "type": str(getattr(self.entry, "type_name", "")),
             "qos": self.qos.to_json(),
             "publish": self.accepts,
         }
+        digest = getattr(self.entry, "fingerprint", None)
+        if isinstance(digest, str):
+            described["fingerprint"] = digest
+        return described
 
 
 class Subscription:
