@@ -851,8 +851,11 @@ class RunningServer:
                     conn.cancel_all(
                         ServiceUnavailable("the server shut down before the call finished")
                     )
-                # The cancelled calls reply at once; do not wait on a peer that does not read.
-                await asyncio.wait(pending, timeout=1.0)
+                # The cancelled calls are answered at once, in tasks of their own: wait for
+                # those, but not long on a peer that does not read, nor on a handler that
+                # ignores its cancellation (its task is left to end on its own).
+                answering = {task for conn in self._connections for task in conn.counted}
+                await asyncio.wait(pending | answering, timeout=1.0)
         self._listener.close()  # the open connections stay, to be closed with 1001
         loop = self._loop
         if loop is not None and loop.get_exception_handler() == self._loop_exception:

@@ -265,13 +265,22 @@ class CallRunner:
         stays silent.
 
         A call whose task has not started is only marked: it answers when it starts. A task is
-        cancelled once at most, since the call takes one cancellation back before replying.
+        cancelled once at most, since the call takes one cancellation back before replying. A
+        started call is answered ``error`` now, whether or not its handler heeds the
+        cancellation (see the invariants): its task is left to end on its own.
         """
-        self.context_of(work)._mark_cancelled(error)
+        context = self.context_of(work)
+        context._mark_cancelled(error)
         task = work.task
         if task is not None and not work.task_cancelled and (work.started or error is None):
             work.task_cancelled = True
             task.cancel()
+            if error is not None and type(work) is Call:
+                reply = self.session.fail(work, error)
+                if context.goal is not None:  # answered: its feedback is dropped from now on
+                    context.goal.close()
+                if reply is not None:
+                    self.spawn_counted(self.send_answer(reply))
 
     def request_cancel(self, work: Work, error: RPCError | None) -> bytes | None:
         """``$/cancel`` (or shutdown, or the connection's end) reached a call.
@@ -292,6 +301,19 @@ class CallRunner:
         """A goal's grace period after its cancellation passed: cancel its handler."""
         if type(work) is Call and self.session.answering(work):
             self.cancel(work, error)
+
+    async def send_answer(self, reply: bytes) -> None:
+        """Send the answer to a call cancelled while it ran (or its batch's), in a task of its
+        own, counted as calls are, so that shutdown waits for it too."""
+        try:
+            await self.conn.send(reply)
+        except TransportClosed:
+            pass  # the caller left; its calls are being cancelled
+        else:
+            if self.outbox.queued:
+                self.outbox.fit()
+        finally:
+            self.settle()
 
     @staticmethod
     async def take_back_cancellation() -> None:
@@ -365,12 +387,13 @@ class CallRunner:
                         entry, params, deadline, self.context_of, call, self.executor, log, call.id
                     )
                 if call.task_cancelled:  # cancelled meanwhile, and the handler finished anyway
-                    await self.take_back_cancellation()
                     context = self.context_of(call)
-                    if context._cancel_error is None:  # the connection went away
+                    if context._cancel_error is not None:
+                        reply = None  # answered as it was cancelled: its result is too late
+                    else:  # the connection went away
+                        await self.take_back_cancellation()
                         session.forget(call)
                         raise asyncio.CancelledError
-                    reply = session.fail(call, context._cancel_error)
                 else:
                     if log.isEnabledFor(logging.DEBUG):
                         log.debug("%s id %r from %s: ok", entry.name, call.id, self.peer)
@@ -789,11 +812,13 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
             )
 
     def reply(self, call: Call[ServiceEntry], result: bytes, whole: bool = False) -> bytes | None:
-        self.outcomes[call] = "OK"
+        if self.answering(call):  # else answered already, and that answer is its outcome
+            self.outcomes[call] = "OK"
         return super().reply(call, result, whole)
 
     def fail(self, call: Call[ServiceEntry], error: RPCError) -> bytes | None:
-        self.outcomes[call] = _outcome(error)
+        if self.answering(call):
+            self.outcomes[call] = _outcome(error)
         return super().fail(call, error)
 
     def sent(self, call: Call[ServiceEntry]) -> None:
