@@ -2076,8 +2076,9 @@ async def test_a_late_failure_of_a_handler_already_answered_is_logged_once(
 
 
 async def test_shutdown_answers_a_call_whose_handler_ignores_its_cancellation(
-    transport: Transport,
+    transport: Transport, caplog: pytest.LogCaptureFixture
 ) -> None:
+    caplog.set_level("WARNING", logger="srvwire.server")
     server = Server(grace_period=scaled(0.1))
     stubborn = Stubborn()
     server.add_service("/stubborn", Echo, stubborn)
@@ -2091,11 +2092,15 @@ async def test_shutdown_answers_a_call_whose_handler_ignores_its_cancellation(
     assert error(reply) == ("s", -32003, "UNAVAILABLE")
     assert reply["error"]["message"] == "the server shut down before the call finished"
     await stubborn.swallowed.wait()
-    stubborn.release.set()
-    await closing
+    await closing  # waits a moment for the handler, which goes on, then closes
     assert await closed_code(w) == 1001
-    await stubborn.ended.wait()
+    assert (
+        "leaving 1 handler running that did not end when cancelled (its call was answered): "
+        "/stubborn; it is cancelled again as the connections close" in caplog.text
+    )
+    await stubborn.ended.wait()  # cancelled again with its connection: its wait ended
     assert served.session.in_flight == 0 and not served.counted and not served.session.calls
+    assert not served.runner.running_on
 
 
 def cancel_own_task(times: int = 1) -> None:

@@ -14,8 +14,9 @@ Invariants:
   connections (HTTP 503; ``/healthz`` says ``draining``) and answers new calls
   ``UNAVAILABLE``; asks every running goal to stop (``$/goal canceling``, as a client's
   cancellation asks); then it waits up to ``grace_period`` for calls in flight, goals
-  included, cancels the rest (they answer ``UNAVAILABLE``), stops listening, and closes every
-  connection with 1001 (going away).
+  included, cancels the rest (they answer ``UNAVAILABLE`` at once, whether their handlers stop
+  or not; one that goes on is named in the log), stops listening, and closes every connection
+  with 1001 (going away).
 * **Who may connect is decided before the connection opens**, by the server's
   :class:`~srvwire.handshake.EdgePolicy` (origins, Host, ``max_connections``, ``auth``),
   which the transport asks about each opening request.
@@ -856,6 +857,22 @@ class RunningServer:
                 # ignores its cancellation (its task is left to end on its own).
                 answering = {task for conn in self._connections for task in conn.counted}
                 await asyncio.wait(pending | answering, timeout=1.0)
+        running_on = sorted(
+            name
+            for conn in self._connections
+            for task, name in conn.runner.running_on.items()
+            if not task.done()
+        )
+        if running_on:
+            options.logger.warning(
+                "leaving %d %s running that did not end when cancelled (%s answered): %s; "
+                "%s cancelled again as the connections close",
+                len(running_on),
+                "handler" if len(running_on) == 1 else "handlers",
+                "its call was" if len(running_on) == 1 else "their calls were",
+                ", ".join(running_on),
+                "it is" if len(running_on) == 1 else "they are",
+            )
         self._listener.close()  # the open connections stay, to be closed with 1001
         loop = self._loop
         if loop is not None and loop.get_exception_handler() == self._loop_exception:

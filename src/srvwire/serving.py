@@ -49,17 +49,24 @@ Invariants:
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
   ``UNAVAILABLE``: the reason is recorded in the call's :class:`~srvwire.dispatch.Context`
-  first (the first one wins), then its task is cancelled, at most once; the call takes the
-  cancellation back and answers the reason. A reply already written is not cancelled. A task
-  cancelled without a reason (its connection went away) answers nothing. A handler that
-  cancels its own task is answered ``INTERNAL``, unless it returns without waiting: then its
-  result is its answer, and the reader takes the cancellation back.
-* **In flight is counted twice, for two purposes.** The session counts calls for admission;
-  :attr:`CallRunner.counted` holds the tasks that shutdown waits for: a reader task a
-  waiting call took over, until the call is done, and each batch item's task, from its creation
-  until its coroutine's ``finally`` (a task cancelled before its first step gets a
-  done-callback instead). A task an eager task factory already ran to its end inside
-  ``create_task`` is not counted.
+  first (the first one wins), then its task is cancelled, at most once, and the call is
+  answered the reason at once, from a task of its own (:meth:`CallRunner.send_answer`):
+  the answer never waits for the handler, which may ignore its cancellation (swallow it, or
+  clean up for long). Its task is left to end on its own, and takes the cancellation back; what
+  it returns then is dropped, and what it raises is logged, once, and answers nothing (the
+  session writes one reply per call). It still counts in flight, and shutdown still waits for
+  it and names it if it outlives the connections (:attr:`CallRunner.running_on`); a goal's
+  feedback stops with its answer. A reply already written is not cancelled. A task cancelled
+  without a reason (its connection went away) answers nothing. A handler that cancels its own
+  task is answered ``INTERNAL``, unless it returns without waiting: then its result is its
+  answer, and the reader takes the cancellation back.
+* **In flight is counted twice, for two purposes.** The session counts calls for admission
+  (a call answered as it was cancelled counts until its task ends: its handler still holds
+  what it holds); :attr:`CallRunner.counted` holds the tasks that shutdown waits for: a reader
+  task a waiting call took over, until the call is done, each batch item's task, from its
+  creation until its coroutine's ``finally`` (a task cancelled before its first step gets a
+  done-callback instead), and each task sending the answer of a cancelled call. A task an
+  eager task factory already ran to its end inside ``create_task`` is not counted.
 """
 
 from __future__ import annotations
@@ -167,6 +174,7 @@ class CallRunner:
         "notification_timeout",
         "outbox",
         "peer",
+        "running_on",
         "session",
     )
 
@@ -194,6 +202,8 @@ class CallRunner:
         self.notification_timeout = notification_timeout
         self.loop = asyncio.get_running_loop()
         self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
+        # The tasks of calls answered as they were cancelled, until they end: their services.
+        self.running_on: dict[asyncio.Task[Any], str] = {}
 
     # --- tasks --------------------------------------------------------------------------------
 
@@ -276,6 +286,8 @@ class CallRunner:
             work.task_cancelled = True
             task.cancel()
             if error is not None and type(work) is Call:
+                self.running_on[task] = work.entry.name
+                task.add_done_callback(self.running_on.pop)
                 reply = self.session.fail(work, error)
                 if context.goal is not None:  # answered: its feedback is dropped from now on
                     context.goal.close()
