@@ -2092,13 +2092,15 @@ async def test_shutdown_answers_a_call_whose_handler_ignores_its_cancellation(
     assert error(reply) == ("s", -32003, "UNAVAILABLE")
     assert reply["error"]["message"] == "the server shut down before the call finished"
     await stubborn.swallowed.wait()
+    (handler_task,) = served.runner.running_on  # its task, cancelled and going on
     await closing  # waits a moment for the handler, which goes on, then closes
     assert await closed_code(w) == 1001
     assert (
         "leaving 1 handler running that did not end when cancelled (its call was answered): "
         "/stubborn; it is cancelled again as the connections close" in caplog.text
     )
-    await stubborn.ended.wait()  # cancelled again with its connection: its wait ended
+    await asyncio.wait([handler_task])  # cancelled again with its connection: its wait ended
+    assert stubborn.ended.is_set()
     assert served.session.in_flight == 0 and not served.counted and not served.session.calls
     assert not served.runner.running_on
 
