@@ -314,8 +314,9 @@ class Server:
         its fields, or None for the default). ``accept(goal)`` may refuse a goal before it
         starts: return False or raise :class:`~srvwire.errors.GoalRejected` with the reason.
         After the client asks to cancel, the handler has ``cancel_grace`` seconds to return
-        before it is cancelled; when the server shuts down, it is asked the same way and has
-        the server's ``grace_period``. ``scopes`` as for :meth:`add_service`, and listed with
+        before it is cancelled and the goal answered ``CANCELLED`` (then, whether or not the
+        handler stops); when the server shuts down, it is asked the same way and has the
+        server's ``grace_period``. ``scopes`` as for :meth:`add_service`, and listed with
         the services (``$/services``, ``rpc.discover``). ``max_concurrency`` bounds how many
         goals of this action run their handler at once, over all connections, as for
         :meth:`add_service`: the others are accepted and wait for a slot, in order, within
