@@ -52,9 +52,9 @@ Invariants:
   first (the first one wins), then its task is cancelled, at most once, and the call is
   answered the reason at once, from a task of its own (:meth:`CallRunner.send_answer`):
   the answer never waits for the handler, which may ignore its cancellation (swallow it, or
-  clean up for long). Its task is left to end on its own, and takes the cancellation back; what
-  it returns then is dropped, and what it raises is logged, once, and answers nothing (the
-  session writes one reply per call). It still counts in flight, and shutdown still waits for
+  clean up for long). Its task is left to end on its own: what it returns then is dropped,
+  and what it raises is logged, once, and answers nothing (the session writes one reply per
+  call). It still counts in flight, and shutdown still waits for
   it and names it if it outlives the connections (:attr:`CallRunner.running_on`); a goal's
   feedback stops with its answer. A reply already written is not cancelled. A task cancelled
   without a reason (its connection went away) answers nothing. A handler that cancels its own
