@@ -101,6 +101,23 @@ async def server(gate: Gate) -> Server:
         finally:
             gate.ended.set()
 
+    @server.action("/swallows", Fibonacci, cancel_grace=scaled(0.05))
+    async def swallows(goal: Any, handle: GoalHandle) -> Any:
+        """Swallows its cancellation, then cleans up until the gate opens, and at last tries
+        to report and return."""
+        gate.handles.append(handle)
+        gate.started.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            pass
+        await gate.release.wait()
+        await handle.feedback({"sequence": [7]})
+        gate.ended.set()
+        return {"sequence": [7]}
+
+    add_ping(server)
+
     @server.action("/burst", Fibonacci)
     async def burst(goal: Any, handle: GoalHandle) -> Any:
         """Gives ``order`` feedback messages in one step, then waits for the gate."""
@@ -543,6 +560,45 @@ async def test_a_cancel_on_the_wire_asks_the_goal_to_stop(
     states = [m["params"]["status"] for m in received if m.get("method") == "$/goal"]
     assert states == ["accepted", "executing", "canceling"]
     assert received[-1]["result"] == {"status": "canceled", "result": {"sequence": [0, 1]}}
+    await wire.ws.close()
+
+
+@pytest.mark.parametrize("ended_by", ["cancel", "deadline"])
+async def test_a_goal_that_ignores_its_cancellation_is_answered_when_its_grace_or_deadline_ends(
+    running: RunningServer, gate: Gate, ended_by: str
+) -> None:
+    wire = await open_wire(running)
+    params: dict[str, Any] = {"order": 1}
+    if ended_by == "deadline":
+        params["_meta"] = {"timeout": scaled(0.1)}
+    await wire.send({"jsonrpc": "2.0", "id": "g", "method": "/swallows", "params": params})
+    await gate.started.wait()
+    if ended_by == "cancel":
+        await wire.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": "g"}})
+    received = []
+    while not received or received[-1].get("id") != "g":
+        received.append(await wire.recv())
+    states = [m["params"]["status"] for m in received if m.get("method") == "$/goal"]
+    if ended_by == "cancel":  # asked, and cut when its cancel_grace passed
+        assert states == ["accepted", "executing", "canceling"]
+        assert received[-1]["error"]["code"] == -32002
+        assert received[-1]["error"]["data"]["status"] == "CANCELLED"
+    else:
+        assert states == ["accepted", "executing"]
+        assert received[-1]["error"]["code"] == -32001
+        assert received[-1]["error"]["data"]["status"] == "DEADLINE_EXCEEDED"
+    assert not gate.ended.is_set()  # answered while its handler still runs
+    gate.release.set()
+    await gate.ended.wait()
+    # What it reports and returns after its answer is never sent: the next message is the reply
+    # to the next call.
+    ping = {"jsonrpc": "2.0", "id": "p", "method": "/ping"}
+    assert await wire.call(ping) == {
+        "jsonrpc": "2.0",
+        "id": "p",
+        "result": {"success": True, "message": ""},
+    }
+    assert_nothing_left(connection(running))
     await wire.ws.close()
 
 

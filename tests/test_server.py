@@ -1891,17 +1891,24 @@ async def test_the_first_reason_wins_over_a_deadline_that_passes_later(
     server: Server, transport: Transport
 ) -> None:
     # Cancelled by the caller, the handler takes a while to clean up, and its deadline passes
-    # meanwhile: the answer is still CANCELLED, and the cleanup is not interrupted a second time.
+    # meanwhile: the answer is CANCELLED, sent at once, and the cleanup is not interrupted a
+    # second time.
     started = asyncio.Event()
-    finished_cleanup: list[bool] = []
+    cleaned_up = asyncio.Event()
+    interrupted: list[bool] = []
 
     async def slow_cleanup(request: Any) -> Any:
         started.set()
         try:
             await asyncio.Event().wait()
         finally:
-            await asyncio.sleep(scaled(0.2))  # longer than the deadline below
-            finished_cleanup.append(True)
+            try:
+                await asyncio.sleep(scaled(0.2))  # longer than the deadline below
+            except asyncio.CancelledError:
+                interrupted.append(True)
+                raise
+            finally:
+                cleaned_up.set()
 
     server.add_service("/slow_cleanup", Echo, slow_cleanup)
     async with serve(server, "127.0.0.1", 0, transport=transport) as running:
@@ -1910,8 +1917,192 @@ async def test_the_first_reason_wins_over_a_deadline_that_passes_later(
         await started.wait()
         await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": 1}})
         assert error(await w.recv_reply()) == (1, -32002, "CANCELLED")
-        assert finished_cleanup == [True]
+        await cleaned_up.wait()
+        assert interrupted == []
+        assert (await w.request("/echo", {"text": "after"}, id=2))["result"] == {"text": "after"}
         await w.ws.close()
+
+
+def connection_of(running: RunningServer) -> ServedConnection:
+    (served,) = running._connections
+    return served
+
+
+class Stubborn:
+    """A handler that swallows its cancellation, then goes on until ``release`` is set (a long
+    cleanup), and then returns, or raises ``raises``. ``entered``, ``swallowed`` and ``ended``
+    say how far it got, so that a test awaits them instead of sleeping."""
+
+    def __init__(self, raises: BaseException | None = None) -> None:
+        self.raises = raises
+        self.entered = asyncio.Event()
+        self.swallowed = asyncio.Event()
+        self.release = asyncio.Event()
+        self.ended = asyncio.Event()
+
+    async def __call__(self, request: Any) -> Any:
+        self.entered.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            self.swallowed.set()
+        try:
+            await self.release.wait()
+        finally:
+            self.ended.set()
+        if self.raises is not None:
+            raise self.raises
+        return {"text": "too late"}
+
+
+async def finish_stubborn(w: Wire, stubborn: Stubborn, served: ServedConnection) -> None:
+    """Let ``stubborn`` end, then check that the connection's next message is the reply to the
+    next call (the stubborn call's late result was not sent) and that nothing is left."""
+    await stubborn.swallowed.wait()
+    assert not stubborn.ended.is_set()
+    stubborn.release.set()
+    await stubborn.ended.wait()
+    assert await w.request("/echo", {"text": "next"}, id="next") == {
+        "jsonrpc": "2.0",
+        "id": "next",
+        "result": {"text": "next"},
+    }
+    assert served.session.in_flight == 0 and not served.counted and not served.session.calls
+
+
+async def test_a_handler_that_ignores_its_cancellation_is_answered_when_its_deadline_passes(
+    server: Server, transport: Transport
+) -> None:
+    stubborn = Stubborn()
+    server.add_service("/stubborn", Echo, stubborn)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.request("/stubborn", deadline(0.05), id=1)
+        assert error(reply) == (1, -32001, "DEADLINE_EXCEEDED")
+        assert not stubborn.ended.is_set()  # answered while its handler still runs
+        assert (await w.request("/echo", {"text": "meanwhile"}, id=2))["result"] == {
+            "text": "meanwhile"
+        }
+        await finish_stubborn(w, stubborn, connection_of(running))
+        await w.ws.close()
+
+
+async def test_a_handler_that_ignores_its_cancellation_is_answered_when_cancelled(
+    server: Server, transport: Transport
+) -> None:
+    stubborn = Stubborn()
+    server.add_service("/stubborn", Echo, stubborn)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send(request("/stubborn", deadline(60), id="c"))
+        await stubborn.entered.wait()
+        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {"id": "c"}})
+        assert error(await w.recv_reply()) == ("c", -32002, "CANCELLED")
+        assert not stubborn.ended.is_set()
+        await finish_stubborn(w, stubborn, connection_of(running))
+        await w.ws.close()
+
+
+async def test_a_batch_with_a_handler_that_ignores_its_deadline_is_answered_when_it_passes(
+    server: Server, transport: Transport
+) -> None:
+    stubborn = Stubborn()
+    server.add_service("/stubborn", Echo, stubborn)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        replies = await w.call(
+            [request("/stubborn", deadline(0.05), id=1), request("/echo", {"text": "b"}, id=2)]
+        )
+        assert [r["id"] for r in replies] == [1, 2]
+        assert error(replies[0]) == (1, -32001, "DEADLINE_EXCEEDED")
+        assert replies[1]["result"] == {"text": "b"}
+        assert not stubborn.ended.is_set()
+        await finish_stubborn(w, stubborn, connection_of(running))
+        await w.ws.close()
+
+
+async def test_a_call_answered_while_its_handler_runs_on_counts_in_flight_until_it_ends(
+    transport: Transport,
+) -> None:
+    server = Server(max_in_flight=1, grace_period=scaled(2))
+    stubborn = Stubborn()
+    server.add_service("/stubborn", Echo, stubborn)
+
+    async def echo(request: Any) -> Any:
+        return {"text": request.text}
+
+    server.add_service("/echo", Echo, echo)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        assert error(await w.request("/stubborn", deadline(0.05), id=1)) == (
+            1,
+            -32001,
+            "DEADLINE_EXCEEDED",
+        )
+        # Its task still runs, and still holds what it holds: the limit of one is reached.
+        assert error(await w.request("/echo", {"text": "busy"}, id=2)) == (
+            2,
+            -32004,
+            "RESOURCE_EXHAUSTED",
+        )
+        await finish_stubborn(w, stubborn, connection_of(running))
+        await w.ws.close()
+
+
+async def test_a_late_failure_of_a_handler_already_answered_is_logged_once(
+    server: Server, transport: Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    stubborn = Stubborn(raises=RuntimeError("failed in its cleanup"))
+    server.add_service("/stubborn", Echo, stubborn)
+    loop = asyncio.get_running_loop()
+    reported: list[dict[str, Any]] = []
+    previous = loop.get_exception_handler()
+    loop.set_exception_handler(lambda loop, context: reported.append(context))
+    try:
+        async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+            w = await open_wire(running)
+            reply = await w.request("/stubborn", deadline(0.05), id=1)
+            assert error(reply) == (1, -32001, "DEADLINE_EXCEEDED")
+            await finish_stubborn(w, stubborn, connection_of(running))
+            await w.ws.close()
+    finally:
+        loop.set_exception_handler(previous)
+    failures = [
+        r for r in caplog.records if r.exc_info and "failed in its cleanup" in str(r.exc_info[1])
+    ]
+    assert len(failures) == 1
+    assert failures[0].getMessage() == "handler for /stubborn raised an exception (request id 1)"
+    assert reported == []
+
+
+async def test_shutdown_answers_a_call_whose_handler_ignores_its_cancellation(
+    transport: Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level("WARNING", logger="srvwire.server")
+    server = Server(grace_period=scaled(0.1))
+    stubborn = Stubborn()
+    server.add_service("/stubborn", Echo, stubborn)
+    running = await serve(server, "127.0.0.1", 0, transport=transport)
+    w = await open_wire(running)
+    await w.send(request("/stubborn", id="s"))
+    await stubborn.entered.wait()
+    served = connection_of(running)
+    closing = asyncio.create_task(running.close())
+    reply = await w.recv_reply()
+    assert error(reply) == ("s", -32003, "UNAVAILABLE")
+    assert reply["error"]["message"] == "the server shut down before the call finished"
+    await stubborn.swallowed.wait()
+    (handler_task,) = served.runner.running_on  # its task, cancelled and going on
+    await closing  # waits a moment for the handler, which goes on, then closes
+    assert await closed_code(w) == 1001
+    assert (
+        "leaving 1 handler running that did not end when cancelled (its call was answered): "
+        "/stubborn; it is cancelled again as the connections close" in caplog.text
+    )
+    await asyncio.wait([handler_task])  # cancelled again with its connection: its wait ended
+    assert stubborn.ended.is_set()
+    assert served.session.in_flight == 0 and not served.counted and not served.session.calls
+    assert not served.runner.running_on
 
 
 def cancel_own_task(times: int = 1) -> None:

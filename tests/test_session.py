@@ -229,6 +229,31 @@ def test_a_batch_is_answered_once_in_order(server: ServerSession[ServiceEntry]) 
     assert answer[3]["result"] == {"text": "3"}
 
 
+def test_a_call_is_answered_once_whatever_its_handler_does_later(
+    server: ServerSession[ServiceEntry],
+) -> None:
+    # Cancelled while its handler runs on, a call is answered then; the handler's late result
+    # or failure writes nothing, in a batch too, and the call counts until the runner says so.
+    single = only(send(server, call(1)))
+    assert reply_of(server.fail(single, Cancelled("stop")))["error"]["code"] == (  # type: ignore[arg-type]
+        ErrorCode.CANCELLED
+    )
+    assert not server.answering(single)
+    assert server.reply(single, b'{"difference":1}') is None
+    assert server.fail(single, ServiceUnavailable("late")) is None
+    first, second = send(server, [call(2), call(3, "echo")])
+    assert server.fail(first, Cancelled("stop")) is None  # the batch waits for its second
+    assert server.fail(first, ServiceUnavailable("late")) is None
+    assert server.reply(first, b"{}") is None
+    answer = json.loads(server.reply(second, b'{"text":"3"}'))  # type: ignore[arg-type]
+    assert [item["id"] for item in answer] == [2, 3]
+    assert answer[0]["error"]["code"] == ErrorCode.CANCELLED
+    assert server.in_flight == 3
+    for answered in (single, first, second):
+        server.sent(answered)
+    assert server.in_flight == 0
+
+
 def test_one_call_batches_count_in_flight_like_single_calls(
     server: ServerSession[ServiceEntry],
 ) -> None:

@@ -319,7 +319,11 @@ class GoalHandle:
     def close(self) -> None:
         """The goal ended (its handler returned, or was cut off by a deadline, a lost
         connection or the grace period): no more feedback, no grace timer, pending feedback
-        dropped, and a handler still running on a thread told to stop."""
+        dropped, and a handler still running on a thread told to stop. Once only: a goal
+        answered while its handler runs on is closed then, and its handler's end changes
+        nothing (its call's id may be another goal's by then)."""
+        if self._closed:
+            return
         self._closed = True
         self._cancel_event.set()
         if self._grace is not None:

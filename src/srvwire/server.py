@@ -14,8 +14,9 @@ Invariants:
   connections (HTTP 503; ``/healthz`` says ``draining``) and answers new calls
   ``UNAVAILABLE``; asks every running goal to stop (``$/goal canceling``, as a client's
   cancellation asks); then it waits up to ``grace_period`` for calls in flight, goals
-  included, cancels the rest (they answer ``UNAVAILABLE``), stops listening, and closes every
-  connection with 1001 (going away).
+  included, cancels the rest (they answer ``UNAVAILABLE`` at once, whether their handlers stop
+  or not; one that goes on is named in the log), stops listening, and closes every connection
+  with 1001 (going away).
 * **Who may connect is decided before the connection opens**, by the server's
   :class:`~srvwire.handshake.EdgePolicy` (origins, Host, ``max_connections``, ``auth``),
   which the transport asks about each opening request.
@@ -313,8 +314,9 @@ class Server:
         its fields, or None for the default). ``accept(goal)`` may refuse a goal before it
         starts: return False or raise :class:`~srvwire.errors.GoalRejected` with the reason.
         After the client asks to cancel, the handler has ``cancel_grace`` seconds to return
-        before it is cancelled; when the server shuts down, it is asked the same way and has
-        the server's ``grace_period``. ``scopes`` as for :meth:`add_service`, and listed with
+        before it is cancelled and the goal answered ``CANCELLED`` (then, whether or not the
+        handler stops); when the server shuts down, it is asked the same way and has the
+        server's ``grace_period``. ``scopes`` as for :meth:`add_service`, and listed with
         the services (``$/services``, ``rpc.discover``). ``max_concurrency`` bounds how many
         goals of this action run their handler at once, over all connections, as for
         :meth:`add_service`: the others are accepted and wait for a slot, in order, within
@@ -851,8 +853,27 @@ class RunningServer:
                     conn.cancel_all(
                         ServiceUnavailable("the server shut down before the call finished")
                     )
-                # The cancelled calls reply at once; do not wait on a peer that does not read.
-                await asyncio.wait(pending, timeout=1.0)
+                # The cancelled calls are answered at once, in tasks of their own: wait for
+                # those, but not long on a peer that does not read, nor on a handler that
+                # ignores its cancellation (its task is left to end on its own).
+                answering = {task for conn in self._connections for task in conn.counted}
+                await asyncio.wait(pending | answering, timeout=1.0)
+        running_on = sorted(
+            name
+            for conn in self._connections
+            for task, name in conn.runner.running_on.items()
+            if not task.done()
+        )
+        if running_on:
+            options.logger.warning(
+                "leaving %d %s running that did not end when cancelled (%s answered): %s; "
+                "%s cancelled again as the connections close",
+                len(running_on),
+                "handler" if len(running_on) == 1 else "handlers",
+                "its call was" if len(running_on) == 1 else "their calls were",
+                ", ".join(running_on),
+                "it is" if len(running_on) == 1 else "they are",
+            )
         self._listener.close()  # the open connections stay, to be closed with 1001
         loop = self._loop
         if loop is not None and loop.get_exception_handler() == self._loop_exception:

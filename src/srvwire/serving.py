@@ -49,17 +49,24 @@ Invariants:
   timer only when the call has to wait; when it fires, the call is cancelled with
   ``DEADLINE_EXCEEDED`` exactly as ``$/cancel`` cancels it with ``CANCELLED`` and shutdown with
   ``UNAVAILABLE``: the reason is recorded in the call's :class:`~srvwire.dispatch.Context`
-  first (the first one wins), then its task is cancelled, at most once; the call takes the
-  cancellation back and answers the reason. A reply already written is not cancelled. A task
-  cancelled without a reason (its connection went away) answers nothing. A handler that
-  cancels its own task is answered ``INTERNAL``, unless it returns without waiting: then its
-  result is its answer, and the reader takes the cancellation back.
-* **In flight is counted twice, for two purposes.** The session counts calls for admission;
-  :attr:`CallRunner.counted` holds the tasks that shutdown waits for: a reader task a
-  waiting call took over, until the call is done, and each batch item's task, from its creation
-  until its coroutine's ``finally`` (a task cancelled before its first step gets a
-  done-callback instead). A task an eager task factory already ran to its end inside
-  ``create_task`` is not counted.
+  first (the first one wins), then its task is cancelled, at most once, and the call is
+  answered the reason at once, from a task of its own (:meth:`CallRunner.send_answer`):
+  the answer never waits for the handler, which may ignore its cancellation (swallow it, or
+  clean up for long). Its task is left to end on its own: what it returns then is dropped,
+  and what it raises is logged, once, and answers nothing (the session writes one reply per
+  call). It still counts in flight, and shutdown still waits for
+  it and names it if it outlives the connections (:attr:`CallRunner.running_on`); a goal's
+  feedback stops with its answer. A reply already written is not cancelled. A task cancelled
+  without a reason (its connection went away) answers nothing. A handler that cancels its own
+  task is answered ``INTERNAL``, unless it returns without waiting: then its result is its
+  answer, and the reader takes the cancellation back.
+* **In flight is counted twice, for two purposes.** The session counts calls for admission
+  (a call answered as it was cancelled counts until its task ends: its handler still holds
+  what it holds); :attr:`CallRunner.counted` holds the tasks that shutdown waits for: a reader
+  task a waiting call took over, until the call is done, each batch item's task, from its
+  creation until its coroutine's ``finally`` (a task cancelled before its first step gets a
+  done-callback instead), and each task sending the answer of a cancelled call. A task an
+  eager task factory already ran to its end inside ``create_task`` is not counted.
 """
 
 from __future__ import annotations
@@ -167,6 +174,7 @@ class CallRunner:
         "notification_timeout",
         "outbox",
         "peer",
+        "running_on",
         "session",
     )
 
@@ -194,6 +202,8 @@ class CallRunner:
         self.notification_timeout = notification_timeout
         self.loop = asyncio.get_running_loop()
         self.counted: set[asyncio.Task[Any]] = set()  # calls and notifications in flight
+        # The tasks of calls answered as they were cancelled, until they end: their services.
+        self.running_on: dict[asyncio.Task[Any], str] = {}
 
     # --- tasks --------------------------------------------------------------------------------
 
@@ -265,13 +275,24 @@ class CallRunner:
         stays silent.
 
         A call whose task has not started is only marked: it answers when it starts. A task is
-        cancelled once at most, since the call takes one cancellation back before replying.
+        cancelled once at most, since the call takes one cancellation back before replying. A
+        started call is answered ``error`` now, whether or not its handler heeds the
+        cancellation (see the invariants): its task is left to end on its own.
         """
-        self.context_of(work)._mark_cancelled(error)
+        context = self.context_of(work)
+        context._mark_cancelled(error)
         task = work.task
         if task is not None and not work.task_cancelled and (work.started or error is None):
             work.task_cancelled = True
             task.cancel()
+            if error is not None and type(work) is Call:
+                self.running_on[task] = work.entry.name
+                task.add_done_callback(self.running_on.pop)
+                reply = self.session.fail(work, error)
+                if context.goal is not None:  # answered: its feedback is dropped from now on
+                    context.goal.close()
+                if reply is not None:
+                    self.spawn_counted(self.send_answer(reply))
 
     def request_cancel(self, work: Work, error: RPCError | None) -> bytes | None:
         """``$/cancel`` (or shutdown, or the connection's end) reached a call.
@@ -292,6 +313,19 @@ class CallRunner:
         """A goal's grace period after its cancellation passed: cancel its handler."""
         if type(work) is Call and self.session.answering(work):
             self.cancel(work, error)
+
+    async def send_answer(self, reply: bytes) -> None:
+        """Send the answer to a call cancelled while it ran (or its batch's), in a task of its
+        own, counted as calls are, so that shutdown waits for it too."""
+        try:
+            await self.conn.send(reply)
+        except TransportClosed:
+            pass  # the caller left; its calls are being cancelled
+        else:
+            if self.outbox.queued:
+                self.outbox.fit()
+        finally:
+            self.settle()
 
     @staticmethod
     async def take_back_cancellation() -> None:
@@ -365,12 +399,13 @@ class CallRunner:
                         entry, params, deadline, self.context_of, call, self.executor, log, call.id
                     )
                 if call.task_cancelled:  # cancelled meanwhile, and the handler finished anyway
-                    await self.take_back_cancellation()
                     context = self.context_of(call)
-                    if context._cancel_error is None:  # the connection went away
+                    if context._cancel_error is not None:
+                        reply = None  # answered as it was cancelled: its result is too late
+                    else:  # the connection went away
+                        await self.take_back_cancellation()
                         session.forget(call)
                         raise asyncio.CancelledError
-                    reply = session.fail(call, context._cancel_error)
                 else:
                     if log.isEnabledFor(logging.DEBUG):
                         log.debug("%s id %r from %s: ok", entry.name, call.id, self.peer)
@@ -790,11 +825,13 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
             )
 
     def reply(self, call: Call[ServiceEntry], result: bytes, whole: bool = False) -> bytes | None:
-        self.outcomes[call] = "OK"
+        if self.answering(call):  # else answered already, and that answer is its outcome
+            self.outcomes[call] = "OK"
         return super().reply(call, result, whole)
 
     def fail(self, call: Call[ServiceEntry], error: RPCError) -> bytes | None:
-        self.outcomes[call] = _outcome(error)
+        if self.answering(call):
+            self.outcomes[call] = _outcome(error)
         return super().fail(call, error)
 
     def sent(self, call: Call[ServiceEntry]) -> None:

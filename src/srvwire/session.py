@@ -12,7 +12,9 @@ Server invariants:
   error, discovery, a ``$/cancel`` acknowledgement) from :meth:`ServerSession.receive`, or the
   one :meth:`ServerSession.reply` or :meth:`ServerSession.fail` writes for a started
   :class:`Call`, after which the runner says it was :meth:`~ServerSession.sent`. A call that
-  ends without a reply (its connection went away) is :meth:`~ServerSession.forget`-ten.
+  ends without a reply (its connection went away) is :meth:`~ServerSession.forget`-ten. A call
+  is answered once: :meth:`~ServerSession.reply` and :meth:`~ServerSession.fail` write nothing
+  for a call answered already (cancelled, and answered so, while its handler ran on).
 * **Admission, in this order:** a closing session answers ``UNAVAILABLE``; once the
   connection's credentials have :meth:`~ServerSession.expire`-d, ``UNAUTHENTICATED``; a method
   that is not a service is discovery, ``$/cancel`` or ``SERVICE_NOT_FOUND``; a service whose
@@ -21,10 +23,11 @@ Server invariants:
   flight is ``INVALID_REQUEST``.
 * **A connection sees only what it may call**: ``rpc.discover`` and ``$/services`` list the
   services whose scopes it holds.
-* **In flight** counts calls from admission until their reply has been sent (so replies a
-  client does not read count against its limit, and past it the reader's own answers push
-  back), and notifications from their start to :meth:`~ServerSession.done`. A batch's calls
-  count one by one, like single calls.
+* **In flight** counts calls from admission until the runner says :meth:`~ServerSession.sent`:
+  once their reply has been sent (so replies a client does not read count against its limit,
+  and past it the reader's own answers push back), or, for a call answered when it was
+  cancelled, once its handler's task ended; and notifications from their start to
+  :meth:`~ServerSession.done`. A batch's calls count one by one, like single calls.
 * **``$/cancel`` reaches a call while it is in :attr:`ServerSession.calls`**, from admission
   until its reply is written; a boolean is never an id, and numbers equal in value are the
   same id. A call with ``"id": null`` cannot be named, but shutdown still finds it in
@@ -554,20 +557,26 @@ class ServerSession(Generic[E]):
 
     def reply(self, call: Call[E], result: bytes, whole: bool = False) -> bytes | None:
         """Write the reply to ``call`` with ``result`` (its JSON, or with ``whole`` the whole
-        response already written); None while its batch waits."""
+        response already written); None while its batch waits, or when ``call`` was answered
+        already."""
         id = call.id
         if call.batch is None and id is not None:  # most replies: _answer's steps, inline
-            if self.calls.get(id) is call:
-                del self.calls[id]
+            if self.calls.get(id) is not call:
+                return None  # answered already: a call has one reply
+            del self.calls[id]
             return result if whole else write_response(id, result)
         return self._answer(call, result if whole else write_response(id, result))
 
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
-        """Write the error reply to ``call``; None while its batch waits."""
+        """Write the error reply to ``call``; None while its batch waits, or when ``call`` was
+        answered already."""
+        if not self.answering(call):
+            return None  # answered already: a call has one reply
         return self._answer(call, ErrorResponse(call.id, error).serialize())
 
     def _answer(self, call: Call[E], reply: bytes) -> bytes | None:
-        self._unlist(call)
+        if not self._unlist(call):
+            return None  # answered already: a call has one reply
         batch = call.batch
         if batch is None:
             return reply
