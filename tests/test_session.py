@@ -166,6 +166,51 @@ def test_cancel_as_a_request_is_acknowledged(server: ServerSession[ServiceEntry]
     assert reply_of(ack) == {"jsonrpc": "2.0", "id": 2, "result": None}
 
 
+@pytest.mark.parametrize(
+    ("params", "path", "problem", "kind"),
+    [
+        (None, "id", "missing", "missing"),
+        ({}, "id", "missing", "missing"),
+        ({"call": 1}, "id", "missing", "missing"),
+        ([1], "", "must be an object, not an array", "dict_type"),
+        ({"id": None}, "id", "must be a string or a number, not null", "id_type"),
+        ({"id": True}, "id", "must be a string or a number, not a boolean", "id_type"),
+        ({"id": [1]}, "id", "must be a string or a number, not an array", "id_type"),
+    ],
+)
+def test_a_cancel_request_without_an_id_is_answered_invalid_params(
+    server: ServerSession[ServiceEntry], params: Any, path: str, problem: str, kind: str
+) -> None:
+    """A ``$/cancel`` request that names no call gets INVALID_PARAMS with the field's path;
+    sent as a notification, it gets nothing, as every notification; the call goes on."""
+    running = only(send(server, call(1)))
+    assert reply_of(only(send(server, call(2, "$/cancel", params)))) == {
+        "jsonrpc": "2.0",
+        "id": 2,
+        "error": {
+            "code": ErrorCode.INVALID_PARAMS,
+            "message": 'invalid params: $/cancel needs the id of the call to cancel: {"id": 7}',
+            "data": {
+                "status": "INVALID_PARAMS",
+                "errors": [{"path": path, "message": problem, "type": kind}],
+            },
+        },
+    }
+    assert send(server, note("$/cancel", params)) == []
+    assert server.calls == {1: running}
+
+
+def test_a_cancel_request_for_a_call_not_in_flight_is_acknowledged(
+    server: ServerSession[ServiceEntry],
+) -> None:
+    for id in (99, "1", 1.5):
+        assert reply_of(only(send(server, call(2, "$/cancel", {"id": id})))) == {
+            "jsonrpc": "2.0",
+            "id": 2,
+            "result": None,
+        }
+
+
 def test_a_call_that_cannot_be_named_is_still_found_at_shutdown(
     server: ServerSession[ServiceEntry],
 ) -> None:
