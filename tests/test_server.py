@@ -417,6 +417,17 @@ async def test_a_cancel_request_without_an_id_is_refused_and_a_notification_igno
         assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
 
 
+@pytest.mark.parametrize("method", ["$/nope", "rpc.nope", ""])
+async def test_a_method_that_cannot_be_a_service_is_named_as_sent(
+    server: Server, transport: Transport, method: str
+) -> None:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.call(request(method, id=5))
+        assert error(reply) == (5, -32601, "SERVICE_NOT_FOUND")
+        assert reply["error"]["message"] == f'no method named "{method}"'
+
+
 async def test_cancel_reaches_a_call_that_has_not_started_yet(transport: Transport) -> None:
     server = Server(max_in_flight=1)
     ran: list[bool] = []

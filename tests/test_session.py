@@ -211,6 +211,26 @@ def test_a_cancel_request_for_a_call_not_in_flight_is_acknowledged(
         }
 
 
+@pytest.mark.parametrize("method", ["$/nope", "rpc.nope", "$/subscribe", ""])
+def test_a_method_that_is_no_service_name_is_not_found_as_it_was_sent(
+    server: ServerSession[ServiceEntry], method: str
+) -> None:
+    """A protocol method the server does not have (``$/…``, ``rpc.…``: here, topics are
+    off), or an empty one, is named as sent, without the ``/`` a service name takes."""
+    refused = reply_of(only(send(server, call(1, method))))
+    assert refused["error"]["code"] == ErrorCode.SERVICE_NOT_FOUND
+    assert refused["error"]["message"] == f'no method named "{method}"'
+    assert refused["error"]["data"] == {"status": "SERVICE_NOT_FOUND", "candidates": []}
+
+
+@pytest.mark.parametrize(("method", "named"), [("subtrakt", "/subtrakt"), ("/", "/")])
+def test_a_service_name_not_found_is_named_with_its_slash(
+    server: ServerSession[ServiceEntry], method: str, named: str
+) -> None:
+    refused = reply_of(only(send(server, call(1, method))))
+    assert refused["error"]["message"].startswith(f"no service named {named}")
+
+
 def test_a_call_that_cannot_be_named_is_still_found_at_shutdown(
     server: ServerSession[ServiceEntry],
 ) -> None:
