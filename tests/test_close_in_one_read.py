@@ -366,3 +366,37 @@ async def test_a_frame_the_parser_refuses_after_a_call_in_the_same_read(
     ]
     reply = ("text", {"jsonrpc": "2.0", "id": 1, "result": {"text": "a"}})
     assert outcome == ([reply] if transport == "websockets" else []) + [("close", 1002)]
+
+
+@both_transports
+async def test_a_ping_after_calls_in_the_same_read_is_answered_after_their_replies(
+    transport: str,
+) -> None:
+    """The replies made to the calls before a ping in the same read go out before its pong,
+    as if the ping came in a later read (docs/transports.md)."""
+    server = Server()
+
+    async def echo(request: Any) -> Any:
+        return {"text": request.text}
+
+    server.add_service("/echo", Echo, echo)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        client = await raw_client(running.port, running.url)
+        client.protocol.send_text(call(1, "/echo", "a"))
+        client.protocol.send_text(call(2, "/echo", "b"))
+        client.protocol.send_ping(b"are you there")
+        client.write()
+        async with asyncio.timeout(scaled(10)):
+            while sum(frame.opcode is Opcode.TEXT for frame in client.frames) < 2:
+                assert await client.read()
+        client.protocol.send_close(1000)
+        client.write()
+        async with asyncio.timeout(scaled(10)):
+            while await client.read():
+                pass
+        client.writer.close()
+    assert [(frame.opcode, bytes(frame.data)) for frame in client.frames[:3]] == [
+        (Opcode.TEXT, b'{"jsonrpc":"2.0","id":1,"result":{"text":"a"}}'),
+        (Opcode.TEXT, b'{"jsonrpc":"2.0","id":2,"result":{"text":"b"}}'),
+        (Opcode.PONG, b"are you there"),
+    ]

@@ -57,7 +57,8 @@ leaves to its user:
   refused with a ``ValueError`` on both ends. No extension is ever negotiated, so a frame
   with a reserved bit set fails the connection with 1002 and ``websockets``' reason
   (``reserved bits must be 0``), whatever its opcode: ``on_ws_frame`` answers pings itself
-  (``picows``' own pong is off), after that check, so such a ping gets no pong.
+  (``picows``' own pong is off), after that check, so such a ping gets no pong; the replies
+  corked before a ping is read are written before its pong, as on ``websockets``.
 
 Exceptions are mapped here and nowhere else: how a connection ended (the close frame received,
 else the one sent, else none) -> :class:`TransportClosed`; ``OSError`` and ``picows``' errors
@@ -388,6 +389,8 @@ class PicowsConnection(WSListener, Connection):
                 transport.disconnect()
             elif kind is _PING:
                 if not self._failed:  # as websockets, whose parser stops at a failure
+                    if self._corked:  # the replies made before it was read go out first
+                        self._flush()
                     transport.send_pong(frame.get_payload_as_bytes())
             elif kind is _PONG:
                 self._pong()
