@@ -173,3 +173,38 @@ async def test_a_client_fails_a_frame_with_a_reserved_bit_with_1002(
             received = await answered
     assert received == [(1002, REASON)]
     assert lost.value.data["close_code"] == 1002
+
+
+@transports
+async def test_a_client_answers_a_ping_without_reserved_bits_with_its_pong(transport: str) -> None:
+    """The check does not stop pongs: picows' own pong is off, and the connection answers."""
+    ponged: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+
+    async def raw_server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        end = RawEnd(ServerProtocol(), reader, writer)
+        protocol = end.protocol
+        assert isinstance(protocol, ServerProtocol)
+        requests: list[object] = []
+        while not requests:
+            protocol.receive_data(await reader.read(2**16))
+            requests = protocol.events_received()
+        (request,) = requests
+        assert isinstance(request, Request)
+        protocol.send_response(protocol.accept(request))
+        announce = {"jsonrpc": "2.0", "method": "$/services", "params": {"services": []}}
+        protocol.send_text(json.dumps(announce).encode())
+        protocol.send_ping(b"are you there")
+        end.write()
+        while not any(frame.opcode is Opcode.PONG for frame in end.frames):
+            assert await end.read()
+        (pong,) = [frame for frame in end.frames if frame.opcode is Opcode.PONG]
+        ponged.set_result(bytes(pong.data))
+        while await end.read():
+            pass
+        writer.close()
+
+    listening = await asyncio.start_server(raw_server, "127.0.0.1", 0)
+    port = listening.sockets[0].getsockname()[1]
+    async with listening, connect(f"ws://127.0.0.1:{port}", transport=transport):
+        async with asyncio.timeout(scaled(10)):
+            assert await ponged == b"are you there"
