@@ -127,10 +127,11 @@ async def test_the_cap_on_abandoned_threads_is_logged(
                 assert await blocker.next_start() == id
                 await cancel(w, id)
         assert threads.abandoned == 1
+        # Two threads are busy: the one abandoned, and the one whose caller left past the cap.
         assert caplog.messages == [
-            "1 blocking handlers still run after their callers left (the cap, max_abandoned); "
-            "a thread whose caller leaves now keeps counting against max_workers=1 until its "
-            "handler returns: Blocker, Blocker"
+            "blocking handlers still running after their callers left have reached the cap "
+            "(max_abandoned=1): a thread whose caller leaves now keeps counting against "
+            "max_workers=1 until its handler returns; busy threads now: 2 (Blocker, Blocker)"
         ]
         blocker.release.set()
         await w.ws.close()

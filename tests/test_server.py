@@ -395,6 +395,39 @@ async def test_cancel_stops_the_handler_and_answers_cancelled(
         assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
 
 
+async def test_a_cancel_request_without_an_id_is_refused_and_a_notification_ignored(
+    server: Server, transport: Transport
+) -> None:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        await w.send({"jsonrpc": "2.0", "method": "$/cancel", "params": {}})  # no answer
+        reply = await w.call(request("$/cancel", {"call": "c1"}, id=8))
+        assert reply == {  # as docs/protocol.md shows it
+            "jsonrpc": "2.0",
+            "id": 8,
+            "error": {
+                "code": -32602,
+                "message": 'invalid params: $/cancel needs the id of the call to cancel: {"id": 7}',
+                "data": {
+                    "status": "INVALID_PARAMS",
+                    "errors": [{"path": "id", "message": "missing", "type": "missing"}],
+                },
+            },
+        }
+        assert (await w.call(request("subtract", [3, 1], id=2)))["result"] == {"difference": 2}
+
+
+@pytest.mark.parametrize("method", ["$/nope", "rpc.nope", ""])
+async def test_a_method_that_cannot_be_a_service_is_named_as_sent(
+    server: Server, transport: Transport, method: str
+) -> None:
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        w = await open_wire(running)
+        reply = await w.call(request(method, id=5))
+        assert error(reply) == (5, -32601, "SERVICE_NOT_FOUND")
+        assert reply["error"]["message"] == f'no method named "{method}"'
+
+
 async def test_cancel_reaches_a_call_that_has_not_started_yet(transport: Transport) -> None:
     server = Server(max_in_flight=1)
     ran: list[bool] = []

@@ -166,6 +166,71 @@ def test_cancel_as_a_request_is_acknowledged(server: ServerSession[ServiceEntry]
     assert reply_of(ack) == {"jsonrpc": "2.0", "id": 2, "result": None}
 
 
+@pytest.mark.parametrize(
+    ("params", "path", "problem", "kind"),
+    [
+        (None, "id", "missing", "missing"),
+        ({}, "id", "missing", "missing"),
+        ({"call": 1}, "id", "missing", "missing"),
+        ([1], "", "must be an object, not an array", "dict_type"),
+        ({"id": None}, "id", "must be a string or a number, not null", "id_type"),
+        ({"id": True}, "id", "must be a string or a number, not a boolean", "id_type"),
+        ({"id": [1]}, "id", "must be a string or a number, not an array", "id_type"),
+    ],
+)
+def test_a_cancel_request_without_an_id_is_answered_invalid_params(
+    server: ServerSession[ServiceEntry], params: Any, path: str, problem: str, kind: str
+) -> None:
+    """A ``$/cancel`` request that names no call gets INVALID_PARAMS with the field's path;
+    sent as a notification, it gets nothing, as every notification; the call goes on."""
+    running = only(send(server, call(1)))
+    assert reply_of(only(send(server, call(2, "$/cancel", params)))) == {
+        "jsonrpc": "2.0",
+        "id": 2,
+        "error": {
+            "code": ErrorCode.INVALID_PARAMS,
+            "message": 'invalid params: $/cancel needs the id of the call to cancel: {"id": 7}',
+            "data": {
+                "status": "INVALID_PARAMS",
+                "errors": [{"path": path, "message": problem, "type": kind}],
+            },
+        },
+    }
+    assert send(server, note("$/cancel", params)) == []
+    assert server.calls == {1: running}
+
+
+def test_a_cancel_request_for_a_call_not_in_flight_is_acknowledged(
+    server: ServerSession[ServiceEntry],
+) -> None:
+    for id in (99, "1", 1.5):
+        assert reply_of(only(send(server, call(2, "$/cancel", {"id": id})))) == {
+            "jsonrpc": "2.0",
+            "id": 2,
+            "result": None,
+        }
+
+
+@pytest.mark.parametrize("method", ["$/nope", "rpc.nope", "$/subscribe", ""])
+def test_a_method_that_is_no_service_name_is_not_found_as_it_was_sent(
+    server: ServerSession[ServiceEntry], method: str
+) -> None:
+    """A protocol method the server does not have (``$/…``, ``rpc.…``: here, topics are
+    off), or an empty one, is named as sent, without the ``/`` a service name takes."""
+    refused = reply_of(only(send(server, call(1, method))))
+    assert refused["error"]["code"] == ErrorCode.SERVICE_NOT_FOUND
+    assert refused["error"]["message"] == f'no method named "{method}"'
+    assert refused["error"]["data"] == {"status": "SERVICE_NOT_FOUND", "candidates": []}
+
+
+@pytest.mark.parametrize(("method", "named"), [("subtrakt", "/subtrakt"), ("/", "/")])
+def test_a_service_name_not_found_is_named_with_its_slash(
+    server: ServerSession[ServiceEntry], method: str, named: str
+) -> None:
+    refused = reply_of(only(send(server, call(1, method))))
+    assert refused["error"]["message"].startswith(f"no service named {named}")
+
+
 def test_a_call_that_cannot_be_named_is_still_found_at_shutdown(
     server: ServerSession[ServiceEntry],
 ) -> None:

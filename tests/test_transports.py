@@ -1455,6 +1455,9 @@ async def test_a_picows_servers_reply_to_a_reads_last_frame_goes_out_as_it_is_ma
         last_in_buffer: bool
         msg_type: Any = WSMsgType.TEXT
         fin: bool = True
+        rsv1: bool = False
+        rsv2: bool = False
+        rsv3: bool = False
 
         @property
         def payload_size(self) -> int:

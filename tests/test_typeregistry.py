@@ -66,6 +66,22 @@ def test_another_definition_under_the_same_name_names_both_sources() -> None:
     )
 
 
+def test_a_definition_that_changed_at_its_source_says_so() -> None:
+    """A server that was upgraded describes a type anew: the source is the same, and the
+    error says it changed rather than naming it twice."""
+    types = TypeRegistry()
+    spec = parse_message(POINT, "geo", "Point")
+    types.intern(spec, "server ws://robot:8765", lambda: build_message(spec))
+    other = parse_message("uint8 ORIGIN=0\nfloat64 x\n", "geo", "Point")
+    with pytest.raises(InterfaceConflictError) as excinfo:
+        types.intern(other, "server ws://robot:8765", lambda: build_message(other))
+    assert str(excinfo.value) == (
+        "two different definitions of geo/msg/Point from server ws://robot:8765: it changed "
+        "since this process built its class (declaration 3: 'float64 y 1.5' against nothing); "
+        "a type name has one definition per process: restart the process to use the new one"
+    )
+
+
 def test_a_failed_build_records_nothing() -> None:
     types = TypeRegistry()
     spec = parse_message(POINT, "geo", "Point")

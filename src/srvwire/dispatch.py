@@ -511,8 +511,19 @@ def _adopt(srv_type: type[Service], types: TypeRegistry, service: str) -> None:
             raise RegistrationError(f"cannot register {service}: {exc}") from None
 
 
+_PROTOCOL_PREFIXES = ("$/", "rpc.")
+"""How the names of protocol methods begin: srvwire's own, and those JSON-RPC reserves."""
+
+
 def service_not_found(name: str, names: Iterable[str]) -> ServiceNotFound:
-    """The error for a service ``name`` that is not among ``names``, offering close ones."""
+    """The error for a service ``name`` that is not among ``names``, offering close ones.
+
+    A name that cannot be a service's (empty, or a protocol method: ``$/…``, JSON-RPC's
+    ``rpc.…``) is named as it was given, without the ``/`` a service name takes."""
+    if not name or name.startswith(_PROTOCOL_PREFIXES):
+        return ServiceNotFound(
+            f'no method named "{name}"', {"candidates": []}, service=name or None
+        )
     wanted = canonical_name(name)
     candidates = difflib.get_close_matches(wanted, list(names), n=3, cutoff=0.6)
     hint = f"; did you mean {', '.join(candidates)}?" if candidates else ""

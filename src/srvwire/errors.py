@@ -142,6 +142,12 @@ class InterfaceConflictError(InterfaceError):
         super().__init__(name, first, second, difference)
 
     def __str__(self) -> str:
+        if self.first == self.second:  # one source that changed: a server upgraded, a file
+            return (
+                f"two different definitions of {self.name} from {self.first}: it changed "
+                f"since this process built its class ({self.difference}); a type name has one "
+                "definition per process: restart the process to use the new one"
+            )
         return (
             f"two different definitions of {self.name}: {self.first} and {self.second} "
             f"({self.difference}); a type name has one definition per process"

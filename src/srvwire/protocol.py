@@ -87,6 +87,7 @@ __all__ = [
     "parse_incoming",
     "parse_replies",
     "peek_reply",
+    "read_cancel",
     "read_meta",
     "serialize_batch",
     "services_notification",
@@ -518,6 +519,29 @@ def _invalid(id: Id, message: str) -> ErrorResponse:
 def _bad_meta(path: str, message: str, type_: str) -> InvalidParams:
     error = {"path": path, "message": message, "type": type_}
     return InvalidParams(f"invalid {path}: {message}", {"errors": [error]})
+
+
+def read_cancel(params: Any) -> Id | InvalidParams:
+    """Read the params of a ``$/cancel`` request: the id of the call to cancel (a string or a
+    finite number), or the error they are, with the field's path. Left out, they are ``{}``."""
+    if params is None:
+        params = {}
+    if type(params) is not dict:
+        return _bad_cancel("", f"must be an object, not {_kind(params)}", "dict_type")
+    if "id" not in params:
+        return _bad_cancel("id", "missing", "missing")
+    id = params["id"]
+    if id is None or not valid_id(id):
+        return _bad_cancel("id", f"must be a string or a number, not {_id_kind(id)}", "id_type")
+    return id  # type: ignore[no-any-return]
+
+
+def _bad_cancel(path: str, message: str, type_: str) -> InvalidParams:
+    error = {"path": path, "message": message, "type": type_}
+    return InvalidParams(
+        'invalid params: $/cancel needs the id of the call to cancel: {"id": 7}',
+        {"errors": [error]},
+    )
 
 
 def timeout_seconds(value: Any) -> float | None:

@@ -89,6 +89,7 @@ from srvwire.protocol import (
     parse_incoming,
     parse_replies,
     peek_reply,
+    read_cancel,
     serialize_batch,
     services_notification,
     valid_id,
@@ -451,6 +452,9 @@ class ServerSession(Generic[E]):
             document = self.services.discover_json(self.scopes)
             return Response(request.id, RawJSON(document)).serialize()
         if request.method == CANCEL_METHOD:
+            named = read_cancel(request.params)
+            if isinstance(named, InvalidParams):  # a request is answered; a notification not
+                return self._refuse(request.id, named)
             cancel = self._cancel(request.params)
             if cancel is not None:
                 events.append(cancel)

@@ -166,13 +166,18 @@ class HandlerThreads(Executor):
             if self._abandoned >= self.max_abandoned:
                 if not self._cap_logged:
                     self._cap_logged = True
+                    # Every busy thread is named, so the count says how many there are: the
+                    # abandoned ones, and those that count (this one among them).
+                    busy = sorted(self._busy.values())
                     self.log.warning(
-                        "%d blocking handlers still run after their callers left (the cap, "
-                        "max_abandoned); a thread whose caller leaves now keeps counting "
-                        "against max_workers=%d until its handler returns: %s",
-                        self._abandoned,
+                        "blocking handlers still running after their callers left have reached "
+                        "the cap (max_abandoned=%d): a thread whose caller leaves now keeps "
+                        "counting against max_workers=%d until its handler returns; busy "
+                        "threads now: %d (%s)",
+                        self.max_abandoned,
                         self.max_workers,
-                        ", ".join(sorted(self._busy.values())),
+                        len(busy),
+                        ", ".join(busy),
                     )
                 return
             work.abandoned = True

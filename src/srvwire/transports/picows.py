@@ -55,7 +55,11 @@ leaves to its user:
   authenticator that does wait is refused with 500 and an error in the log that says so; use
   the ``websockets`` transport for it.
 * **No compression**: ``picows`` has no permessage-deflate, so ``compression="deflate"`` is
-  refused with a ``ValueError`` on both ends.
+  refused with a ``ValueError`` on both ends. No extension is ever negotiated, so a frame
+  with a reserved bit set fails the connection with 1002 and ``websockets``' reason
+  (``reserved bits must be 0``), whatever its opcode: ``on_ws_frame`` answers pings itself
+  (``picows``' own pong is off), after that check, so such a ping gets no pong; the replies
+  corked before a ping is read are written before its pong, as on ``websockets``.
 
 Exceptions are mapped here and nowhere else: how a connection ended (the close frame received,
 else the one sent, else none) -> :class:`TransportClosed`; ``OSError`` and ``picows``' errors
@@ -165,6 +169,7 @@ _TEXT = WSMsgType.TEXT
 _BINARY = WSMsgType.BINARY
 _CONTINUATION = WSMsgType.CONTINUATION
 _CLOSE = WSMsgType.CLOSE
+_PING = WSMsgType.PING
 _PONG = WSMsgType.PONG
 
 log = logging.getLogger(__name__)
@@ -360,7 +365,11 @@ class PicowsConnection(WSListener, Connection):
         self._flush_due = True
         self._answering = last
         try:
-            if kind is _TEXT or kind is _BINARY:
+            if frame.rsv1 or frame.rsv2 or frame.rsv3:
+                # No extension is ever negotiated here (RFC 6455, section 5.2): the frame is
+                # not taken, and the close says so as websockets' does.
+                self._fail(1002, "reserved bits must be 0")
+            elif kind is _TEXT or kind is _BINARY:
                 if self._parts is not None:
                     self._fail(1002, "a new message began before the last one ended")
                 elif frame.fin:
@@ -383,6 +392,11 @@ class PicowsConnection(WSListener, Connection):
                 if not transport.is_close_frame_sent:
                     self._send_close(code or 1000, self._received[1] if code else "")
                 transport.disconnect()
+            elif kind is _PING:
+                if not self._failed:  # as websockets, whose parser stops at a failure
+                    if self._corked:  # the replies made before it was read go out first
+                        self._flush()
+                    transport.send_pong(frame.get_payload_as_bytes())
             elif kind is _PONG:
                 self._pong()
         finally:
@@ -895,10 +909,11 @@ class PicowsTransport(Transport):
                 response = WSUpgradeResponse.create_101_response(headers)
                 return WSUpgradeResponseWithListener(response, connection)
 
-            # picows' own server factory, but with the connection at hand in the gate.
+            # picows' own server factory, but with the connection at hand in the gate, and no
+            # pong of picows' own: on_ws_frame answers a ping, once it checked the frame.
             ws_protocol = _Opening(
                 None, None, False, accept, logger, True, HANDSHAKE_TIMEOUT,
-                False, 20.0, 20.0, WSAutoPingStrategy.PING_WHEN_IDLE, True,
+                False, 20.0, 20.0, WSAutoPingStrategy.PING_WHEN_IDLE, False,
                 _frame_limit(options), None, 16 * 1024,
             )  # fmt: skip
             return ws_protocol
@@ -930,6 +945,7 @@ class PicowsTransport(Transport):
                 extra_headers=list(headers) or None,
                 max_redirects=0,
                 logger_name="client",
+                enable_auto_pong=False,  # on_ws_frame answers a ping, once it checked the frame
             )
         except (OSError, EOFError, WSError) as exc:
             raise _refusal(exc, url) from exc
