@@ -593,6 +593,27 @@ def test_interface_check_counts_a_broken_nested_file_once(
     ]
 
 
+def test_interface_check_reports_a_cycle_that_spans_two_files(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # Each file's load stops in the other: the cycle is reported at both fields, once each,
+    # and Q3, which only nests the cycle, adds no error of its own.
+    first = write(tmp_path, "cyc_pkg/msg/Q1.msg", "cyc_pkg/Q2 x\n")
+    second = write(tmp_path, "cyc_pkg/msg/Q2.msg", "cyc_pkg/Q1 x\n")
+    write(tmp_path, "cyc_pkg/msg/Q3.msg", "Q2[] x\n")
+    code, out, err = run(capsys, "interface", "check", str(tmp_path / "cyc_pkg"))
+    assert (code, err) == (ExitCode.FAILURE, "")
+    assert out.splitlines() == [
+        f"{second}:1:1: field 'x' makes a message contain itself "
+        "(cyc_pkg/msg/Q1 -> cyc_pkg/msg/Q2 -> cyc_pkg/msg/Q1); "
+        "a message cannot nest itself, directly or through other messages",
+        f"{first}:1:1: field 'x' makes a message contain itself "
+        "(cyc_pkg/msg/Q2 -> cyc_pkg/msg/Q1 -> cyc_pkg/msg/Q2); "
+        "a message cannot nest itself, directly or through other messages",
+        "checked 3 files, 2 errors",
+    ]
+
+
 def test_interface_check_nested_type_outside_the_checked_files(
     capsys: pytest.CaptureFixture[str], packages: Path
 ) -> None:
@@ -1397,6 +1418,23 @@ def test_gen_into_a_folder_imports_nested_types_from_sibling_modules(
             check=False,
         )
         assert linted.returncode == 0, linted.stdout
+
+
+def test_gen_reports_a_cycle_across_files_at_its_field(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "cyc_pkg/msg/Q1.msg", "cyc_pkg/Q2 x\n")
+    closing = write(interfaces, "cyc_pkg/msg/Q2.msg", "# back\n  cyc_pkg/Q1 x\n")
+    target = tmp_path / "out.py"
+    code, out, err = run(capsys, "gen", "cyc_pkg", "-o", str(target), "--path", str(interfaces))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        f"{closing}:2:3: field 'x' makes a message contain itself "
+        "(cyc_pkg/msg/Q1 -> cyc_pkg/msg/Q2 -> cyc_pkg/msg/Q1); "
+        "a message cannot nest itself, directly or through other messages"
+    )
+    assert not target.exists()
 
 
 def test_gen_unknown_package_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

@@ -57,6 +57,11 @@ def _cmd_gen(args: argparse.Namespace) -> int:
         names = [loader.resolve_name(item)] if "/" in item else loader.types(item)
         group = groups.setdefault(item.split("/")[0], [])
         group.extend(name for name in names if name not in group)
+    for names in groups.values():
+        for name in names:
+            # The loader checks what a type nests (unknown types, cycles) and says where, at
+            # the field, with the file, line and column; writing a module only reads specs.
+            loader.load(name)
     siblings: set[str] = set()
     if output.suffix == ".py":  # one module, holding every message its types nest
         targets = {output: [name for names in groups.values() for name in names]}

@@ -335,15 +335,19 @@ def _cmd_interface_check(args: argparse.Namespace) -> int:
             raise CommandError(f"no such file or folder: {path}", ExitCode.USAGE)
     errors = 0
     loaders: dict[Path, InterfaceLoader] = {}
-    checked = {str(file.resolve()) for file in files}
+    checked = {str(file.resolve()): file for file in files}
+    reported: set[tuple[str, int, int]] = set()  # each place an error is at, reported once
     for file in files:
         try:
             spec = parse_file(file)
             if file.resolve().parent.name == file.suffix.removeprefix("."):  # pkg/srv/Name.srv
                 _load_checked(file, spec.package, loaders, args.path, checked)
         except InterfaceSyntaxError as exc:
-            errors += 1
-            print(exc)
+            place = (str(Path(exc.path or file).resolve()), exc.line, exc.column)
+            if place not in reported:
+                reported.add(place)
+                errors += 1
+                print(exc)
         except InterfaceError as exc:  # no position of its own: say which file it is about
             errors += 1
             print(f"{file}: {exc}")
@@ -359,14 +363,16 @@ def _load_checked(
     package: str,
     loaders: dict[Path, InterfaceLoader],
     extra: list[Path],
-    checked: set[str],
+    checked: dict[str, Path],
 ) -> None:
     """Load the type ``file`` defines, so its nested types resolve or are reported.
 
     The loader searches the folder holding the file's package first, then ``--path`` and the
     default search path; one loader serves every file under the same folder. An error the
-    loader places in ``file`` names it as the user wrote it; one in another checked file is
-    that file's to report, so it is counted once.
+    loader places in one of the ``checked`` files (each resolved path to the path as the user
+    wrote it) names that file as the user wrote it. It may be in another file than ``file``:
+    a cycle through two files is found in the second file whichever file the load starts from,
+    so each file's load reports the other's field (the caller reports each place once).
     """
     resolved = file.resolve()  # the folders as they are, whatever '..' the user wrote
     root = resolved.parent.parent.parent
@@ -376,12 +382,9 @@ def _load_checked(
     try:
         loader.load(f"{package}/{resolved.parent.name}/{file.stem}")
     except InterfaceSyntaxError as exc:
-        here = str(resolved)
-        there = str(Path(exc.path).resolve()) if exc.path else None
-        if there in checked and there != here:
-            return
-        if there != here:
+        given = checked.get(str(Path(exc.path).resolve())) if exc.path else None
+        if given is None:
             raise
         raise InterfaceSyntaxError(
-            exc.message, path=file, line=exc.line, column=exc.column
+            exc.message, path=given, line=exc.line, column=exc.column
         ) from exc
