@@ -1420,6 +1420,95 @@ def test_gen_into_a_folder_imports_nested_types_from_sibling_modules(
         assert linted.returncode == 0, linted.stdout
 
 
+IMPORT_ORDERS = {
+    "my_robot first": "import robot_types.my_robot, robot_types.my_nav",
+    "my_nav first": "import robot_types.my_nav, robot_types.my_robot",
+    "my_robot only": "import robot_types.my_robot",
+    "my_nav only": "import robot_types.my_nav",
+}
+USE_BOTH = """
+import sys
+
+from robot_types import my_nav, my_robot
+
+plan = my_robot.Plan.Request.model_validate({"waypoints": [{"robot": {"name": "r2"}}]})
+robot: my_robot.Status = plan.waypoints[0].robot
+assert robot.name == "r2" and my_nav.Waypoint().robot.name == "r2d2"
+assert my_nav.Waypoint.model_fields["robot"].annotation is my_robot.Status
+assert my_robot.Plan.Request.model_fields["waypoints"].annotation.__args__[0] is my_nav.Waypoint
+assert my_robot.Plan.Response().statuses == []
+complete = [cls.__pydantic_complete__ for cls in (my_nav.Waypoint, my_robot.Plan.Request)]
+assert complete == [True, True], complete
+"""
+
+
+def test_gen_into_a_folder_packages_that_nest_each_other_import_in_any_order(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # my_robot's Plan nests my_nav's Waypoint, which nests my_robot's Status: no message
+    # contains itself, but each package's module needs a class of the other's.
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "my_robot/msg/Status.msg", 'string<=16 name "r2d2"\n')
+    write(
+        interfaces,
+        "my_robot/srv/Plan.srv",
+        "my_nav/Waypoint[<=10] waypoints\n---\nStatus[] statuses\n",
+    )
+    write(interfaces, "my_nav/msg/Waypoint.msg", "my_robot/Status robot\nfloat32 speed 1.5\n")
+    folder = tmp_path / "robot_types"
+    code, out, err = run(capsys, "gen", "my_robot", "-o", str(folder), "--path", str(interfaces))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        f"wrote {folder / 'my_robot.py'} (2 interfaces)\n"
+        f"wrote {folder / 'my_nav.py'} (1 interface)\n"
+        f"wrote {folder / '_my_nav__my_robot.py'} (3 interfaces)\n"
+    )
+    for order, imports in IMPORT_ORDERS.items():
+        ran = subprocess.run(
+            [sys.executable, "-c", f"{imports}\n{USE_BOTH}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), order
+    # Lint-clean as written, and mypy --strict sees each package's classes with their fields.
+    for arguments in (["check", "--select", "E,F,W,I,B,UP,RUF"], ["format", "--check"]):
+        linted = subprocess.run(
+            [sys.executable, "-m", "ruff", *arguments, "--isolated", "--line-length", "100", "."],
+            cwd=folder,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert linted.returncode == 0, linted.stdout
+    (tmp_path / "use.py").write_text(
+        "from robot_types import my_nav, my_robot\n\n"
+        "status: my_robot.Status = my_robot.Status(name='x')\n"
+        "request = my_robot.Plan.Request(waypoints=[my_nav.Waypoint(robot=status)])\n"
+        "name: str = request.waypoints[0].robot.name\n"
+        "wrong: int = my_nav.Waypoint().speed\n",
+        encoding="utf-8",
+    )
+    checked = subprocess.run(
+        [
+            *(sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml")),
+            *("--strict", "--cache-dir", str(tmp_path / ".mypy_cache"), "--no-error-summary"),
+            *("--hide-error-context", "use.py"),
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert (checked.stdout, checked.stderr) == (
+        'use.py:6: error: Incompatible types in assignment (expression has type "float", '
+        'variable has type "int")  [assignment]\n',
+        "",
+    )
+
+
 def test_gen_reports_a_cycle_across_files_at_its_field(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
