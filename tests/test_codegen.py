@@ -364,7 +364,7 @@ def test_generated_source_reads_like_hand_written_code(tmp_path: Path) -> None:
         '    bytes: Annotated[_builtins.bytes, Field(max_length=4), AcceptBase64] = b"\\x01\\x02"\n'
         in source
     )
-    assert "= (\n        _builtins.bytes(2)\n    )\n" in source
+    assert "= (\n        Field(default_factory=lambda: _builtins.bytes(2))\n    )\n" in source
     assert "    INF: ClassVar[float] = 1e999\n" in source
     assert "    WHOLE: ClassVar[float] = 2.0\n" in source
     assert "    Request: TypeAlias = Move_Request\n" in source
@@ -645,3 +645,26 @@ def test_generated_modules_import_without_warnings(
     odd = module.Odd.model_validate({"from": 1, "list": [1, 2], "bytes": "AQID"})
     assert (odd.from_, odd.list, odd.bytes) == (1, [1, 2], b"\x01\x02\x03")
     assert json.loads(odd.model_dump_json())["from"] == 1
+
+
+def test_a_fixed_array_of_any_size_is_written_as_a_factory_of_its_zeros(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Neither writing the module nor importing it makes the 4294967295 values of a default.
+    most = 2**32 - 1
+    huge = MessageSpec(
+        "big",
+        "Huge",
+        (
+            FieldSpec(arr("int32", FIXED, most), "a"),
+            FieldSpec(arr("uint8", FIXED, most), "b"),
+            FieldSpec(arr("bool", FIXED, 2), "c"),
+        ),
+    )
+    module = generated([huge], tmp_path, monkeypatch, "huge_types")
+    source = (tmp_path / "huge_types.py").read_text(encoding="utf-8")
+    assert f"default_factory=lambda: [0] * {most}," in source
+    assert f"default_factory=lambda: bytes({most})," in source
+    assert module.Huge.model_fields["c"].default_factory() == [False, False]
+    built = build_message(huge)
+    assert module.Huge.model_json_schema() == built.model_json_schema()

@@ -67,7 +67,7 @@ from srvwire.idl import (
     ServiceSpec,
     TypeSpec,
 )
-from srvwire.models import Action, Message, Service, default_value, python_name
+from srvwire.models import Action, Message, Service, default_value, python_name, zero_value
 from srvwire.primitives import PRIMITIVE_ALIASES
 from srvwire.pysource import (
     LINE,
@@ -622,11 +622,16 @@ class _Writer:
         if type_.is_array and not is_bytes:  # as models._field_info
             keywords.append(Keyword("fail_fast", "True"))
         default: Keyword
-        if type_.is_primitive:
+        if type_.is_primitive and type_.array is ArrayKind.FIXED and field.default is None:
+            # As models._field_info: N zero values made per instance, never at import.
+            zero = scalar(zero_value(type_))
+            zeros = f"{bytes_}({type_.size})" if is_bytes else f"[{zero}] * {type_.size}"
+            default = Keyword("default_factory", f"lambda: {zeros}")
+        elif type_.is_primitive:
             value = default_value(field)
             written = _bytes_value(value, bytes_) if isinstance(value, bytes) else None
             if isinstance(value, list):
-                default = Keyword("default_factory", self.list_value(field, value, list_))
+                default = Keyword("default_factory", self.list_value(value, list_))
             elif not keywords:
                 return statement("    ", name, annotation, written or expression(value))
             else:
@@ -649,11 +654,9 @@ class _Writer:
         self.builtins_used = True
         return f"_builtins.{name}"
 
-    def list_value(self, field: FieldSpec, value: list[Scalar], list_: str) -> Expr:
+    def list_value(self, value: list[Scalar], list_: str) -> Expr:
         if not value:
             return list_  # `lambda: []` would be a lambda that only calls `list`
-        if field.default is None:  # N zero values of a fixed array
-            return f"lambda: [{scalar(value[0])}] * {len(value)}"
         return Call("lambda: [", tuple(expression(item) for item in value), "]")
 
     def group(self, item: _Item) -> str:

@@ -25,6 +25,10 @@ Invariants
   zero value. Scalars share their immutable default; every list and nested message comes from
   a ``default_factory``, so two instances never share a mutable value. ``Request()`` with no
   arguments is always valid, as in ROS.
+* **Building a class allocates no array.** The zero value of a fixed array (``int32[N]``,
+  ``uint8[N]``, ``Point[N]``) comes from a ``default_factory`` too, so its ``N`` values exist
+  only in an instance made without that field: loading, checking or showing a type costs the
+  same for ``N = 4294967295`` as for ``N = 3``.
 * **The wire name is the .srv name.** A field whose name is a Python keyword or an attribute of
   :class:`Message` (``from``, ``copy``, ``json``, ``model_config``, ``spec``, ...) is stored
   under :func:`python_name` (a trailing underscore: ``from_``) with ``alias=`` the .srv name.
@@ -367,6 +371,24 @@ def _copies_of(values: tuple[Any, ...]) -> Callable[[], list[Any]]:
     return factory
 
 
+def _zero_list(type_: TypeSpec) -> Callable[[], list[Scalar]]:
+    zero, count = zero_value(type_), type_.size or 0
+
+    def factory() -> list[Scalar]:
+        return [zero] * count
+
+    return factory
+
+
+def _zero_bytes(type_: TypeSpec) -> Callable[[], bytes]:
+    count = type_.size or 0
+
+    def factory() -> bytes:
+        return bytes(count)
+
+    return factory
+
+
 def _new_message(cls: type[Message]) -> Callable[[], Message]:
     def factory() -> Message:
         return cls()
@@ -391,6 +413,11 @@ def _field_info(spec: MessageSpec, field: FieldSpec, element: Any) -> Any:
     if type_.is_array and not _is_bytes(type_):
         keywords["fail_fast"] = True  # stop at the first invalid element: MAX_LISTED_ERRORS
     if type_.is_primitive:
+        if type_.array is ArrayKind.FIXED and field.default is None:
+            # N zero values, made for each instance that needs them and never when the class
+            # is built: N can be 4294967295, which no process could hold.
+            zeros = _zero_bytes(type_) if _is_bytes(type_) else _zero_list(type_)
+            return Field(default_factory=zeros, **keywords)
         value = default_value(field)
         if isinstance(value, list):
             return Field(default_factory=_copies_of(tuple(value)), **keywords)
