@@ -668,3 +668,40 @@ def test_a_fixed_array_of_any_size_is_written_as_a_factory_of_its_zeros(
     assert module.Huge.model_fields["c"].default_factory() == [False, False]
     built = build_message(huge)
     assert module.Huge.model_json_schema() == built.model_json_schema()
+
+
+def test_without_pydantics_plugin_mypy_knows_a_renamed_field_by_its_file_name(
+    tmp_path: Path,
+) -> None:
+    # What docs/types.md says: pydantic's dataclass_transform gives mypy the fields by alias,
+    # so keywords and their types are checked, and `from_` is not a keyword mypy knows.
+    write_module(tmp_path / "demo_types.py", [ODD], resolve_spec=resolve_spec)
+    (tmp_path / "use.py").write_text(
+        "from demo_types import Odd\n"
+        "\n"
+        "renamed = Odd(from_=3)\n"
+        "wrong = Odd(char='A')\n"
+        "read: Odd = Odd.model_validate({'from': 3})\n"
+        "first: int = read.from_\n",
+        encoding="utf-8",
+    )
+    (tmp_path / "mypy.ini").write_text("[mypy]\nstrict = True\n", encoding="utf-8")
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "mypy", "--config-file", "mypy.ini", "--cache-dir"),
+            *(str(tmp_path / ".mypy_cache"), "--no-error-summary", "--hide-error-context"),
+            "use.py",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert result.stderr == ""
+    assert result.stdout.splitlines() == [
+        'use.py:3: error: Unexpected keyword argument "from_" for "Odd"; did you mean "from"?  '
+        "[call-arg]",
+        'use.py:4: error: Argument "char" to "Odd" has incompatible type "str"; expected "int"  '
+        "[arg-type]",
+    ]

@@ -297,14 +297,18 @@ class Action:
 Resolver: TypeAlias = Callable[[TypeSpec], type[Message]]
 """Given a nested element type (``package`` set, no array part), return its message class."""
 
-_RESERVED_NAMES = frozenset({*keyword.kwlist, *dir(Message), *Message.__class_vars__})
+# The metaclass's attributes too: pydantic warns of a field that hides `Message.register`.
+_RESERVED_NAMES = frozenset(
+    {*keyword.kwlist, *dir(Message), *dir(type(Message)), *Message.__class_vars__}
+)
 
 
 def python_name(field_name: str) -> str:
     """Return the attribute name of the field ``field_name``: itself, unless it is reserved.
 
     A Python keyword or a name :class:`Message` already uses (``from``, ``copy``, ``json``,
-    ``model_dump``, ``spec``, ``type_name``, ...) gets a trailing underscore. ROS field names
+    ``model_dump``, ``spec``, ``type_name``, its metaclass's ``register`` and ``mro``, ...) gets
+    a trailing underscore. ROS field names
     never end with one, so the result cannot clash with another field.
     """
     return f"{field_name}_" if field_name in _RESERVED_NAMES else field_name
