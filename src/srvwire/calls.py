@@ -23,7 +23,7 @@ from srvwire.errors import (
     InterfaceNotFoundError,
     InvalidParams,
 )
-from srvwire.idl import MessageSpec, TypeSpec
+from srvwire.idl import ArrayKind, MessageSpec, TypeSpec
 from srvwire.models import (
     INF_NAN_MODES,
     Action,
@@ -224,7 +224,11 @@ class ServiceTypes:
        advertised), through the client's resolver;
     3. the server's description of the service (``rpc.discover``'s ``x-srvwire-definitions``):
        its definition text is parsed and built here. Each type it nests is taken from the local
-       search path first, and from the description when it is not there.
+       search path first, and from the description when it is not there. A described type
+       whose instance made without a fixed-array field would hold more values than
+       ``max_values`` (the client's ``max_message_size``) is refused: no message of it could
+       be sent or received whole, and a reply that left the field out would have this client
+       make them all (one line, ``int32[4294967295] a``, asks for 4294967295).
 
     Every class goes through the process's :class:`~srvwire.typeregistry.TypeRegistry`, so a
     type the server defines as a local file does is the local class, and one it defines
@@ -239,8 +243,10 @@ class ServiceTypes:
         resolve_message: MessageResolver,
         types: TypeRegistry | None = None,
         inf_nan: InfNan = INF_NAN_MODES[0],
+        max_values: int | None = None,
     ) -> None:
         self._resolve = resolve
+        self._max_values = max_values
         self._resolve_message = resolve_message
         self._types = process_types() if types is None else types
         self._inf_nan: InfNan = inf_nan
@@ -278,6 +284,7 @@ class ServiceTypes:
         text, package, short = _described(method, name, "srv", definitions, source)
         spec = parse_service(text, package, short, path=source)
         nested = self._nested(definitions, source)
+        nested.refuse_too_many_values((spec.request, spec.response), self._max_values)
         service = self._types.intern(spec, source, lambda: build_service(spec, nested))
         codec = self._by_name[name] = self._codec(service)
         return codec
@@ -290,6 +297,7 @@ class ServiceTypes:
         text, package, short = _described(method, name, "action", definitions, source)
         spec = parse_action(text, package, short, path=source)
         nested = self._nested(definitions, source)
+        nested.refuse_too_many_values((spec.goal, spec.result, spec.feedback), self._max_values)
         return self._types.intern(spec, source, lambda: build_action(spec, nested))
 
     def _nested(self, definitions: Mapping[str, str] | None, source: str) -> _RemoteMessages:
@@ -396,16 +404,19 @@ def remote_message(
     source: str,
     resolve_message: MessageResolver,
     types: TypeRegistry | None = None,
+    max_values: int | None = None,
 ) -> type[Message]:
     """The message type ``name`` (a topic's), local first, else built from ``definitions``
-    (the server's, from ``source``), checked as a service's types are."""
+    (the server's, from ``source``), checked as a service's types are (``max_values`` too)."""
     nested = _RemoteMessages(
         definitions, source, resolve_message, process_types() if types is None else types
     )
     for other in definitions:
         if _is_message_name(other):
             nested.check(other)
-    return nested.load(name)
+    cls = nested.load(name)
+    nested.refuse_too_many_values((cls.spec,), max_values)
+    return cls
 
 
 def _is_message_name(name: str) -> bool:
@@ -428,6 +439,7 @@ class _RemoteMessages:
         self.local = local
         self.types = types
         self.chain: list[str] = []
+        self._values: dict[str, int] = {}  # message name -> values of an instance made bare
 
     def __call__(self, type_: TypeSpec) -> type[Message]:
         return self.load(type_.qualified_name)
@@ -446,6 +458,35 @@ class _RemoteMessages:
             if self.types.get(name) is None:
                 return
         self.types.intern(spec, self.source, lambda: local)
+
+    def refuse_too_many_values(self, parts: tuple[MessageSpec, ...], limit: int | None) -> None:
+        """Raise InterfaceError naming the first field of ``parts`` whose value, made for an
+        instance that leaves it out, would hold more than ``limit`` values (None: no limit)."""
+        if limit is None:
+            return
+        for part in parts:
+            for field in part.fields:
+                count = self.values(field.type)
+                if count > limit:
+                    raise InterfaceError(
+                        f"the {self.source} describes {part.package}/{part.name} with the field "
+                        f"{field.name!r} ({field.type}), which holds {count} values, more than "
+                        f"max_message_size={limit} can carry; refused, so that a reply that "
+                        "leaves it out cannot make this client hold them"
+                    )
+
+    def values(self, type_: TypeSpec) -> int:
+        """How many values a field of ``type_`` holds when an instance leaves it out."""
+        each = 1
+        if not type_.is_primitive:
+            name = type_.qualified_name
+            if name not in self._values:
+                spec = self.load(name).spec
+                self._values[name] = sum(self.values(field.type) for field in spec.fields)
+            each = self._values[name]
+        if type_.array is ArrayKind.FIXED:
+            return each * (type_.size or 0)
+        return 0 if type_.is_array else each
 
     def load(self, name: str) -> type[Message]:
         """Return the process's class of the message ``name``, checked against the server's."""
