@@ -528,6 +528,31 @@ def test_interface_proto_of_a_name_without_package_suggests_full_names(
     )
 
 
+def test_interface_proto_refuses_a_template_too_large_to_send(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # 1024 rows of 1024 values and one more is one more than a 1 MiB message could carry.
+    write(tmp_path, "big/msg/Row.msg", "float64[1024] cells\n")
+    write(tmp_path, "big/srv/Rows.srv", "Row[1024] rows\nint8 pad\n---\n")
+    write(tmp_path, "big/srv/Huge.srv", "int32 a\nint32[4294967295] values\n---\n")
+    write(tmp_path, "big/msg/Few.msg", "Row[2] rows\n")
+    code, out, err = run(capsys, "interface", "proto", "big/srv/Huge", "--path", str(tmp_path))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        "the template of big/Huge_Request would hold 4294967296 values, 4294967295 of them in "
+        "the field 'values' (int32[4294967295]), more than the 1048576 bytes of a message "
+        "srvwire call sends: write the values of such a type yourself"
+    )
+    code, out, err = run(capsys, "interface", "proto", "big/srv/Rows", "--path", str(tmp_path))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert "would hold 1048577 values, 1048576 of them in the field 'rows' (big/Row[1024])" in (
+        one_error_line(err)
+    )
+    code, out, err = run(capsys, "interface", "proto", "big/Few", "--path", str(tmp_path))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out.count("- 0.0\n") == 2 * 1024
+
+
 def test_interface_proto_of_an_empty_request(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = run(capsys, "interface", "proto", "std_srvs/srv/Trigger")
     assert (code, out) == (ExitCode.OK, '"{}\n"\n')

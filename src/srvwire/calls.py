@@ -23,7 +23,7 @@ from srvwire.errors import (
     InterfaceNotFoundError,
     InvalidParams,
 )
-from srvwire.idl import ArrayKind, MessageSpec, TypeSpec
+from srvwire.idl import MessageSpec, TypeSpec
 from srvwire.models import (
     INF_NAN_MODES,
     Action,
@@ -34,6 +34,7 @@ from srvwire.models import (
     build_action,
     build_message,
     build_service,
+    default_size,
     dump_json,
     error_data,
     json_writer,
@@ -460,33 +461,25 @@ class _RemoteMessages:
         self.types.intern(spec, self.source, lambda: local)
 
     def refuse_too_many_values(self, parts: tuple[MessageSpec, ...], limit: int | None) -> None:
-        """Raise InterfaceError naming the first field of ``parts`` whose value, made for an
-        instance that leaves it out, would hold more than ``limit`` values (None: no limit)."""
+        """Raise InterfaceError naming the part of ``parts``, and its largest field, whose
+        instance made bare would hold more than ``limit`` values (None: no limit)."""
         if limit is None:
             return
         for part in parts:
-            for field in part.fields:
-                count = self.values(field.type)
-                if count > limit:
-                    raise InterfaceError(
-                        f"the {self.source} describes {part.package}/{part.name} with the field "
-                        f"{field.name!r} ({field.type}), which holds {count} values, more than "
-                        f"max_message_size={limit} can carry; refused, so that a reply that "
-                        "leaves it out cannot make this client hold them"
-                    )
+            sizes = [(self.values(field.type), field) for field in part.fields]
+            total = sum(size for size, _ in sizes)
+            if total > limit:
+                size, field = max(sizes, key=lambda pair: pair[0])
+                raise InterfaceError(
+                    f"the {self.source} describes {part.package}/{part.name}, which holds "
+                    f"{total} values, {size} of them in the field {field.name!r} "
+                    f"({field.type}), more than max_message_size={limit} can carry; refused, "
+                    "so that a reply that leaves them out cannot make this client hold them"
+                )
 
     def values(self, type_: TypeSpec) -> int:
         """How many values a field of ``type_`` holds when an instance leaves it out."""
-        each = 1
-        if not type_.is_primitive:
-            name = type_.qualified_name
-            if name not in self._values:
-                spec = self.load(name).spec
-                self._values[name] = sum(self.values(field.type) for field in spec.fields)
-            each = self._values[name]
-        if type_.array is ArrayKind.FIXED:
-            return each * (type_.size or 0)
-        return 0 if type_.is_array else each
+        return default_size(type_, lambda name: self.load(name).spec, self._values)
 
     def load(self, name: str) -> type[Message]:
         """Return the process's class of the message ``name``, checked against the server's."""

@@ -147,6 +147,7 @@ __all__ = [
     "build_action",
     "build_message",
     "build_service",
+    "default_size",
     "dump_json",
     "error_data",
     "json_writer",
@@ -207,6 +208,29 @@ def default_value(field: FieldSpec) -> Scalar | list[Scalar] | bytes:
     if type_.array is ArrayKind.FIXED:
         return [zero_value(type_)] * (type_.size or 0)
     return []
+
+
+def default_size(
+    type_: TypeSpec, nested: Callable[[str], MessageSpec], counted: dict[str, int]
+) -> int:
+    """How many values a field of ``type_`` holds in an instance made without it.
+
+    A scalar holds one, a fixed array ``T[N]`` ``N`` (times those of ``T`` for a message), any
+    other array none; a message holds those of its fields. ``nested`` gives the spec of a
+    nested message by name (``pkg/msg/Name``); ``counted`` keeps each message's count, so a
+    type reached many times is counted once. Only ints are multiplied, so a size that no
+    instance could hold (``int32[4294967295]``) costs nothing to count.
+    """
+    each = 1
+    if not type_.is_primitive:
+        name = type_.qualified_name
+        if name not in counted:
+            fields = nested(name).fields
+            counted[name] = sum(default_size(field.type, nested, counted) for field in fields)
+        each = counted[name]
+    if type_.array is ArrayKind.FIXED:
+        return each * (type_.size or 0)
+    return 0 if type_.is_array else each
 
 
 def _is_bytes(type_: TypeSpec) -> bool:

@@ -34,7 +34,9 @@ from srvwire.client import DEFAULT_TIMEOUT
 from srvwire.errors import InterfaceError, InterfaceSyntaxError
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
 from srvwire.loader import InterfaceLoader
+from srvwire.models import default_size
 from srvwire.parser import parse_action, parse_file, parse_message, parse_service, split_comment
+from srvwire.transports.base import Options
 from srvwire.typeregistry import TypeRegistry
 
 INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
@@ -303,6 +305,7 @@ def _cmd_interface_proto(args: argparse.Namespace) -> int:
     loader = interface_loader(args)
     name = resolve_type(loader, args.type)
     kind = name.split("/")[1]
+    _refuse_a_template_too_large_to_send(loader, loader.spec(name))
     if kind == InterfaceKind.MSG.value:
         instance: pydantic.BaseModel = loader.load_message(name)()
     elif kind == InterfaceKind.SRV.value:
@@ -320,6 +323,30 @@ def _cmd_interface_proto(args: argparse.Namespace) -> int:
     # Quoted, the template pastes into a shell as one argument, as `ros2 interface proto` prints.
     print(text.rstrip("\n") if args.no_quotes else f'"{text}"')
     return ExitCode.OK
+
+
+def _refuse_a_template_too_large_to_send(
+    loader: InterfaceLoader, spec: MessageSpec | ServiceSpec | ActionSpec
+) -> None:
+    """Refuse a template holding more values than ``srvwire call`` can send in one message.
+
+    Every value takes a byte of the message at least, so such a template could only be
+    printed, slowly (a fixed array's values are made only here): ``int32[4294967295] a`` could
+    not be printed at all.
+    """
+    part = _parts_of(spec)[0]  # the message, the request or the goal
+    limit = Options().max_message_size  # what srvwire call's client has
+    assert limit is not None
+    counted: dict[str, int] = {}
+    sizes = [(default_size(f.type, loader.message_spec, counted), f) for f in part.fields]
+    if sum(size for size, _ in sizes) > limit:
+        size, field = max(sizes, key=lambda pair: pair[0])
+        raise CommandError(
+            f"the template of {part.package}/{part.name} would hold "
+            f"{sum(size for size, _ in sizes)} values, {size} of them in the field "
+            f"{field.name!r} ({field.type}), more than the {limit} bytes of a message "
+            "srvwire call sends: write the values of such a type yourself"
+        )
 
 
 def _cmd_interface_check(args: argparse.Namespace) -> int:
