@@ -17,7 +17,7 @@ from typing import Any
 import pydantic
 import pytest
 
-from srvwire.codegen import generate_module, write_module
+from srvwire.codegen import generate_module, generate_modules, write_module
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
     INTEGER_RANGES,
@@ -705,3 +705,50 @@ def test_without_pydantics_plugin_mypy_knows_a_renamed_field_by_its_file_name(
         'use.py:4: error: Argument "char" to "Odd" has incompatible type "str"; expected "int"  '
         "[arg-type]",
     ]
+
+
+def test_packages_that_nest_each_other_share_one_module_and_import_in_any_order(
+    tmp_path: Path,
+) -> None:
+    # a nests b, b nests c, c nests a (no message contains itself); d, outside the cycle,
+    # nests a. a and c also both have a message named Point.
+    a_point = MessageSpec("a", "Point", (FieldSpec(t("int8"), "x"),))
+    a_outer = MessageSpec("a", "Outer", (FieldSpec(t("Mid", "b"), "mid"),))
+    b_mid = MessageSpec("b", "Mid", (FieldSpec(t("Point", "c"), "point"),))
+    c_point = MessageSpec("c", "Point", (FieldSpec(t("Point", "a"), "inner"),))
+    d_top = MessageSpec("d", "Top", (FieldSpec(arr("Outer", FIXED, 2, package="a"), "outers"),))
+    groups: dict[str, list[Spec]] = {
+        "a": [a_outer, a_point],
+        "b": [b_mid],
+        "c": [c_point],
+        "d": [d_top],
+    }
+    sources = generate_modules(groups)
+    assert list(sources) == ["a", "b", "c", "d", "_a__b__c"]
+    assert "from . import a\n" in sources["d"] and "\nclass " not in sources["a"]
+    assert "a_msg_Point" in sources["_a__b__c"] and "Point: TypeAlias" in sources["c"]
+    package = tmp_path / "cyc"
+    package.mkdir()
+    (package / "__init__.py").write_text("", encoding="utf-8")
+    for module, source in sources.items():
+        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    use = (
+        "from cyc import a, b, c, d\n"
+        "top = d.Top.model_validate({'outers': [{'mid': {'point': {'inner': {'x': 3}}}}, {}]})\n"
+        "assert top.outers[0].mid.point.inner.x == 3 and type(top.outers[1].mid) is b.Mid\n"
+        "assert c.Point.model_fields['inner'].annotation is a.Point is not c.Point\n"
+        "assert a.Point.model_json_schema()['title'] == 'Point'\n"
+    )
+    for first in ("a", "b", "c", "d", "_a__b__c"):
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import cyc.{first}\n{use}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first
+    linted = ruff(package, "check", "--select", "E,F,W,I,B,UP,ASYNC,RUF", "--line-length", "100")
+    assert linted.returncode == 0, linted.stdout
+    formatted = ruff(package, "format", "--check", "--line-length", "100")
+    assert formatted.returncode == 0, formatted.stdout
