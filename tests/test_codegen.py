@@ -752,3 +752,31 @@ def test_packages_that_nest_each_other_share_one_module_and_import_in_any_order(
     assert linted.returncode == 0, linted.stdout
     formatted = ruff(package, "format", "--check", "--line-length", "100")
     assert formatted.returncode == 0, formatted.stdout
+
+
+def test_a_cycle_through_a_message_not_asked_for_is_found_too(tmp_path: Path) -> None:
+    # a/Top nests a/Hidden, found through resolve_spec, which nests b/Mid, which nests a/Leaf.
+    hidden = MessageSpec("a", "Hidden", (FieldSpec(t("Mid", "b"), "mid"),))
+    leaf = MessageSpec("a", "Leaf", (FieldSpec(t("int8"), "x", 5),))
+    found = {spec.type_name: spec for spec in (hidden, leaf)}
+    top = MessageSpec("a", "Top", (FieldSpec(t("Hidden", "a"), "hidden"),))
+    mid = MessageSpec("b", "Mid", (FieldSpec(t("Leaf", "a"), "leaf"),))
+    sources = generate_modules(
+        {"a": [top], "b": [mid]}, resolve_spec=lambda type_: found[type_.qualified_name]
+    )
+    assert list(sources) == ["a", "b", "_a__b"]
+    package = tmp_path / "hid"
+    package.mkdir()
+    (package / "__init__.py").write_text("", encoding="utf-8")
+    for module, source in sources.items():
+        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    use = "from hid import a, b\nassert a.Top().hidden.mid.leaf.x == 5 == b.Mid().leaf.x\n"
+    for first in ("a", "b"):
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import hid.{first}\n{use}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first

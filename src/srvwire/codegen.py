@@ -161,11 +161,15 @@ def generate_modules(
     modules come first, in the order of ``groups``, then these.
     """
     members = {package: list(interfaces) for package, interfaces in groups.items()}
-    plans = {package: _Plan(resolve_spec, frozenset(members) - {package}) for package in members}
-    for package, interfaces in members.items():
-        for interface in interfaces:
-            plans[package].add(interface)
-    nests = {package: plan.nested_packages() for package, plan in plans.items()}
+    writers = {
+        package: _Writer(_plan_of(interfaces, resolve_spec, frozenset(members) - {package}))
+        for package, interfaces in members.items()
+    }
+    # The sibling packages whose messages each module uses, its own nested ones' included.
+    nests = {
+        package: frozenset(name.split("/")[0] for name in writer.plan.imported)
+        for package, writer in writers.items()
+    }
     facades: dict[str, str] = {}
     shared_modules: dict[str, str] = {}
     for packages in _import_cycles(nests):
@@ -175,10 +179,9 @@ def generate_modules(
         shared_modules[shared] = writer.module(None)
         for package in packages:
             others = [other for other in packages if other != package]
-            facades[package] = _Writer(plans[package]).facade(shared, writer.class_names, others)
+            facades[package] = writers[package].facade(shared, writer.class_names, others)
     sources = {
-        package: facades.get(package) or _Writer(plan).module(None)
-        for package, plan in plans.items()
+        package: facades.get(package) or writers[package].module(None) for package in members
     }
     return sources | shared_modules
 
@@ -314,16 +317,6 @@ class _Plan:
                     self._visit(_Item(nested, nested.type_name), done, (*chain, item.type_name))
         done.add(item.type_name)
         self.items.append(item)
-
-    def nested_packages(self) -> frozenset[str]:
-        """The sibling packages whose messages the requested items nest."""
-        return frozenset(
-            field.type.package
-            for item in self.requested
-            for part in item.parts
-            for field in part.fields
-            if field.type.package in self.siblings
-        )
 
     def lookup(self, type_: TypeSpec, owner: MessageSpec) -> MessageSpec:
         name = type_.qualified_name
