@@ -542,3 +542,16 @@ async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadline
     finally:
         server.close()
         await server.wait_closed()
+
+
+def test_the_defaults_benchmark_measures_each_operation_in_each_tree() -> None:
+    # A smoke run on CPU time: each operation ran in its children, on each tree given (the
+    # same one twice here), and has a positive figure.
+    src = str(ROOT / "src")
+    options = ["--cpu", "--ops", "50", "--src", src, "--src", f"{src}/"]
+    result = run_benchmark(ROOT / "benchmarks" / "defaults.py", *options)
+    outcome = json.loads(result.stdout.splitlines()[-1])
+    assert outcome["unit"] == "µs of CPU"
+    assert list(outcome["results"]) == ["corpus", "add", "covariance", "uuid"]
+    for figures in outcome["results"].values():
+        assert list(figures) == [src, f"{src}/"] and all(value > 0 for value in figures.values())
