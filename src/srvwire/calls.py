@@ -226,9 +226,9 @@ class ServiceTypes:
     3. the server's description of the service (``rpc.discover``'s ``x-srvwire-definitions``):
        its definition text is parsed and built here. Each type it nests is taken from the local
        search path first, and from the description when it is not there. A described type
-       whose instance made without a fixed-array field would hold more values than
-       ``max_values`` (the client's ``max_message_size``) is refused: no message of it could
-       be sent or received whole, and a reply that left the field out would have this client
+       one of whose messages, made without its fields, would hold more values than
+       ``max_values`` (the client's ``max_message_size``) is refused: no message holding them
+       could be sent or received whole, and a reply that left them out would have this client
        make them all (one line, ``int32[4294967295] a``, asks for 4294967295).
 
     Every class goes through the process's :class:`~srvwire.typeregistry.TypeRegistry`, so a
