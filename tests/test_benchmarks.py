@@ -652,3 +652,16 @@ def test_the_corked_typed_floor_on_picows_masks_each_frame_with_its_own_key(
         keys.append(key)
     assert payloads == [b"x" * 3, b"y" * 125, b"z" * 300]
     assert len(set(keys)) == 3
+
+
+def test_the_defaults_benchmark_measures_each_operation_in_each_tree() -> None:
+    # A smoke run on CPU time: each operation ran in its children, on each tree given (the
+    # same one twice here), and has a positive figure.
+    src = str(ROOT / "src")
+    options = ["--cpu", "--ops", "50", "--src", src, "--src", f"{src}/"]
+    result = run_benchmark(ROOT / "benchmarks" / "defaults.py", *options)
+    outcome = json.loads(result.stdout.splitlines()[-1])
+    assert outcome["unit"] == "µs of CPU"
+    assert list(outcome["results"]) == ["corpus", "add", "covariance", "uuid"]
+    for figures in outcome["results"].values():
+        assert list(figures) == [src, f"{src}/"] and all(value > 0 for value in figures.values())

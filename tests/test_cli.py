@@ -528,6 +528,31 @@ def test_interface_proto_of_a_name_without_package_suggests_full_names(
     )
 
 
+def test_interface_proto_refuses_a_template_too_large_to_send(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # 1024 rows of 1024 values and one more is one more than a 1 MiB message could carry.
+    write(tmp_path, "big/msg/Row.msg", "float64[1024] cells\n")
+    write(tmp_path, "big/srv/Rows.srv", "Row[1024] rows\nint8 pad\n---\n")
+    write(tmp_path, "big/srv/Huge.srv", "int32 a\nint32[4294967295] values\n---\n")
+    write(tmp_path, "big/msg/Few.msg", "Row[2] rows\n")
+    code, out, err = run(capsys, "interface", "proto", "big/srv/Huge", "--path", str(tmp_path))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        "the template of big/Huge_Request would hold 4294967296 values, 4294967295 of them in "
+        "the field 'values' (int32[4294967295]), more than the 1048576 bytes of a message "
+        "srvwire call sends: write the values of such a type yourself"
+    )
+    code, out, err = run(capsys, "interface", "proto", "big/srv/Rows", "--path", str(tmp_path))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert "would hold 1048577 values, 1048576 of them in the field 'rows' (big/Row[1024])" in (
+        one_error_line(err)
+    )
+    code, out, err = run(capsys, "interface", "proto", "big/Few", "--path", str(tmp_path))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out.count("- 0.0\n") == 2 * 1024
+
+
 def test_interface_proto_of_an_empty_request(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = run(capsys, "interface", "proto", "std_srvs/srv/Trigger")
     assert (code, out) == (ExitCode.OK, '"{}\n"\n')
@@ -590,6 +615,27 @@ def test_interface_check_counts_a_broken_nested_file_once(
         f"{broken}:2:1: unknown type 'demo/Where' of field 'w': "
         "no message 'Where' in package 'demo'",
         "checked 5 files, 1 error",
+    ]
+
+
+def test_interface_check_reports_a_cycle_that_spans_two_files(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # Each file's load stops in the other: the cycle is reported at both fields, once each,
+    # and Q3, which only nests the cycle, adds no error of its own.
+    first = write(tmp_path, "cyc_pkg/msg/Q1.msg", "cyc_pkg/Q2 x\n")
+    second = write(tmp_path, "cyc_pkg/msg/Q2.msg", "cyc_pkg/Q1 x\n")
+    write(tmp_path, "cyc_pkg/msg/Q3.msg", "Q2[] x\n")
+    code, out, err = run(capsys, "interface", "check", str(tmp_path / "cyc_pkg"))
+    assert (code, err) == (ExitCode.FAILURE, "")
+    assert out.splitlines() == [
+        f"{second}:1:1: field 'x' makes a message contain itself "
+        "(cyc_pkg/msg/Q1 -> cyc_pkg/msg/Q2 -> cyc_pkg/msg/Q1); "
+        "a message cannot nest itself, directly or through other messages",
+        f"{first}:1:1: field 'x' makes a message contain itself "
+        "(cyc_pkg/msg/Q2 -> cyc_pkg/msg/Q1 -> cyc_pkg/msg/Q2); "
+        "a message cannot nest itself, directly or through other messages",
+        "checked 3 files, 2 errors",
     ]
 
 
@@ -1397,6 +1443,112 @@ def test_gen_into_a_folder_imports_nested_types_from_sibling_modules(
             check=False,
         )
         assert linted.returncode == 0, linted.stdout
+
+
+IMPORT_ORDERS = {
+    "my_robot first": "import robot_types.my_robot, robot_types.my_nav",
+    "my_nav first": "import robot_types.my_nav, robot_types.my_robot",
+    "my_robot only": "import robot_types.my_robot",
+    "my_nav only": "import robot_types.my_nav",
+}
+USE_BOTH = """
+import sys
+
+from robot_types import my_nav, my_robot
+
+plan = my_robot.Plan.Request.model_validate({"waypoints": [{"robot": {"name": "r2"}}]})
+robot: my_robot.Status = plan.waypoints[0].robot
+assert robot.name == "r2" and my_nav.Waypoint().robot.name == "r2d2"
+assert my_nav.Waypoint.model_fields["robot"].annotation is my_robot.Status
+assert my_robot.Plan.Request.model_fields["waypoints"].annotation.__args__[0] is my_nav.Waypoint
+assert my_robot.Plan.Response().statuses == []
+complete = [cls.__pydantic_complete__ for cls in (my_nav.Waypoint, my_robot.Plan.Request)]
+assert complete == [True, True], complete
+"""
+
+
+def test_gen_into_a_folder_packages_that_nest_each_other_import_in_any_order(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # my_robot's Plan nests my_nav's Waypoint, which nests my_robot's Status: no message
+    # contains itself, but each package's module needs a class of the other's.
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "my_robot/msg/Status.msg", 'string<=16 name "r2d2"\n')
+    write(
+        interfaces,
+        "my_robot/srv/Plan.srv",
+        "my_nav/Waypoint[<=10] waypoints\n---\nStatus[] statuses\n",
+    )
+    write(interfaces, "my_nav/msg/Waypoint.msg", "my_robot/Status robot\nfloat32 speed 1.5\n")
+    folder = tmp_path / "robot_types"
+    code, out, err = run(capsys, "gen", "my_robot", "-o", str(folder), "--path", str(interfaces))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        f"wrote {folder / 'my_robot.py'} (2 interfaces)\n"
+        f"wrote {folder / 'my_nav.py'} (1 interface)\n"
+        f"wrote {folder / '_my_nav__my_robot.py'} (3 interfaces)\n"
+    )
+    for order, imports in IMPORT_ORDERS.items():
+        ran = subprocess.run(
+            [sys.executable, "-c", f"{imports}\n{USE_BOTH}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), order
+    # Lint-clean as written, and mypy --strict sees each package's classes with their fields.
+    for arguments in (["check", "--select", "E,F,W,I,B,UP,RUF"], ["format", "--check"]):
+        linted = subprocess.run(
+            [sys.executable, "-m", "ruff", *arguments, "--isolated", "--line-length", "100", "."],
+            cwd=folder,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert linted.returncode == 0, linted.stdout
+    (tmp_path / "use.py").write_text(
+        "from robot_types import my_nav, my_robot\n\n"
+        "status: my_robot.Status = my_robot.Status(name='x')\n"
+        "request = my_robot.Plan.Request(waypoints=[my_nav.Waypoint(robot=status)])\n"
+        "name: str = request.waypoints[0].robot.name\n"
+        "wrong: int = my_nav.Waypoint().speed\n",
+        encoding="utf-8",
+    )
+    checked = subprocess.run(
+        [
+            *(sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml")),
+            *("--strict", "--cache-dir", str(tmp_path / ".mypy_cache"), "--no-error-summary"),
+            *("--hide-error-context", "use.py"),
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert (checked.stdout, checked.stderr) == (
+        'use.py:6: error: Incompatible types in assignment (expression has type "float", '
+        'variable has type "int")  [assignment]\n',
+        "",
+    )
+
+
+def test_gen_reports_a_cycle_across_files_at_its_field(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "cyc_pkg/msg/Q1.msg", "cyc_pkg/Q2 x\n")
+    closing = write(interfaces, "cyc_pkg/msg/Q2.msg", "# back\n  cyc_pkg/Q1 x\n")
+    target = tmp_path / "out.py"
+    code, out, err = run(capsys, "gen", "cyc_pkg", "-o", str(target), "--path", str(interfaces))
+    assert (code, out) == (ExitCode.FAILURE, "")
+    assert one_error_line(err) == (
+        f"{closing}:2:3: field 'x' makes a message contain itself "
+        "(cyc_pkg/msg/Q1 -> cyc_pkg/msg/Q2 -> cyc_pkg/msg/Q1); "
+        "a message cannot nest itself, directly or through other messages"
+    )
+    assert not target.exists()
 
 
 def test_gen_unknown_package_exits_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from typing import Any
 import pydantic
 import pytest
 
-from srvwire.codegen import generate_module, write_module
+from srvwire.codegen import generate_module, generate_modules, write_module
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
     INTEGER_RANGES,
@@ -364,7 +364,7 @@ def test_generated_source_reads_like_hand_written_code(tmp_path: Path) -> None:
         '    bytes: Annotated[_builtins.bytes, Field(max_length=4), AcceptBase64] = b"\\x01\\x02"\n'
         in source
     )
-    assert "= (\n        _builtins.bytes(2)\n    )\n" in source
+    assert "= (\n        Field(default_factory=lambda: _builtins.bytes(2))\n    )\n" in source
     assert "    INF: ClassVar[float] = 1e999\n" in source
     assert "    WHOLE: ClassVar[float] = 2.0\n" in source
     assert "    Request: TypeAlias = Move_Request\n" in source
@@ -645,3 +645,138 @@ def test_generated_modules_import_without_warnings(
     odd = module.Odd.model_validate({"from": 1, "list": [1, 2], "bytes": "AQID"})
     assert (odd.from_, odd.list, odd.bytes) == (1, [1, 2], b"\x01\x02\x03")
     assert json.loads(odd.model_dump_json())["from"] == 1
+
+
+def test_a_fixed_array_of_any_size_is_written_as_a_factory_of_its_zeros(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Neither writing the module nor importing it makes the 4294967295 values of a default.
+    most = 2**32 - 1
+    huge = MessageSpec(
+        "big",
+        "Huge",
+        (
+            FieldSpec(arr("int32", FIXED, most), "a"),
+            FieldSpec(arr("uint8", FIXED, most), "b"),
+            FieldSpec(arr("bool", FIXED, 2), "c"),
+        ),
+    )
+    module = generated([huge], tmp_path, monkeypatch, "huge_types")
+    source = (tmp_path / "huge_types.py").read_text(encoding="utf-8")
+    assert f"default_factory=lambda: [0] * {most}," in source
+    assert f"default_factory=lambda: bytes({most})," in source
+    assert module.Huge.model_fields["c"].default_factory() == [False, False]
+    built = build_message(huge)
+    assert module.Huge.model_json_schema() == built.model_json_schema()
+
+
+def test_without_pydantics_plugin_mypy_knows_a_renamed_field_by_its_file_name(
+    tmp_path: Path,
+) -> None:
+    # What docs/types.md says: pydantic's dataclass_transform gives mypy the fields by alias,
+    # so keywords and their types are checked, and `from_` is not a keyword mypy knows.
+    write_module(tmp_path / "demo_types.py", [ODD], resolve_spec=resolve_spec)
+    (tmp_path / "use.py").write_text(
+        "from demo_types import Odd\n"
+        "\n"
+        "renamed = Odd(from_=3)\n"
+        "wrong = Odd(char='A')\n"
+        "read: Odd = Odd.model_validate({'from': 3})\n"
+        "first: int = read.from_\n",
+        encoding="utf-8",
+    )
+    (tmp_path / "mypy.ini").write_text("[mypy]\nstrict = True\n", encoding="utf-8")
+    result = subprocess.run(
+        [
+            *(sys.executable, "-m", "mypy", "--config-file", "mypy.ini", "--cache-dir"),
+            *(str(tmp_path / ".mypy_cache"), "--no-error-summary", "--hide-error-context"),
+            "use.py",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert result.stderr == ""
+    assert result.stdout.splitlines() == [
+        'use.py:3: error: Unexpected keyword argument "from_" for "Odd"; did you mean "from"?  '
+        "[call-arg]",
+        'use.py:4: error: Argument "char" to "Odd" has incompatible type "str"; expected "int"  '
+        "[arg-type]",
+    ]
+
+
+def test_packages_that_nest_each_other_share_one_module_and_import_in_any_order(
+    tmp_path: Path,
+) -> None:
+    # a nests b, b nests c, c nests a (no message contains itself); d, outside the cycle,
+    # nests a. a and c also both have a message named Point.
+    a_point = MessageSpec("a", "Point", (FieldSpec(t("int8"), "x"),))
+    a_outer = MessageSpec("a", "Outer", (FieldSpec(t("Mid", "b"), "mid"),))
+    b_mid = MessageSpec("b", "Mid", (FieldSpec(t("Point", "c"), "point"),))
+    c_point = MessageSpec("c", "Point", (FieldSpec(t("Point", "a"), "inner"),))
+    d_top = MessageSpec("d", "Top", (FieldSpec(arr("Outer", FIXED, 2, package="a"), "outers"),))
+    groups: dict[str, list[Spec]] = {
+        "a": [a_outer, a_point],
+        "b": [b_mid],
+        "c": [c_point],
+        "d": [d_top],
+    }
+    sources = generate_modules(groups)
+    assert list(sources) == ["a", "b", "c", "d", "_a__b__c"]
+    assert "from . import a\n" in sources["d"] and "\nclass " not in sources["a"]
+    assert "a_msg_Point" in sources["_a__b__c"] and "Point: TypeAlias" in sources["c"]
+    package = tmp_path / "cyc"
+    package.mkdir()
+    (package / "__init__.py").write_text("", encoding="utf-8")
+    for module, source in sources.items():
+        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    use = (
+        "from cyc import a, b, c, d\n"
+        "top = d.Top.model_validate({'outers': [{'mid': {'point': {'inner': {'x': 3}}}}, {}]})\n"
+        "assert top.outers[0].mid.point.inner.x == 3 and type(top.outers[1].mid) is b.Mid\n"
+        "assert c.Point.model_fields['inner'].annotation is a.Point is not c.Point\n"
+        "assert a.Point.model_json_schema()['title'] == 'Point'\n"
+    )
+    for first in ("a", "b", "c", "d", "_a__b__c"):
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import cyc.{first}\n{use}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first
+    linted = ruff(package, "check", "--select", "E,F,W,I,B,UP,ASYNC,RUF", "--line-length", "100")
+    assert linted.returncode == 0, linted.stdout
+    formatted = ruff(package, "format", "--check", "--line-length", "100")
+    assert formatted.returncode == 0, formatted.stdout
+
+
+def test_a_cycle_through_a_message_not_asked_for_is_found_too(tmp_path: Path) -> None:
+    # a/Top nests a/Hidden, found through resolve_spec, which nests b/Mid, which nests a/Leaf.
+    hidden = MessageSpec("a", "Hidden", (FieldSpec(t("Mid", "b"), "mid"),))
+    leaf = MessageSpec("a", "Leaf", (FieldSpec(t("int8"), "x", 5),))
+    found = {spec.type_name: spec for spec in (hidden, leaf)}
+    top = MessageSpec("a", "Top", (FieldSpec(t("Hidden", "a"), "hidden"),))
+    mid = MessageSpec("b", "Mid", (FieldSpec(t("Leaf", "a"), "leaf"),))
+    sources = generate_modules(
+        {"a": [top], "b": [mid]}, resolve_spec=lambda type_: found[type_.qualified_name]
+    )
+    assert list(sources) == ["a", "b", "_a__b"]
+    package = tmp_path / "hid"
+    package.mkdir()
+    (package / "__init__.py").write_text("", encoding="utf-8")
+    for module, source in sources.items():
+        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    use = "from hid import a, b\nassert a.Top().hidden.mid.leaf.x == 5 == b.Mid().leaf.x\n"
+    for first in ("a", "b"):
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import hid.{first}\n{use}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first

@@ -120,6 +120,10 @@ COMMANDS: dict[str, str] = {
         "a picows server's large messages in one process: tests/test_picows_large.py runs it"
     ),
     r"\.venv/bin/pytest tests/test_picows_large\.py": "the tests of the page: make test runs them",
+    r"\.venv/bin/python benchmarks/defaults\.py( .*)?": (
+        "loading and validating in several source trees, counted by valgrind: minutes long; "
+        "tests/test_benchmarks.py runs it on CPU time"
+    ),
     r"\.venv/bin/python benchmarks/deadline_cost\.py( .*)?": (
         "what each way of awaiting a reply costs asyncio, counted by valgrind: a minute long; "
         "tests/test_benchmarks.py runs it small"

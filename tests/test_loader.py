@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import errno
 import os
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -749,3 +751,65 @@ def test_a_nested_type_hidden_by_an_overlay_says_where(tmp_path: Path) -> None:
         f"{path}:1:1: unknown type 'std_msgs/Header' of field 'header': no message 'Header' in "
         f"package 'std_msgs' ({overlay / 'std_msgs'} hides the bundled package"
     )
+
+
+# --- fixed arrays of any size -----------------------------------------------------------------
+
+HUGE_ARRAYS = """
+import resource
+import sys
+from pathlib import Path
+
+from srvwire.cli import main
+from srvwire.loader import InterfaceLoader
+from srvwire.typeregistry import TypeRegistry
+
+MIB = 1024  # ru_maxrss and VmRSS are in KiB on Linux
+
+
+def peak() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+def now() -> int:
+    status = Path("/proc/self/status").read_text(encoding="ascii")
+    return int(status.split("VmRSS:")[1].split()[0])
+
+
+root = Path(sys.argv[1])
+start = peak()
+cls = InterfaceLoader([root], types=TypeRegistry()).load_message("big/Huge")
+assert main(["interface", "check", str(root)]) == 0
+assert main(["interface", "show", "big/msg/Huge", "--path", str(root)]) == 0
+assert main(["interface", "show", "big/srv/Biggest", "--path", str(root)]) == 0
+loaded, before = peak(), now()
+huge = cls()
+made = now()
+assert (len(huge.a), huge.a[-1], huge.b[:2], len(huge.b)) == (10_000_000, 0, bytes(2), 40_000_000)
+print((loaded - start) // MIB, (made - before) // MIB)
+"""
+
+
+def test_loading_checking_and_showing_fixed_arrays_allocates_none_of_their_values(
+    tmp_path: Path,
+) -> None:
+    # A fixed size can be 4294967295; the N zero values of its default are made only for an
+    # instance that needs them. Before, loading the message below held 200 MiB more (its
+    # default list, a tuple copy of it, and the bytes); the 4294967295 service did not load.
+    write(tmp_path, "big/msg/Huge.msg", "int32[10000000] a\nuint8[40000000] b\n")
+    write(tmp_path, "big/srv/Biggest.srv", "int32[4294967295] a\nPoint[4294967295] p\n---\n")
+    write(tmp_path, "big/msg/Point.msg", "float64 x\n")
+    script = tmp_path / "huge.py"
+    script.write_text(HUGE_ARRAYS, encoding="utf-8")
+    ran = subprocess.run(
+        [sys.executable, str(script), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert (ran.returncode, ran.stderr) == (0, "")
+    loading, making = (int(word) for word in ran.stdout.splitlines()[-1].split())
+    assert loading < 16, ran.stdout  # peak MiB: the classes, never their arrays' values
+    # MiB now: the instance's 80 MB list (its bytes are zero pages, not resident until written).
+    assert making > 60, ran.stdout

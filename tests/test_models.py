@@ -580,6 +580,8 @@ CLASHING = [
     "model_dump",
     "type_name",
     "spec",
+    "register",  # the class's metaclass (an ABCMeta) has these two
+    "mro",
 ]
 
 

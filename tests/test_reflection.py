@@ -24,6 +24,7 @@ import srvwire
 from srvwire.dispatch import ServiceRegistry
 from srvwire.errors import (
     InterfaceConflictError,
+    InterfaceError,
     InterfaceNotFoundError,
     InvalidParams,
     RegistrationError,
@@ -339,6 +340,45 @@ async def test_a_type_written_by_hand_and_not_described_is_an_error() -> None:
         f"cannot type the calls of /custom: Custom is not on the local search path, and the "
         f"server {running.url} does not describe it"
     )
+
+
+HUGE_SRV = "int32 a\n---\nint32[4294967295] values\n"
+NESTED_SRV = "huge_pkg/Row[100000] rows\n---\nint32[16] small\n"
+
+
+async def test_a_described_type_with_more_fixed_values_than_a_message_can_carry_is_refused() -> (
+    None
+):
+    # Made without the field (a reply that leaves it out), an instance would hold every value:
+    # 4294967295 from one line, or 100000 rows of 100 from two. No message of such a type fits
+    # in the client's max_message_size, so the client refuses to build it, naming the field.
+    row = build_message(parse_message("float64[100] cells\n", "huge_pkg", "Row"))
+    server = srvwire.Server()
+    huge = build_service(parse_service(HUGE_SRV, "huge_pkg", "Huge"))
+    server.add_service("/huge", huge, lambda request: {})
+    nested = build_service(parse_service(NESTED_SRV, "huge_pkg", "Rows"), lambda _: row)
+    server.add_service("/rows", nested, lambda request: {})
+    async with srvwire.serve(server, "127.0.0.1", 0) as running:
+        async with srvwire.connect(running.url, timeout=scaled(5)) as client:
+            with pytest.raises(InterfaceError) as excinfo:
+                await client.call("/huge", {"a": 1})
+            assert str(excinfo.value) == (
+                f"the server {running.url} describes huge_pkg/Huge_Response, which holds "
+                "4294967295 values, 4294967295 of them in the field 'values' "
+                "(int32[4294967295]), more than max_message_size=1048576 can carry; refused, "
+                "so that a reply that leaves them out cannot make this client hold them"
+            )
+            with pytest.raises(InterfaceError) as excinfo:
+                await client.service_type("/rows")
+            assert "10000000 values, 10000000 of them in the field 'rows' (huge_pkg/Row[" in (
+                str(excinfo.value)
+            )
+        # Under a limit that lets such messages through, the type is built, allocating nothing.
+        async with srvwire.connect(
+            running.url, timeout=scaled(5), max_message_size=2**24
+        ) as client:
+            Rows = await client.service_type("/rows")
+            assert Rows.Response().small == [0] * 16
 
 
 def test_a_description_with_bad_names_or_text_is_an_interface_error() -> None:

@@ -35,6 +35,7 @@ from srvwire.models import (
     build_action,
     build_message,
     build_service,
+    default_size,
     dump_json,
     error_data,
     json_writer,
@@ -254,7 +255,11 @@ class ServiceTypes:
        advertised), through the client's resolver;
     3. the server's description of the service (``rpc.discover``'s ``x-srvwire-definitions``):
        its definition text is parsed and built here. Each type it nests is taken from the local
-       search path first, and from the description when it is not there.
+       search path first, and from the description when it is not there. A described type
+       one of whose messages, made without its fields, would hold more values than
+       ``max_values`` (the client's ``max_message_size``) is refused: no message holding them
+       could be sent or received whole, and a reply that left them out would have this client
+       make them all (one line, ``int32[4294967295] a``, asks for 4294967295).
 
     Every class goes through the process's :class:`~srvwire.typeregistry.TypeRegistry`, so a
     type the server defines as a local file does is the local class, and one it defines
@@ -269,8 +274,10 @@ class ServiceTypes:
         resolve_message: MessageResolver,
         types: TypeRegistry | None = None,
         inf_nan: InfNan = INF_NAN_MODES[0],
+        max_values: int | None = None,
     ) -> None:
         self._resolve = resolve
+        self._max_values = max_values
         self._resolve_message = resolve_message
         self._types = process_types() if types is None else types
         self._inf_nan: InfNan = inf_nan
@@ -308,6 +315,7 @@ class ServiceTypes:
         text, package, short = _described(method, name, "srv", definitions, source)
         spec = parse_service(text, package, short, path=source)
         nested = self._nested(definitions, source)
+        nested.refuse_too_many_values((spec.request, spec.response), self._max_values)
         service = self._types.intern(spec, source, lambda: build_service(spec, nested))
         codec = self._by_name[name] = self._codec(service)
         return codec
@@ -320,6 +328,7 @@ class ServiceTypes:
         text, package, short = _described(method, name, "action", definitions, source)
         spec = parse_action(text, package, short, path=source)
         nested = self._nested(definitions, source)
+        nested.refuse_too_many_values((spec.goal, spec.result, spec.feedback), self._max_values)
         return self._types.intern(spec, source, lambda: build_action(spec, nested))
 
     def _nested(self, definitions: Mapping[str, str] | None, source: str) -> _RemoteMessages:
@@ -430,16 +439,19 @@ def remote_message(
     source: str,
     resolve_message: MessageResolver,
     types: TypeRegistry | None = None,
+    max_values: int | None = None,
 ) -> type[Message]:
     """The message type ``name`` (a topic's), local first, else built from ``definitions``
-    (the server's, from ``source``), checked as a service's types are."""
+    (the server's, from ``source``), checked as a service's types are (``max_values`` too)."""
     nested = _RemoteMessages(
         definitions, source, resolve_message, process_types() if types is None else types
     )
     for other in definitions:
         if _is_message_name(other):
             nested.check(other)
-    return nested.load(name)
+    cls = nested.load(name)
+    nested.refuse_too_many_values((cls.spec,), max_values)
+    return cls
 
 
 def _is_message_name(name: str) -> bool:
@@ -462,6 +474,7 @@ class _RemoteMessages:
         self.local = local
         self.types = types
         self.chain: list[str] = []
+        self._values: dict[str, int] = {}  # message name -> values of an instance made bare
 
     def __call__(self, type_: TypeSpec) -> type[Message]:
         return self.load(type_.qualified_name)
@@ -480,6 +493,27 @@ class _RemoteMessages:
             if self.types.get(name) is None:
                 return
         self.types.intern(spec, self.source, lambda: local)
+
+    def refuse_too_many_values(self, parts: tuple[MessageSpec, ...], limit: int | None) -> None:
+        """Raise InterfaceError naming the part of ``parts``, and its largest field, whose
+        instance made bare would hold more than ``limit`` values (None: no limit)."""
+        if limit is None:
+            return
+        for part in parts:
+            sizes = [(self.values(field.type), field) for field in part.fields]
+            total = sum(size for size, _ in sizes)
+            if total > limit:
+                size, field = max(sizes, key=lambda pair: pair[0])
+                raise InterfaceError(
+                    f"the {self.source} describes {part.package}/{part.name}, which holds "
+                    f"{total} values, {size} of them in the field {field.name!r} "
+                    f"({field.type}), more than max_message_size={limit} can carry; refused, "
+                    "so that a reply that leaves them out cannot make this client hold them"
+                )
+
+    def values(self, type_: TypeSpec) -> int:
+        """How many values a field of ``type_`` holds when an instance leaves it out."""
+        return default_size(type_, lambda name: self.load(name).spec, self._values)
 
     def load(self, name: str) -> type[Message]:
         """Return the process's class of the message ``name``, checked against the server's."""

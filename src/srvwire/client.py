@@ -168,7 +168,10 @@ class Client:
         self.timeout = options.timeout
         self.logger: LoggerLike = options._log()
         self._types = ServiceTypes(
-            options.type_resolver, options.message_resolver, inf_nan=options.inf_nan
+            options.type_resolver,
+            options.message_resolver,
+            inf_nan=options.inf_nan,
+            max_values=options.transport_options.max_message_size,
         )
         self._description: tuple[Link, dict[str, dict[str, str]]] | None = None
         self._describing = asyncio.Lock()
@@ -1067,7 +1070,11 @@ class Client:
                 f"path, and the server {self.url} does not describe it",
             )
         cls = remote_message(
-            named, definitions, f"server {self.url}", self.options.message_resolver
+            named,
+            definitions,
+            f"server {self.url}",
+            self.options.message_resolver,
+            max_values=self.options.transport_options.max_message_size,
         )
         self._message_types[named] = cls
         return cls

@@ -23,7 +23,11 @@ Invariants
   named in ``siblings``: its messages are not copied but used from the module of that name in
   the same Python package (``from . import std_msgs``, then ``std_msgs.Header``), which is how
   ``srvwire gen`` into a folder writes one module per package, so that a message nested by
-  two of them is one class.
+  two of them is one class. Packages whose messages nest each other (``a`` nests a message of
+  ``b``, which nests one of ``a``) cannot be modules that import each other, since each would
+  need a class of the other before its own end: :func:`generate_modules` writes their classes
+  together in one module (``_a__b``), and the module of each package takes its own classes
+  from there, so the modules import in any order.
 * **No name capture.** An imported helper whose name equals a generated class (``std_msgs``
   has ``String``, ``Int32`` and ``Bool``) is reached through its module, imported under a
   leading underscore (``import srvwire.models as _models``, then ``_models.String``). In a
@@ -44,8 +48,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 import os
+import textwrap
 import typing
-from collections.abc import Callable, Collection, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, TypeAlias
 
@@ -62,7 +67,7 @@ from srvwire.idl import (
     ServiceSpec,
     TypeSpec,
 )
-from srvwire.models import Action, Message, Service, default_value, python_name
+from srvwire.models import Action, Message, Service, default_value, python_name, zero_value
 from srvwire.primitives import PRIMITIVE_ALIASES
 from srvwire.pysource import (
     LINE,
@@ -78,7 +83,7 @@ from srvwire.pysource import (
     statement,
 )
 
-__all__ = ["Interface", "SpecResolver", "generate_module", "write_module"]
+__all__ = ["Interface", "SpecResolver", "generate_module", "generate_modules", "write_module"]
 
 Interface: TypeAlias = (
     MessageSpec | ServiceSpec | ActionSpec | type[Message] | type[Service] | type[Action]
@@ -140,6 +145,82 @@ def generate_module(
     for interface in interfaces:
         plan.add(interface)
     return _Writer(plan).module(docstring)
+
+
+def generate_modules(
+    groups: Mapping[str, Iterable[Interface]], *, resolve_spec: SpecResolver | None = None
+) -> dict[str, str]:
+    """Return the source of each module of a Python package holding ``groups``, by module name.
+
+    ``groups`` maps each interface package to its interfaces. Each package gets a module of its
+    name, which imports the messages it nests from the other packages' modules (as
+    :func:`generate_module` does with ``siblings``). Packages whose messages nest each other,
+    directly or through others, have their classes written together in one more module,
+    ``_`` and their names joined by ``__`` (``_my_nav__my_robot``), and each of their modules
+    takes its own classes from there under the names it would have given them. The packages'
+    modules come first, in the order of ``groups``, then these.
+    """
+    members = {package: list(interfaces) for package, interfaces in groups.items()}
+    writers = {
+        package: _Writer(_plan_of(interfaces, resolve_spec, frozenset(members) - {package}))
+        for package, interfaces in members.items()
+    }
+    # The sibling packages whose messages each module uses, its own nested ones' included.
+    nests = {
+        package: frozenset(name.split("/")[0] for name in writer.plan.imported)
+        for package, writer in writers.items()
+    }
+    facades: dict[str, str] = {}
+    shared_modules: dict[str, str] = {}
+    for packages in _import_cycles(nests):
+        shared = "_" + "__".join(packages)
+        together = [interface for package in packages for interface in members[package]]
+        writer = _Writer(_plan_of(together, resolve_spec, frozenset(members) - set(packages)))
+        shared_modules[shared] = writer.module(None)
+        for package in packages:
+            others = [other for other in packages if other != package]
+            facades[package] = writers[package].facade(shared, writer.class_names, others)
+    sources = {
+        package: facades.get(package) or writers[package].module(None) for package in members
+    }
+    return sources | shared_modules
+
+
+def _plan_of(
+    interfaces: Iterable[Interface], resolve_spec: SpecResolver | None, siblings: frozenset[str]
+) -> _Plan:
+    plan = _Plan(resolve_spec, siblings)
+    for interface in interfaces:
+        plan.add(interface)
+    return plan
+
+
+def _import_cycles(nests: Mapping[str, frozenset[str]]) -> list[tuple[str, ...]]:
+    """The groups of two or more packages that nest each other, each sorted (Tarjan's SCCs)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[tuple[str, ...]] = []
+
+    def visit(package: str) -> None:
+        index[package] = low[package] = len(index)
+        stack.append(package)
+        for other in sorted(nests[package] & nests.keys()):
+            if other not in index:
+                visit(other)
+                low[package] = min(low[package], low[other])
+            elif other in stack:
+                low[package] = min(low[package], index[other])
+        if low[package] == index[package]:
+            component = stack[stack.index(package) :]
+            del stack[stack.index(package) :]
+            if len(component) > 1:
+                found.append(tuple(sorted(component)))
+
+    for package in sorted(nests):
+        if package not in index:
+            visit(package)
+    return sorted(found)
 
 
 def write_module(
@@ -387,6 +468,42 @@ class _Writer:
         ]
         return "\n\n\n".join(part.rstrip("\n") for part in parts if part) + "\n"
 
+    def facade(self, shared: str, shared_names: dict[str, str], others: Iterable[str]) -> str:
+        """A module that takes its classes from the module ``shared`` (named ``shared_names``).
+
+        ``others`` are the packages whose classes ``shared`` holds besides this module's. Each
+        class keeps the name this module would give it, so the other modules reach it as they
+        would if it were defined here.
+        """
+        listed = "\n".join(f"* ``{item.type_name}``" for item in self.plan.requested)
+        why = textwrap.fill(
+            f"They are defined in ``{shared}``, with those of {', '.join(others)}: the messages "
+            "of these packages nest each other, so one module each could not be imported first.",
+            LINE,
+        )
+        docstring = (
+            f"Interface classes generated by srvwire for:\n\n{listed}\n\n{why}\n\n"
+            "Do not edit this file: change the interface files and generate it again."
+        )
+        type_alias = self.name("TypeAlias")
+        typing_import = (
+            "from typing import TypeAlias"
+            if type_alias == "TypeAlias"
+            else "import typing as _typing"
+        )
+        names = sorted(self.class_names.values(), key=isort_key)
+        header = (
+            as_docstring(docstring, "") or statement("", "__doc__", None, Text(docstring)),
+            f"{typing_import}\n\n{import_line('.', [shared])}",
+            statement("", "__all__", None, Call("[", tuple(Text(name) for name in names), "]")),
+        )
+        type_names = {name: type_name for type_name, name in self.class_names.items()}
+        aliases = "\n".join(
+            statement("", name, type_alias, f"{shared}.{shared_names[type_names[name]]}")
+            for name in names
+        )
+        return "\n\n".join((*header, aliases)) + "\n"
+
     def imports(self) -> str:
         """The import block, as isort (ruff's ``I`` rules) would order it in a user's project.
 
@@ -498,11 +615,16 @@ class _Writer:
         if type_.is_array and not is_bytes:  # as models._field_info
             keywords.append(Keyword("fail_fast", "True"))
         default: Keyword
-        if type_.is_primitive:
+        if type_.is_primitive and type_.array is ArrayKind.FIXED and field.default is None:
+            # As models._field_info: N zero values made per instance, never at import.
+            zero = scalar(zero_value(type_))
+            zeros = f"{bytes_}({type_.size})" if is_bytes else f"[{zero}] * {type_.size}"
+            default = Keyword("default_factory", f"lambda: {zeros}")
+        elif type_.is_primitive:
             value = default_value(field)
             written = _bytes_value(value, bytes_) if isinstance(value, bytes) else None
             if isinstance(value, list):
-                default = Keyword("default_factory", self.list_value(field, value, list_))
+                default = Keyword("default_factory", self.list_value(value, list_))
             elif not keywords:
                 return statement("    ", name, annotation, written or expression(value))
             else:
@@ -525,11 +647,9 @@ class _Writer:
         self.builtins_used = True
         return f"_builtins.{name}"
 
-    def list_value(self, field: FieldSpec, value: list[Scalar], list_: str) -> Expr:
+    def list_value(self, value: list[Scalar], list_: str) -> Expr:
         if not value:
             return list_  # `lambda: []` would be a lambda that only calls `list`
-        if field.default is None:  # N zero values of a fixed array
-            return f"lambda: [{scalar(value[0])}] * {len(value)}"
         return Call("lambda: [", tuple(expression(item) for item in value), "]")
 
     def group(self, item: _Item) -> str:

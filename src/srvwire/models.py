@@ -25,6 +25,10 @@ Invariants
   zero value. Scalars share their immutable default; every list and nested message comes from
   a ``default_factory``, so two instances never share a mutable value. ``Request()`` with no
   arguments is always valid, as in ROS.
+* **Building a class allocates no array.** The zero value of a fixed array (``int32[N]``,
+  ``uint8[N]``, ``Point[N]``) comes from a ``default_factory`` too, so its ``N`` values exist
+  only in an instance made without that field: loading, checking or showing a type costs the
+  same for ``N = 4294967295`` as for ``N = 3``.
 * **The wire name is the .srv name.** A field whose name is a Python keyword or an attribute of
   :class:`Message` (``from``, ``copy``, ``json``, ``model_config``, ``spec``, ...) is stored
   under :func:`python_name` (a trailing underscore: ``from_``) with ``alias=`` the .srv name.
@@ -147,6 +151,7 @@ __all__ = [
     "build_action",
     "build_message",
     "build_service",
+    "default_size",
     "dump_json",
     "error_data",
     "json_writer",
@@ -207,6 +212,29 @@ def default_value(field: FieldSpec) -> Scalar | list[Scalar] | bytes:
     if type_.array is ArrayKind.FIXED:
         return [zero_value(type_)] * (type_.size or 0)
     return []
+
+
+def default_size(
+    type_: TypeSpec, nested: Callable[[str], MessageSpec], counted: dict[str, int]
+) -> int:
+    """How many values a field of ``type_`` holds in an instance made without it.
+
+    A scalar holds one, a fixed array ``T[N]`` ``N`` (times those of ``T`` for a message), any
+    other array none; a message holds those of its fields. ``nested`` gives the spec of a
+    nested message by name (``pkg/msg/Name``); ``counted`` keeps each message's count, so a
+    type reached many times is counted once. Only ints are multiplied, so a size that no
+    instance could hold (``int32[4294967295]``) costs nothing to count.
+    """
+    each = 1
+    if not type_.is_primitive:
+        name = type_.qualified_name
+        if name not in counted:
+            fields = nested(name).fields
+            counted[name] = sum(default_size(field.type, nested, counted) for field in fields)
+        each = counted[name]
+    if type_.array is ArrayKind.FIXED:
+        return each * (type_.size or 0)
+    return 0 if type_.is_array else each
 
 
 def _is_bytes(type_: TypeSpec) -> bool:
@@ -312,14 +340,18 @@ class Action:
 Resolver: TypeAlias = Callable[[TypeSpec], type[Message]]
 """Given a nested element type (``package`` set, no array part), return its message class."""
 
-_RESERVED_NAMES = frozenset({*keyword.kwlist, *dir(Message), *Message.__class_vars__})
+# The metaclass's attributes too: pydantic warns of a field that hides `Message.register`.
+_RESERVED_NAMES = frozenset(
+    {*keyword.kwlist, *dir(Message), *dir(type(Message)), *Message.__class_vars__}
+)
 
 
 def python_name(field_name: str) -> str:
     """Return the attribute name of the field ``field_name``: itself, unless it is reserved.
 
     A Python keyword or a name :class:`Message` already uses (``from``, ``copy``, ``json``,
-    ``model_dump``, ``spec``, ``type_name``, ...) gets a trailing underscore. ROS field names
+    ``model_dump``, ``spec``, ``type_name``, its metaclass's ``register`` and ``mro``, ...) gets
+    a trailing underscore. ROS field names
     never end with one, so the result cannot clash with another field.
     """
     return f"{field_name}_" if field_name in _RESERVED_NAMES else field_name
@@ -386,6 +418,24 @@ def _copies_of(values: tuple[Any, ...]) -> Callable[[], list[Any]]:
     return factory
 
 
+def _zero_list(type_: TypeSpec) -> Callable[[], list[Scalar]]:
+    zero, count = zero_value(type_), type_.size or 0
+
+    def factory() -> list[Scalar]:
+        return [zero] * count
+
+    return factory
+
+
+def _zero_bytes(type_: TypeSpec) -> Callable[[], bytes]:
+    count = type_.size or 0
+
+    def factory() -> bytes:
+        return bytes(count)
+
+    return factory
+
+
 def _new_message(cls: type[Message]) -> Callable[[], Message]:
     def factory() -> Message:
         return cls()
@@ -410,6 +460,11 @@ def _field_info(spec: MessageSpec, field: FieldSpec, element: Any) -> Any:
     if type_.is_array and not _is_bytes(type_):
         keywords["fail_fast"] = True  # stop at the first invalid element: MAX_LISTED_ERRORS
     if type_.is_primitive:
+        if type_.array is ArrayKind.FIXED and field.default is None:
+            # N zero values, made for each instance that needs them and never when the class
+            # is built: N can be 4294967295, which no process could hold.
+            zeros = _zero_bytes(type_) if _is_bytes(type_) else _zero_list(type_)
+            return Field(default_factory=zeros, **keywords)
         value = default_value(field)
         if isinstance(value, list):
             return Field(default_factory=_copies_of(tuple(value)), **keywords)

@@ -34,7 +34,9 @@ from srvwire.client import DEFAULT_TIMEOUT
 from srvwire.errors import InterfaceError, InterfaceSyntaxError
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
 from srvwire.loader import InterfaceLoader
+from srvwire.models import default_size
 from srvwire.parser import parse_action, parse_file, parse_message, parse_service, split_comment
+from srvwire.transports.base import Options
 from srvwire.typeregistry import TypeRegistry
 
 INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
@@ -303,6 +305,7 @@ def _cmd_interface_proto(args: argparse.Namespace) -> int:
     loader = interface_loader(args)
     name = resolve_type(loader, args.type)
     kind = name.split("/")[1]
+    _refuse_a_template_too_large_to_send(loader, loader.spec(name))
     if kind == InterfaceKind.MSG.value:
         instance: pydantic.BaseModel = loader.load_message(name)()
     elif kind == InterfaceKind.SRV.value:
@@ -322,6 +325,30 @@ def _cmd_interface_proto(args: argparse.Namespace) -> int:
     return ExitCode.OK
 
 
+def _refuse_a_template_too_large_to_send(
+    loader: InterfaceLoader, spec: MessageSpec | ServiceSpec | ActionSpec
+) -> None:
+    """Refuse a template holding more values than ``srvwire call`` can send in one message.
+
+    Every value takes a byte of the message at least, so such a template could only be
+    printed, slowly (a fixed array's values are made only here): ``int32[4294967295] a`` could
+    not be printed at all.
+    """
+    part = _parts_of(spec)[0]  # the message, the request or the goal
+    limit = Options().max_message_size  # what srvwire call's client has
+    assert limit is not None
+    counted: dict[str, int] = {}
+    sizes = [(default_size(f.type, loader.message_spec, counted), f) for f in part.fields]
+    if sum(size for size, _ in sizes) > limit:
+        size, field = max(sizes, key=lambda pair: pair[0])
+        raise CommandError(
+            f"the template of {part.package}/{part.name} would hold "
+            f"{sum(size for size, _ in sizes)} values, {size} of them in the field "
+            f"{field.name!r} ({field.type}), more than the {limit} bytes of a message "
+            "srvwire call sends: write the values of such a type yourself"
+        )
+
+
 def _cmd_interface_check(args: argparse.Namespace) -> int:
     files: list[Path] = []
     for path in args.paths:
@@ -335,15 +362,19 @@ def _cmd_interface_check(args: argparse.Namespace) -> int:
             raise CommandError(f"no such file or folder: {path}", ExitCode.USAGE)
     errors = 0
     loaders: dict[Path, InterfaceLoader] = {}
-    checked = {str(file.resolve()) for file in files}
+    checked = {str(file.resolve()): file for file in files}
+    reported: set[tuple[str, int, int]] = set()  # each place an error is at, reported once
     for file in files:
         try:
             spec = parse_file(file)
             if file.resolve().parent.name == file.suffix.removeprefix("."):  # pkg/srv/Name.srv
                 _load_checked(file, spec.package, loaders, args.path, checked)
         except InterfaceSyntaxError as exc:
-            errors += 1
-            print(exc)
+            place = (str(Path(exc.path or file).resolve()), exc.line, exc.column)
+            if place not in reported:
+                reported.add(place)
+                errors += 1
+                print(exc)
         except InterfaceError as exc:  # no position of its own: say which file it is about
             errors += 1
             print(f"{file}: {exc}")
@@ -359,14 +390,16 @@ def _load_checked(
     package: str,
     loaders: dict[Path, InterfaceLoader],
     extra: list[Path],
-    checked: set[str],
+    checked: dict[str, Path],
 ) -> None:
     """Load the type ``file`` defines, so its nested types resolve or are reported.
 
     The loader searches the folder holding the file's package first, then ``--path`` and the
     default search path; one loader serves every file under the same folder. An error the
-    loader places in ``file`` names it as the user wrote it; one in another checked file is
-    that file's to report, so it is counted once.
+    loader places in one of the ``checked`` files (each resolved path to the path as the user
+    wrote it) names that file as the user wrote it. It may be in another file than ``file``:
+    a cycle through two files is found in the second file whichever file the load starts from,
+    so each file's load reports the other's field (the caller reports each place once).
     """
     resolved = file.resolve()  # the folders as they are, whatever '..' the user wrote
     root = resolved.parent.parent.parent
@@ -376,12 +409,9 @@ def _load_checked(
     try:
         loader.load(f"{package}/{resolved.parent.name}/{file.stem}")
     except InterfaceSyntaxError as exc:
-        here = str(resolved)
-        there = str(Path(exc.path).resolve()) if exc.path else None
-        if there in checked and there != here:
-            return
-        if there != here:
+        given = checked.get(str(Path(exc.path).resolve())) if exc.path else None
+        if given is None:
             raise
         raise InterfaceSyntaxError(
-            exc.message, path=file, line=exc.line, column=exc.column
+            exc.message, path=given, line=exc.line, column=exc.column
         ) from exc
