@@ -1667,3 +1667,35 @@ def test_call_values_from_a_closed_stdin_is_a_usage_error(
     assert (
         err == "srvwire: error: cannot read VALUES from standard input: standard input is closed\n"
     )
+
+
+def test_a_lost_connection_is_one_error_line() -> None:
+    """The client logs the lost connection; the command says it once, in its own line."""
+    server = subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "servers" / "hanging_server.py")],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert server.stdout is not None
+    try:
+        url = f"ws://127.0.0.1:{server.stdout.readline().strip()}"
+        command = subprocess.Popen(
+            [sys.executable, "-m", "srvwire", "call", "/hang", "--url", url, "--timeout", "60"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert server.stdout.readline() == "started 1\n"
+            server.kill()
+            _, err = command.communicate(timeout=scaled(60))
+        finally:
+            command.kill()
+            command.communicate()
+    finally:
+        server.kill()
+        server.communicate()
+    assert command.returncode == ExitCode.UNAVAILABLE
+    assert one_error_line(err).startswith(
+        "ConnectionLost: UNAVAILABLE (-32003) [/hang]: the connection dropped (no close frame)"
+    )

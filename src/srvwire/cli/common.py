@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import enum
+import logging
 import os
 import re
 import ssl
@@ -341,6 +342,7 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
             token=token,
             headers=headers,
             ssl=client_tls(args),
+            logger=_unlogged(),
         )
     except ValueError as exc:
         raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
@@ -352,6 +354,17 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
         if entered:  # raised by the command, not by connecting: not about --url
             raise
         raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
+
+
+def _unlogged() -> logging.Logger:
+    """The client's logger in a command: one that writes nothing.
+
+    What goes wrong reaches the command as an error, which it says in its one line; the
+    client's own warnings (a connection lost, with the calls it failed) would be a second.
+    """
+    logger = logging.Logger("srvwire.client")  # not the process's: nothing else changes
+    logger.addHandler(logging.NullHandler())  # else logging's last resort writes to stderr
+    return logger
 
 
 def plural(count: int, noun: str) -> str:
