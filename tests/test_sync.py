@@ -38,7 +38,7 @@ from srvwire.errors import (
 from srvwire.loader import load_service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.sync import LoopThread
-from support import scaled
+from support import Lines, interruptible, scaled, serve_goal_server
 
 AddTwoInts = load_service("example_interfaces/srv/AddTwoInts")
 Trigger = load_service("std_srvs/srv/Trigger")
@@ -679,3 +679,54 @@ def test_a_subscription_left_on_the_clients_own_loop_thread_still_ends(
     client._loop.run(collected_there(), scaled(5))
     settled(client)
     assert server.joints.subscription_count == 0
+
+
+# --- Ctrl-C while a goal runs -------------------------------------------------------------
+
+# A script with a blocking client, interrupted (1) while result() waits, or (2) elsewhere in
+# its `with` block; it prints the goal's status once KeyboardInterrupt reached it: "canceled"
+# when its outcome arrived, "aborted" when the connection closed first.
+GOAL_SCRIPT = """
+import sys, threading
+import srvwire.sync
+url, where = sys.argv[1], sys.argv[2]
+try:
+    with srvwire.sync.connect(url, timeout=600) as client:
+        goal = client.send_goal("/patient", {"order": 1})
+        print("accepted", flush=True)
+        if where == "result":
+            goal.result()
+        else:
+            threading.Event().wait()
+except KeyboardInterrupt:
+    print("interrupted:", goal.status, flush=True)
+"""
+
+
+@pytest.mark.parametrize("where", ["result", "with"])
+def test_ctrl_c_asks_the_server_to_cancel_a_goal_before_the_connection_closes(where: str) -> None:
+    with serve_goal_server() as (url, served):
+        process = subprocess.Popen(
+            [sys.executable, "-c", GOAL_SCRIPT, url, where],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=interruptible,
+        )
+        assert process.stdout is not None and process.stderr is not None
+        out = Lines(process.stdout)
+        try:
+            served.expect("started 1")
+            out.expect("accepted")
+            process.send_signal(signal.SIGINT)
+            served.expect("cancel requested 1")  # the handler was asked, not cut
+            out.expect("interrupted:")
+            code = process.wait(timeout=scaled(60))
+        finally:
+            process.kill()
+            process.wait()
+            printed = out.close()
+            err = process.stderr.read()
+            process.stderr.close()
+        assert (code, err) == (0, "")
+        assert printed == "accepted\ninterrupted: canceled\n"
