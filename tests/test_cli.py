@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib.metadata
 import importlib.util
 import io
+import json
 import os
 import re
 import signal
@@ -1699,3 +1701,119 @@ def test_a_lost_connection_is_one_error_line() -> None:
     assert one_error_line(err).startswith(
         "ConnectionLost: UNAVAILABLE (-32003) [/hang]: the connection dropped (no close frame)"
     )
+
+
+SIZES_APP = """\
+from srvwire.models import build_service
+from srvwire.parser import parse_service
+from srvwire.server import Server
+
+SIZED = "string data\\n---\\nint64 size\\nstring data\\n"
+Sized = build_service(parse_service(SIZED, "sizes", "Sized"))
+server = Server(grace_period=0)
+
+
+@server.service("/measure", Sized)
+def measure(request):
+    return {"size": len(request.data)}
+
+
+@server.service("/big", Sized)
+def big(request):
+    return {"size": 2_000_000, "data": "x" * 2_000_000}
+"""
+
+
+@contextlib.contextmanager
+def serving(app: Path, *argv: str) -> Iterator[str]:
+    """``srvwire serve app`` in a process of its own, with ``argv``; its URL."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", str(app), "--port", "0", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout is not None
+        first = process.stdout.readline()
+        match = re.fullmatch(r"serving \d+ services? on (ws://127\.0\.0\.1:\d+)\n", first)
+        assert match, first
+        yield match.group(1)
+    finally:
+        process.kill()
+        process.communicate()
+
+
+def test_max_message_size_lets_a_command_take_a_larger_reply(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    app = tmp_path / "sizes_app.py"
+    app.write_text(SIZES_APP, encoding="utf-8")
+    with serving(app) as url:
+        code, out, err = run(capsys, "call", "/big", "--json", "--url", url)
+        assert (code, out) == (ExitCode.UNAVAILABLE, "")
+        assert "over the client's max_message_size" in err
+        assert one_error_line(err).endswith(
+            "; raise this command's limit with --max-message-size BYTES (the server needs a "
+            "limit as large for requests that size)"
+        )
+        limit = ["--max-message-size", "4000000"]
+        code, out, err = run(capsys, "call", "/big", "--json", "--url", url, *limit)
+        assert (code, err) == (ExitCode.OK, "")
+        assert json.loads(out)["size"] == 2_000_000
+
+
+def test_max_message_size_on_both_sides_lets_a_larger_request_through(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    app = tmp_path / "sizes_app.py"
+    app.write_text(SIZES_APP, encoding="utf-8")
+    request = tmp_path / "request.yaml"
+    request.write_text("{data: " + "x" * 2_000_000 + "}", encoding="utf-8")
+    limit = ["--max-message-size", "4000000"]
+    with serving(app) as url:
+        # Over this command's limit: not sent.
+        code, _, err = run(capsys, "call", "/measure", f"@{request}", "--url", url)
+        assert code == ExitCode.OTHER_RPC_ERROR
+        assert one_error_line(err).startswith("ResourceExhausted: ")
+        assert "; raise this command's limit with --max-message-size BYTES" in err
+        # Sent, and over the server's.
+        code, _, err = run(capsys, "call", "/measure", f"@{request}", "--url", url, *limit)
+        assert code == ExitCode.UNAVAILABLE
+        assert "over the server's max_message_size" in err
+        assert one_error_line(err).endswith(
+            "; the message was over the server's limit: raise it there (srvwire serve "
+            "--max-message-size BYTES, or Server(max_message_size=...))"
+        )
+    with serving(app, *limit) as url:
+        code, out, err = run(
+            capsys, "call", "/measure", f"@{request}", "--json", "--url", url, *limit
+        )
+        assert (code, err) == (ExitCode.OK, "")
+        assert json.loads(out) == {"size": 2_000_000, "data": ""}
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["call", "/x"],
+        ["service", "list"],
+        ["service", "type", "/x"],
+        ["service", "describe", "/x"],
+        ["service", "find", "a/B"],
+        ["topic", "list"],
+        ["topic", "info", "/x"],
+        ["topic", "echo", "/x"],
+        ["topic", "pub", "/x"],
+        ["topic", "hz", "/x"],
+        ["action", "list"],
+        ["action", "info", "/x"],
+        ["action", "send_goal", "/x"],
+        ["serve", "app.py"],
+    ],
+)
+def test_every_command_that_connects_or_serves_takes_max_message_size(
+    command: list[str],
+) -> None:
+    args = cli.build_parser().parse_args([*command, "--max-message-size", "3000000"])
+    assert args.max_message_size == 3_000_000

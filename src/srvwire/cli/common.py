@@ -23,9 +23,21 @@ from pathlib import Path
 from typing import Final, NoReturn, TypeAlias
 
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect, plaintext_host
-from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
+from srvwire.errors import (
+    ErrorCode,
+    InterfaceError,
+    ResourceExhausted,
+    RPCError,
+    is_reserved_code,
+)
 from srvwire.loader import InterfaceLoader
 from srvwire.typeregistry import TypeRegistry
+
+DEFAULT_MAX_MESSAGE_SIZE = 2**20
+"""``--max-message-size``'s default, in bytes: the client's and the server's own."""
+
+CLOSE_MESSAGE_TOO_BIG = 1009
+"""The WebSocket close code of a message over the reading side's limit (RFC 6455)."""
 
 URL_ENV_VAR = "SRVWIRE_URL"
 TOKEN_ENV_VAR = "SRVWIRE_TOKEN"
@@ -182,6 +194,14 @@ def remote_options() -> Parser:
         type=header,
         metavar="'NAME: VALUE'",
         help="send this header with the opening request (repeatable)",
+    )
+    remote.add_argument(
+        "--max-message-size",
+        type=positive_int,
+        default=DEFAULT_MAX_MESSAGE_SIZE,
+        metavar="BYTES",
+        help="the largest reply or message taken from the server, and the largest request "
+        f"sent (default: {DEFAULT_MAX_MESSAGE_SIZE}, 1 MiB); the server has its own limit",
     )
     remote.add_argument(
         "--cacert",
@@ -343,6 +363,7 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
             headers=headers,
             ssl=client_tls(args),
             logger=_unlogged(),
+            max_message_size=getattr(args, "max_message_size", DEFAULT_MAX_MESSAGE_SIZE),
         )
     except ValueError as exc:
         raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
@@ -365,6 +386,32 @@ def _unlogged() -> logging.Logger:
     logger = logging.Logger("srvwire.client")  # not the process's: nothing else changes
     logger.addHandler(logging.NullHandler())  # else logging's last resort writes to stderr
     return logger
+
+
+def size_limit_hint(error: RPCError) -> str | None:
+    """What to do about ``error`` when a message was over a ``max_message_size``, else None.
+
+    The client refuses to send a request over its limit (``ResourceExhausted`` with the
+    limit in its data); a message over the limit of the side that reads it closes the
+    connection with 1009, whose reason says which side's limit it was.
+    """
+    data = error.data if isinstance(error.data, dict) else {}
+    if isinstance(error, ResourceExhausted) and "max_message_size" in data:
+        side = "client"
+    elif data.get("close_code") == CLOSE_MESSAGE_TOO_BIG:
+        reason = str(data.get("close_reason", ""))
+        side = "server" if reason.startswith("over the server's") else "client"
+    else:
+        return None
+    if side == "client":
+        return (
+            "raise this command's limit with --max-message-size BYTES (the server needs a "
+            "limit as large for requests that size)"
+        )
+    return (
+        "the message was over the server's limit: raise it there (srvwire serve "
+        "--max-message-size BYTES, or Server(max_message_size=...))"
+    )
 
 
 def plural(count: int, noun: str) -> str:

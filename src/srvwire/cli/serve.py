@@ -22,7 +22,14 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, port
+from srvwire.cli.common import (
+    CommandError,
+    Commands,
+    ExitCode,
+    add_command,
+    port,
+    positive_int,
+)
 from srvwire.handshake import EdgePolicy, is_loopback
 from srvwire.server import RunningServer, Server
 from srvwire.transports import get_transport
@@ -91,6 +98,13 @@ def register(commands: Commands) -> None:
         "authenticate (only on a network you trust)",
     )
     serve.add_argument(
+        "--max-message-size",
+        type=positive_int,
+        metavar="BYTES",
+        help="the largest message a client may send, such as a large request (default: the "
+        "Server's max_message_size, 1048576 unless the code sets it)",
+    )
+    serve.add_argument(
         "--log-level",
         type=str.lower,
         choices=["debug", "info", "warning", "error"],
@@ -120,6 +134,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise CommandError(str(exc), ExitCode.USAGE) from None
     hosts: list[str] = args.host or ["127.0.0.1"]
     host: str | list[str] = hosts[0] if len(hosts) == 1 else hosts
+    if args.max_message_size is not None:
+        server.max_message_size = args.max_message_size
     if args.access_log:
         server.access_log = logging.getLogger("srvwire.access")
     if args.origin:
