@@ -145,6 +145,26 @@ def test_send_goal_to_a_service_is_a_usage_error(
     assert "/trigger is the service std_srvs/srv/Trigger, not an action: use srvwire call" in err
 
 
+def test_calling_an_action_is_a_usage_error_that_names_send_goal(
+    capsys: pytest.CaptureFixture[str], url: str
+) -> None:
+    capsys.readouterr()
+    code = main(["call", "/fibonacci", "{order: 3}", "--url", url])
+    err = capsys.readouterr().err
+    assert code == ExitCode.USAGE
+    assert err == (
+        "srvwire: error: /fibonacci is the action example_interfaces/action/Fibonacci, not a "
+        "service: use srvwire action send_goal /fibonacci\n"
+    )
+    code = main(["call", "/fibonacci", "example_interfaces/action/Fibonacci", "--url", url])
+    err = capsys.readouterr().err
+    assert code == ExitCode.USAGE
+    assert err == (
+        "srvwire: error: example_interfaces/action/Fibonacci is an action type, not a service "
+        "type: send it a goal with srvwire action send_goal /fibonacci\n"
+    )
+
+
 def test_ctrl_c_cancels_the_goal_on_the_server(url: str) -> None:
     command = [sys.executable, "-m", "srvwire", "action", "send_goal", "/forever", "{}"]
     process = subprocess.Popen(
