@@ -1540,6 +1540,12 @@ def test_serve_on_two_hosts_with_an_access_log(
             "{tmp}/not_server.py:handler is 'builtin_function_or_method', not a srvwire Server",
         ),
         (
+            "def make():\n    return None\n",
+            "{tmp}/a_factory.py:make",
+            "{tmp}/a_factory.py:make is 'function', not a srvwire Server; if it returns the "
+            "Server, add --factory",
+        ),
+        (
             "raise ValueError('boom')\n",
             "{tmp}/broken_app.py:server",
             "importing {tmp}/broken_app.py failed: ValueError: boom",

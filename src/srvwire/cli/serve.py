@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import inspect
 import logging
 import os
 import re
@@ -316,8 +317,13 @@ def _load_target(target: str, *, factory: bool = False) -> Server:
                     f"{location}:{name}() returned {type(found).__name__!r}, not a srvwire Server"
                 )
         if not isinstance(found, Server):
+            hint = (
+                "; if it returns the Server, add --factory"
+                if inspect.isfunction(found) or inspect.ismethod(found)
+                else ""
+            )
             raise CommandError(
-                f"{location}:{name} is {type(found).__name__!r}, not a srvwire Server"
+                f"{location}:{name} is {type(found).__name__!r}, not a srvwire Server{hint}"
             )
         return found
     wanted = " or ".join(repr(name) for name in names)
