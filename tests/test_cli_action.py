@@ -279,3 +279,21 @@ def test_a_second_ctrl_c_stops_waiting_for_a_goal_that_goes_on(
     assert (code, err) == (ExitCode.INTERRUPTED, "srvwire: error: interrupted\n"), out
     assert "Result:" not in out
     served.expect("cut 2")  # the connection's end stopped the handler
+
+
+@pytest.mark.parametrize(
+    ("values", "code", "said"),
+    [
+        ("{order: x}", ExitCode.INVALID_PARAMS, "(checked by the client; nothing was sent)"),
+        ("{order: 60}", ExitCode.SERVICE_FAILED, "GoalRejected: GOAL_REJECTED (-32007)"),
+    ],
+)
+def test_a_goal_that_was_not_accepted_prints_only_the_error(
+    capsys: pytest.CaptureFixture[str], url: str, values: str, code: int, said: str
+) -> None:
+    got, out, err = run(capsys, url, "send_goal", "/fibonacci", values)
+    assert (got, out) == (code, "")
+    assert said in err
+    got, out, err = run(capsys, url, "send_goal", "/no_such_action", "{}")
+    assert (got, out) == (ExitCode.SERVICE_NOT_FOUND, "")
+    assert "no service named /no_such_action" in err

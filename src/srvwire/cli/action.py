@@ -167,9 +167,11 @@ async def _send_goal(
                 f"{name} is the service {advertised}, not an action: use srvwire call",
                 ExitCode.USAGE,
             )
-        print("Sending goal:")
-        print(_yaml(values or {}), flush=True)
+        # Said once the goal got past the client's own checks (a known action, values that fit
+        # its Goal), which send nothing when they fail, and the server accepted it.
         handle = await client.send_goal(name, values, timeout=args.timeout, action_type=action)
+        print("Sending goal:")
+        print(_yaml(values or {}))
         print(f"\nGoal accepted with ID: {handle.goal_id}", flush=True)
         try:
             if args.feedback:
