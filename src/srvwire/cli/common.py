@@ -396,22 +396,17 @@ def size_limit_hint(error: RPCError) -> str | None:
     connection with 1009, whose reason says which side's limit it was.
     """
     data = error.data if isinstance(error.data, dict) else {}
+    mine = "raise this command's limit with --max-message-size BYTES"
     if isinstance(error, ResourceExhausted) and "max_message_size" in data:
-        side = "client"
-    elif data.get("close_code") == CLOSE_MESSAGE_TOO_BIG:
-        reason = str(data.get("close_reason", ""))
-        side = "server" if reason.startswith("over the server's") else "client"
-    else:
+        return f"{mine} (a request that size needs the server's limit raised too)"
+    if data.get("close_code") != CLOSE_MESSAGE_TOO_BIG:
         return None
-    if side == "client":
+    if str(data.get("close_reason", "")).startswith("over the server's"):
         return (
-            "raise this command's limit with --max-message-size BYTES (the server needs a "
-            "limit as large for requests that size)"
+            "the message was over the server's limit: raise it there (srvwire serve "
+            "--max-message-size BYTES, or Server(max_message_size=...))"
         )
-    return (
-        "the message was over the server's limit: raise it there (srvwire serve "
-        "--max-message-size BYTES, or Server(max_message_size=...))"
-    )
+    return mine
 
 
 def plural(count: int, noun: str) -> str:
