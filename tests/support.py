@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import queue
+import re
+import signal
 import ssl
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import IO, Any
 
 import pytest
 import trustme
@@ -88,3 +94,71 @@ def tls_on_localhost(tls: bool) -> tuple[ssl.SSLContext | None, ssl.SSLContext |
     client_ssl = ssl.create_default_context()
     ca.configure_trust(client_ssl)
     return server_ssl, client_ssl
+
+
+def interruptible() -> None:
+    """In a child before it runs: SIGINT to its default action, so that Ctrl-C reaches it as
+    from a terminal. A shell starts a background job (the suite run with `&` from a script)
+    with SIGINT ignored, and its children inherit that, so Python would not raise
+    KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+GOAL_SERVER = ROOT / "tests" / "servers" / "goal_server.py"
+
+
+class Lines:
+    """The lines a child process writes to one of its pipes, read by a thread as they come."""
+
+    def __init__(self, stream: IO[str]) -> None:
+        self.stream = stream
+        self.queue: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        for line in self.stream:
+            self.queue.put(line)
+        self.queue.put("")  # the end of the stream
+
+    def expect(self, wanted: str) -> None:
+        """Wait for a line that starts with ``wanted``; fail if the stream ends first (or,
+        as a backstop on a hung child, after a minute)."""
+        while True:
+            line = self.queue.get(timeout=scaled(60))
+            self.seen.append(line)
+            if line == "":
+                pytest.fail(f"the stream ended before {wanted!r}: {''.join(self.seen)}")
+            if line.startswith(wanted):
+                return
+
+    def close(self) -> str:
+        """Once the child ended: everything it wrote, and close the pipe."""
+        self.reader.join(scaled(60))
+        while not self.queue.empty():
+            self.seen.append(self.queue.get())
+        self.stream.close()
+        return "".join(self.seen)
+
+
+@contextlib.contextmanager
+def serve_goal_server() -> Iterator[tuple[str, Lines]]:
+    """``srvwire serve tests/servers/goal_server.py`` in a process: its URL and its output."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", str(GOAL_SERVER), "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert process.stdout is not None
+    lines = Lines(process.stdout)
+    try:
+        first = lines.queue.get(timeout=scaled(60))
+        match = re.fullmatch(r"serving 0 services and 1 action on (ws://[^ ,]+).*\n", first)
+        assert match, first
+        yield match.group(1), lines
+    finally:
+        process.kill()
+        process.wait()
+        lines.close()

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib.metadata
 import importlib.util
 import io
+import json
 import os
 import re
 import signal
@@ -1690,6 +1692,12 @@ def test_serve_on_two_hosts_with_an_access_log(
             "{tmp}/not_server.py:handler is 'builtin_function_or_method', not a srvwire Server",
         ),
         (
+            "def make():\n    return None\n",
+            "{tmp}/a_factory.py:make",
+            "{tmp}/a_factory.py:make is 'function', not a srvwire Server; if it returns the "
+            "Server, add --factory",
+        ),
+        (
             "raise ValueError('boom')\n",
             "{tmp}/broken_app.py:server",
             "importing {tmp}/broken_app.py failed: ValueError: boom",
@@ -1819,3 +1827,153 @@ def test_call_values_from_a_closed_stdin_is_a_usage_error(
     assert (
         err == "srvwire: error: cannot read VALUES from standard input: standard input is closed\n"
     )
+
+
+def test_a_lost_connection_is_one_error_line() -> None:
+    """The client logs the lost connection; the command says it once, in its own line."""
+    server = subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "servers" / "hanging_server.py")],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert server.stdout is not None
+    try:
+        url = f"ws://127.0.0.1:{server.stdout.readline().strip()}"
+        command = subprocess.Popen(
+            [sys.executable, "-m", "srvwire", "call", "/hang", "--url", url, "--timeout", "60"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert server.stdout.readline() == "started 1\n"
+            server.kill()
+            _, err = command.communicate(timeout=scaled(60))
+        finally:
+            command.kill()
+            command.communicate()
+    finally:
+        server.kill()
+        server.communicate()
+    assert command.returncode == ExitCode.UNAVAILABLE
+    assert one_error_line(err).startswith(
+        "ConnectionLost: UNAVAILABLE (-32003) [/hang]: the connection dropped (no close frame)"
+    )
+
+
+SIZES_APP = """\
+from srvwire.models import build_service
+from srvwire.parser import parse_service
+from srvwire.server import Server
+
+SIZED = "string data\\n---\\nint64 size\\nstring data\\n"
+Sized = build_service(parse_service(SIZED, "sizes", "Sized"))
+server = Server(grace_period=0)
+
+
+@server.service("/measure", Sized)
+def measure(request):
+    return {"size": len(request.data)}
+
+
+@server.service("/big", Sized)
+def big(request):
+    return {"size": 2_000_000, "data": "x" * 2_000_000}
+"""
+
+
+@contextlib.contextmanager
+def serving(app: Path, *argv: str) -> Iterator[str]:
+    """``srvwire serve app`` in a process of its own, with ``argv``; its URL."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "srvwire", "serve", str(app), "--port", "0", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert process.stdout is not None
+        first = process.stdout.readline()
+        match = re.fullmatch(r"serving \d+ services? on (ws://127\.0\.0\.1:\d+)\n", first)
+        assert match, first
+        yield match.group(1)
+    finally:
+        process.kill()
+        process.communicate()
+
+
+def test_max_message_size_lets_a_command_take_a_larger_reply(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    app = tmp_path / "sizes_app.py"
+    app.write_text(SIZES_APP, encoding="utf-8")
+    with serving(app) as url:
+        code, out, err = run(capsys, "call", "/big", "--json", "--url", url)
+        assert (code, out) == (ExitCode.UNAVAILABLE, "")
+        assert "over the client's max_message_size" in err
+        assert one_error_line(err).endswith(
+            "; raise this command's limit with --max-message-size BYTES"
+        )
+        limit = ["--max-message-size", "4000000"]
+        code, out, err = run(capsys, "call", "/big", "--json", "--url", url, *limit)
+        assert (code, err) == (ExitCode.OK, "")
+        assert json.loads(out)["size"] == 2_000_000
+
+
+def test_max_message_size_on_both_sides_lets_a_larger_request_through(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    app = tmp_path / "sizes_app.py"
+    app.write_text(SIZES_APP, encoding="utf-8")
+    request = tmp_path / "request.yaml"
+    request.write_text("{data: " + "x" * 2_000_000 + "}", encoding="utf-8")
+    limit = ["--max-message-size", "4000000"]
+    with serving(app) as url:
+        # Over this command's limit: not sent.
+        code, _, err = run(capsys, "call", "/measure", f"@{request}", "--url", url)
+        assert code == ExitCode.OTHER_RPC_ERROR
+        assert one_error_line(err).startswith("ResourceExhausted: ")
+        assert one_error_line(err).endswith(
+            "; raise this command's limit with --max-message-size BYTES (a request that size "
+            "needs the server's limit raised too)"
+        )
+        # Sent, and over the server's.
+        code, _, err = run(capsys, "call", "/measure", f"@{request}", "--url", url, *limit)
+        assert code == ExitCode.UNAVAILABLE
+        assert "over the server's max_message_size" in err
+        assert one_error_line(err).endswith(
+            "; the message was over the server's limit: raise it there (srvwire serve "
+            "--max-message-size BYTES, or Server(max_message_size=...))"
+        )
+    with serving(app, *limit) as url:
+        code, out, err = run(
+            capsys, "call", "/measure", f"@{request}", "--json", "--url", url, *limit
+        )
+        assert (code, err) == (ExitCode.OK, "")
+        assert json.loads(out) == {"size": 2_000_000, "data": ""}
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["call", "/x"],
+        ["service", "list"],
+        ["service", "type", "/x"],
+        ["service", "describe", "/x"],
+        ["service", "find", "a/B"],
+        ["topic", "list"],
+        ["topic", "info", "/x"],
+        ["topic", "echo", "/x"],
+        ["topic", "pub", "/x"],
+        ["topic", "hz", "/x"],
+        ["action", "list"],
+        ["action", "info", "/x"],
+        ["action", "send_goal", "/x"],
+        ["serve", "app.py"],
+    ],
+)
+def test_every_command_that_connects_or_serves_takes_max_message_size(
+    command: list[str],
+) -> None:
+    args = cli.build_parser().parse_args([*command, "--max-message-size", "3000000"])
+    assert args.max_message_size == 3_000_000

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import signal
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import pytest
 from srvwire import GoalHandle, GoalRejected, load_action, load_service
 from srvwire.cli import ExitCode, main
 from srvwire.server import Server
-from support import scaled
+from support import Lines, interruptible, scaled, serve_goal_server
 from test_cli import start_in_thread
 
 Fibonacci = load_action("example_interfaces/action/Fibonacci")
@@ -144,9 +145,24 @@ def test_send_goal_to_a_service_is_a_usage_error(
     assert "/trigger is the service std_srvs/srv/Trigger, not an action: use srvwire call" in err
 
 
-def interruptible() -> None:
-    """In a child before it runs the command: SIGINT to its default action."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+def test_calling_an_action_is_a_usage_error_that_names_send_goal(
+    capsys: pytest.CaptureFixture[str], url: str
+) -> None:
+    capsys.readouterr()
+    code = main(["call", "/fibonacci", "{order: 3}", "--url", url])
+    err = capsys.readouterr().err
+    assert code == ExitCode.USAGE
+    assert err == (
+        "srvwire: error: /fibonacci is the action example_interfaces/action/Fibonacci, not a "
+        "service: use srvwire action send_goal /fibonacci\n"
+    )
+    code = main(["call", "/fibonacci", "example_interfaces/action/Fibonacci", "--url", url])
+    err = capsys.readouterr().err
+    assert code == ExitCode.USAGE
+    assert err == (
+        "srvwire: error: example_interfaces/action/Fibonacci is an action type, not a service "
+        "type: send it a goal with srvwire action send_goal /fibonacci\n"
+    )
 
 
 def test_ctrl_c_cancels_the_goal_on_the_server(url: str) -> None:
@@ -169,10 +185,115 @@ def test_ctrl_c_cancels_the_goal_on_the_server(url: str) -> None:
         process.send_signal(signal.SIGINT)
         # A backstop, not a measure: closing may wait for the server's close frame, within
         # websockets' close_timeout (10 s), on a loaded machine.
-        _, err = process.communicate(timeout=scaled(30))
+        rest, err = process.communicate(timeout=scaled(30))
     finally:
         process.kill()
         process.communicate()  # reaps it and closes its pipes
     assert process.returncode == ExitCode.INTERRUPTED, err
-    assert err == "srvwire: error: interrupted\n"
+    assert err == ""
+    # /forever's cancel_grace is 0: the server stopped the handler, and the goal ended so.
+    assert rest.endswith("\nGoal finished with status: CANCELED\n"), rest
     assert CANCELLED.wait(scaled(5))  # the server's handler saw the cancellation
+
+
+# --- Ctrl-C against a server in a process of its own -------------------------------------------
+
+
+@pytest.fixture
+def goal_server() -> Iterator[tuple[str, Lines]]:
+    """``srvwire serve tests/servers/goal_server.py`` in a process: its URL and its output."""
+    with serve_goal_server() as served:
+        yield served
+
+
+class SendGoal:
+    """``srvwire action send_goal /patient`` in a process, which Ctrl-C reaches as from a
+    terminal; its stdout is read as it comes."""
+
+    def __init__(self, url: str, order: int) -> None:
+        command = [sys.executable, "-m", "srvwire", "action", "send_goal", "/patient"]
+        self.process = subprocess.Popen(
+            [*command, f"{{order: {order}}}", "--url", url, "--timeout", "600"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=interruptible,
+        )
+        assert self.process.stdout is not None
+        self.out = Lines(self.process.stdout)
+
+    def ctrl_c(self) -> None:
+        self.process.send_signal(signal.SIGINT)
+
+    def end(self) -> tuple[int, str, str]:
+        """Wait for it to exit (its deadline is 600 s: a backstop of one minute); return
+        its exit code, stdout and stderr."""
+        assert self.process.stderr is not None
+        try:
+            code = self.process.wait(timeout=scaled(60))
+        finally:
+            self.process.kill()
+            self.process.wait()
+            out = self.out.close()
+            err = self.process.stderr.read()
+            self.process.stderr.close()
+        return code, out, err
+
+
+def test_ctrl_c_asks_the_handler_to_stop_and_prints_how_the_goal_ended(
+    goal_server: tuple[str, Lines],
+) -> None:
+    url, served = goal_server
+    command = SendGoal(url, 1)
+    try:
+        served.expect("started 1")
+        command.out.expect("Goal accepted with ID: ")
+        command.ctrl_c()
+        served.expect("cancel requested 1")  # the handler saw cancel_requested, not a cut
+    finally:
+        code, out, err = command.end()
+    assert (code, err) == (ExitCode.INTERRUPTED, "")
+    assert re.fullmatch(
+        r"Sending goal:\n    order: 1\n\nGoal accepted with ID: [-0-9a-f]{36}\n"
+        r"\nCanceling goal \(Ctrl-C again to stop waiting\)\.\.\.\n"
+        r"\nResult:\n    sequence:\n    - 7\n"  # the handler's own result
+        r"\nGoal finished with status: CANCELED\n",
+        out,
+    ), out
+
+
+def test_a_second_ctrl_c_stops_waiting_for_a_goal_that_goes_on(
+    goal_server: tuple[str, Lines],
+) -> None:
+    url, served = goal_server
+    command = SendGoal(url, 2)
+    try:
+        served.expect("started 2")
+        command.out.expect("Goal accepted with ID: ")
+        command.ctrl_c()
+        command.out.expect("Canceling goal (Ctrl-C again to stop waiting)...")
+        served.expect("cancel requested 2")  # and the handler goes on
+        command.ctrl_c()  # ends the command, not its deadline (600 s)
+    finally:
+        code, out, err = command.end()
+    assert (code, err) == (ExitCode.INTERRUPTED, "srvwire: error: interrupted\n"), out
+    assert "Result:" not in out
+    served.expect("cut 2")  # the connection's end stopped the handler
+
+
+@pytest.mark.parametrize(
+    ("values", "code", "said"),
+    [
+        ("{order: x}", ExitCode.INVALID_PARAMS, "(checked by the client; nothing was sent)"),
+        ("{order: 60}", ExitCode.SERVICE_FAILED, "GoalRejected: GOAL_REJECTED (-32007)"),
+    ],
+)
+def test_a_goal_that_was_not_accepted_prints_only_the_error(
+    capsys: pytest.CaptureFixture[str], url: str, values: str, code: int, said: str
+) -> None:
+    got, out, err = run(capsys, url, "send_goal", "/fibonacci", values)
+    assert (got, out) == (code, "")
+    assert said in err
+    got, out, err = run(capsys, url, "send_goal", "/no_such_action", "{}")
+    assert (got, out) == (ExitCode.SERVICE_NOT_FOUND, "")
+    assert "no service named /no_such_action" in err

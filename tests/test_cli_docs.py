@@ -53,6 +53,10 @@ NOT_RUN = {
         "serves until Ctrl-C, with certificates of its own; test_cli_security.py's "
         "test_serve_with_client_certificates_may_listen_publicly serves the same way"
     ),
+    "srvwire serve app.py --certfile cert.pem --keyfile ca.pem": (
+        "needs the TLS files; test_cli_security.py's "
+        "test_serve_names_a_tls_file_it_cannot_use_and_what_is_wrong checks this line"
+    ),
     'srvwire call /status --url wss://robot.example.com:8765 --cacert ca.pem --token "$TOKEN"': (
         "needs a TLS server with its certificates; test_cli_security.py's "
         "test_serve_tls_and_call_it_with_the_ca calls one with --cacert"

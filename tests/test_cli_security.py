@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import trustme
+from cryptography.hazmat.primitives import serialization
 
 from conftest import Subtract, subtract
 from srvwire import Identity, Server, TokenAuth, connect
@@ -236,11 +237,100 @@ def test_serve_tls_options_that_do_not_fit(
         "--keyfile and --client-ca need --certfile (the server's certificate)"
     )
     missing = tmp_path / "missing.pem"
-    code, _, err = run(capsys, "serve", str(app), "--port", "0", "--certfile", str(missing))
-    assert code == ExitCode.FAILURE
-    assert one_error_line(err) == ("cannot use the TLS files: [Errno 2] No such file or directory")
     code, _, err = run(capsys, "call", "/x", "--url", "wss://localhost:1", "--cacert", str(missing))
     assert code == ExitCode.USAGE
     assert one_error_line(err) == (
         f"cannot use --cacert {missing}: [Errno 2] No such file or directory"
     )
+
+
+@pytest.fixture
+def bad_tls_files(tmp_path: Path, tls_files: tuple[Path, Path, Path]) -> Path:
+    """Beside ``tls_files``: a key of another certificate, the certificate and its key in one
+    file, a file that is not PEM, and the key encrypted."""
+    ca = trustme.CA()
+    ca.issue_cert("localhost").private_key_pem.write_to_path(str(tmp_path / "other_key.pem"))
+    _, certfile, keyfile = tls_files
+    (tmp_path / "both.pem").write_bytes(certfile.read_bytes() + keyfile.read_bytes())
+    (tmp_path / "junk.pem").write_text("not a certificate\n", encoding="ascii")
+    key = serialization.load_pem_private_key(keyfile.read_bytes(), None)
+    encrypted = key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.BestAvailableEncryption(b"secret"),
+    )
+    (tmp_path / "encrypted_key.pem").write_bytes(encrypted)
+    return tmp_path
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (
+            ["--certfile", "missing.pem"],
+            "cannot read --certfile {d}/missing.pem: No such file or directory",
+        ),
+        (
+            ["--certfile", "cert.pem", "--keyfile", "missing.pem"],
+            "cannot read --keyfile {d}/missing.pem: No such file or directory",
+        ),
+        (
+            ["--certfile", "cert.pem"],
+            "--certfile {d}/cert.pem holds no private key: give the certificate's key with "
+            "--keyfile FILE",
+        ),
+        (
+            ["--certfile", "cert.pem", "--keyfile", "ca.pem"],
+            "--keyfile {d}/ca.pem holds no PEM private key (it holds a certificate)",
+        ),
+        (
+            ["--certfile", "cert.pem", "--keyfile", "other_key.pem"],
+            "the private key in --keyfile {d}/other_key.pem is not the key of the certificate "
+            "in --certfile {d}/cert.pem",
+        ),
+        (
+            ["--certfile", "junk.pem", "--keyfile", "key.pem"],
+            "--certfile {d}/junk.pem holds no PEM certificate",
+        ),
+        (
+            ["--certfile", "key.pem"],
+            "--certfile {d}/key.pem holds no PEM certificate (it holds a private key: give that "
+            "as --keyfile)",
+        ),
+        (
+            ["--certfile", "cert.pem", "--keyfile", "encrypted_key.pem"],
+            "the private key in --keyfile {d}/encrypted_key.pem is encrypted; serve needs it "
+            "unencrypted",
+        ),
+        (
+            ["--certfile", "both.pem", "--client-ca", "key.pem"],
+            "--client-ca {d}/key.pem holds no PEM certificate",
+        ),
+        (
+            ["--certfile", "both.pem", "--client-ca", "missing.pem"],
+            "cannot read --client-ca {d}/missing.pem: No such file or directory",
+        ),
+    ],
+)
+def test_serve_names_a_tls_file_it_cannot_use_and_what_is_wrong(
+    capsys: pytest.CaptureFixture[str],
+    app: Path,
+    bad_tls_files: Path,
+    argv: list[str],
+    said: str,
+) -> None:
+    folder = bad_tls_files
+    paths = [str(folder / arg) if arg.endswith(".pem") else arg for arg in argv]
+    code, out, err = run(capsys, "serve", str(app), "--port", "0", *paths)
+    assert (code, out) == (ExitCode.USAGE, "")
+    assert one_error_line(err) == said.format(d=folder)
+
+
+def test_serve_takes_the_certificate_and_its_key_from_one_file(
+    app: Path, bad_tls_files: Path
+) -> None:
+    served = Served(str(app), "--certfile", str(bad_tls_files / "both.pem"))
+    try:
+        assert served.url.startswith("wss://")
+    finally:
+        served.stop()

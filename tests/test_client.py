@@ -171,11 +171,16 @@ async def test_connect_to_a_closed_port_is_a_typed_error() -> None:
 async def test_a_server_that_never_advertises_is_not_a_srvwire_server() -> None:
     silent = FakePeer(advertise=False)
     await silent.start()
+    url = silent.url
     try:
-        with pytest.raises(ServiceUnavailable, match="not ready within"):
-            await connect(silent.url, open_timeout=scaled(0.2))
+        with pytest.raises(ServiceUnavailable) as caught:
+            await connect(url, open_timeout=scaled(0.2))
     finally:
         await silent.stop()
+    assert caught.value.message == (
+        f"cannot connect to {url}: the WebSocket opened, but its server sent no "
+        f"$/services within {scaled(0.2):g} s (open_timeout): is it a srvwire server?"
+    )
 
 
 async def test_a_server_whose_first_message_is_not_the_services_list_is_refused() -> None:

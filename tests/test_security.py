@@ -9,8 +9,10 @@ import errno
 import json
 import logging
 import ssl
+import threading
 import time
 from collections.abc import AsyncIterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
@@ -519,6 +521,41 @@ async def test_wss_to_a_plain_server_says_it_may_not_speak_tls(
         f"cannot connect to {url}: the TLS handshake failed; the server may not speak TLS "
         "(try ws://): "
     )
+
+
+class _WebPage(BaseHTTPRequestHandler):
+    """A plain web server's answer to any GET, in HTTP/1.0 (http.server's default)."""
+
+    def do_GET(self) -> None:
+        body = b"<html>a web page</html>"
+        self.send_response(200)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass  # not on the test's stderr
+
+
+async def test_a_plain_web_server_is_not_taken_for_a_tls_one(edge: str) -> None:
+    web = ThreadingHTTPServer(("127.0.0.1", 0), _WebPage)
+    thread = threading.Thread(target=web.serve_forever, daemon=True)
+    thread.start()
+    url = f"ws://127.0.0.1:{web.server_address[1]}"
+    try:
+        with pytest.raises(ServiceUnavailable) as exc:
+            await connect(url, transport=edge, timeout=scaled(5))
+    finally:
+        web.shutdown()
+        web.server_close()
+        thread.join()
+    message = exc.value.message
+    assert message.startswith(
+        f"cannot connect to {url}: the server did not answer as a WebSocket server does ("
+    ), message
+    assert message.endswith("); is a srvwire server at this address?"), message
+    assert "1.0" in message  # what it answered with
+    assert "TLS" not in message
 
 
 async def test_mutual_tls_makes_the_certificate_subject_the_identity(

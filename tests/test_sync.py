@@ -38,7 +38,7 @@ from srvwire.errors import (
 from srvwire.loader import load_service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.sync import LoopThread
-from support import scaled
+from support import Lines, interruptible, scaled, serve_goal_server
 
 AddTwoInts = load_service("example_interfaces/srv/AddTwoInts")
 Trigger = load_service("std_srvs/srv/Trigger")
@@ -679,3 +679,86 @@ def test_a_subscription_left_on_the_clients_own_loop_thread_still_ends(
     client._loop.run(collected_there(), scaled(5))
     settled(client)
     assert server.joints.subscription_count == 0
+
+
+# --- Ctrl-C while a goal runs -------------------------------------------------------------
+
+# A script with a blocking client that presses Ctrl-C on itself (a real SIGINT) while
+# result() or feedback() waits, outside a `with` block, or elsewhere in a `with` block. It
+# knows the wait began when the client's loop starts the goal's coroutine (a SIGINT sent when
+# the server's handler started could reach the script before it entered the wait), and sends
+# the signal to the main thread, as a terminal's Ctrl-C reaches it. It prints
+# the goal's status once KeyboardInterrupt reached it: "canceled" when the goal's outcome
+# arrived, "executing" or "aborted" when the connection closed first.
+GOAL_SCRIPT = """
+import signal, sys, threading
+import srvwire.sync
+from srvwire.actions import ClientGoal
+
+url, where = sys.argv[1], sys.argv[2]
+waiting = threading.Event()
+result, feedback = ClientGoal.result, ClientGoal.feedback
+
+async def result_noticed(self):
+    waiting.set()
+    return await result(self)
+
+async def feedback_noticed(self):
+    waiting.set()
+    async for item in feedback(self):
+        yield item
+
+ClientGoal.result, ClientGoal.feedback = result_noticed, feedback_noticed
+
+def press_ctrl_c():
+    waiting.wait()
+    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+if where != "with":
+    threading.Thread(target=press_ctrl_c, daemon=True).start()
+client = srvwire.sync.connect(url, timeout=600)
+try:
+    if where == "with":
+        with client:
+            goal = client.send_goal("/patient", {"order": 1})
+            print("accepted", flush=True)
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C while the program does its own work
+    goal = client.send_goal("/patient", {"order": 1})
+    print("accepted", flush=True)
+    if where == "result":
+        goal.result()
+    else:
+        for item in goal.feedback():
+            pass
+except KeyboardInterrupt:
+    print("interrupted:", goal.status, flush=True)
+finally:
+    client.close()
+"""
+
+
+@pytest.mark.parametrize("where", ["result", "feedback", "with"])
+def test_ctrl_c_asks_the_server_to_cancel_a_goal_before_the_connection_closes(where: str) -> None:
+    with serve_goal_server() as (url, served):
+        process = subprocess.Popen(
+            [sys.executable, "-c", GOAL_SCRIPT, url, where],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=interruptible,
+        )
+        assert process.stdout is not None and process.stderr is not None
+        out = Lines(process.stdout)
+        try:
+            served.expect("started 1")
+            served.expect("cancel requested 1")  # the handler was asked, not cut
+            out.expect("interrupted:")
+            code = process.wait(timeout=scaled(60))
+        finally:
+            process.kill()
+            process.wait()
+            printed = out.close()
+            err = process.stderr.read()
+            process.stderr.close()
+        assert (code, err) == (0, "")
+        assert printed == "accepted\ninterrupted: canceled\n"

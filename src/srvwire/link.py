@@ -247,18 +247,24 @@ class Link:
         a srvwire server, and is closed with 1008.
         """
         url = owner.url
+        opened = False
         try:
             async with asyncio.timeout(open_timeout):
                 conn = await transport.connect(url, options, headers=headers, ssl=ssl)
+                opened = True
                 try:
                     first = await conn.recv()
                 except BaseException:
                     owner.spawn(conn.close())
                     raise
         except TimeoutError as exc:
-            raise ServiceUnavailable(
-                f"cannot connect to {url}: not ready within {open_timeout:g} s", {"url": url}
-            ) from exc
+            why = (
+                f"the WebSocket opened, but its server sent no $/services within "
+                f"{open_timeout:g} s (open_timeout): is it a srvwire server?"
+                if opened
+                else f"not ready within {open_timeout:g} s (open_timeout)"
+            )
+            raise ServiceUnavailable(f"cannot connect to {url}: {why}", {"url": url}) from exc
         except (OSError, TransportClosed) as exc:
             raise ServiceUnavailable(f"cannot connect to {url}: {exc}", {"url": url}) from exc
         link = cls(owner, conn, options.max_message_size)

@@ -33,7 +33,12 @@ The same exception classes as the async client's are raised, with the same meani
 
 An action's goal is a :class:`Goal`, whose methods block: :meth:`Client.send_goal` returns
 once the server accepted it, :meth:`Goal.feedback` is a plain iterator whose ``next`` waits
-on the loop, :meth:`Goal.result` waits for the outcome. A topic's subscription is a
+on the loop, :meth:`Goal.result` waits for the outcome. Ctrl-C (``KeyboardInterrupt``) while
+:meth:`Goal.result` or :meth:`Goal.feedback` waits, or anywhere in the client's ``with``
+block, asks the server to cancel each goal still running and waits for its outcome (at most
+its deadline; a second Ctrl-C stops waiting) before the ``KeyboardInterrupt`` goes on and the
+connection closes, so a handler sees :attr:`srvwire.GoalHandle.cancel_requested` and has its
+``cancel_grace``. A topic's subscription is a
 :class:`Subscription` in the same way: a plain iterator of typed messages, and a context
 manager; it stands on the async :class:`~srvwire.client.Subscription`, whose queue stays on
 the loop, so a wait given up (a ``timeout`` per message) loses no message.
@@ -43,6 +48,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import functools
 import threading
 import weakref
@@ -56,7 +62,7 @@ from srvwire import client as aio
 from srvwire.actions import ClientGoal, GoalResult
 from srvwire.calls import ServiceInfo, SrvType, check_timeout
 from srvwire.client import TopicInfo
-from srvwire.errors import ConnectionLost, DeadlineExceeded
+from srvwire.errors import ConnectionLost, DeadlineExceeded, RPCError
 from srvwire.models import Action, Message, ServiceRequest, TypedService
 
 __all__ = [
@@ -230,6 +236,8 @@ class Client:
         self._client = aio.Client(options)
         self._closing = threading.Lock()
         self._closed = False
+        self._goals: weakref.WeakSet[ClientGoal[Any]] = weakref.WeakSet()  # the link keeps
+        self._goals_lock = threading.Lock()  # those pending alive, so they are all here
         try:
             self._run(self._client.open(), options.open_timeout)
         except BaseException:
@@ -431,7 +439,23 @@ class Client:
             budget,
             name,
         )
+        with self._goals_lock:
+            self._goals.add(handle)
         return Goal(self, handle, budget)
+
+    def _stop_goals(self, handles: list[ClientGoal[Any]]) -> None:
+        """After Ctrl-C: ask the server to cancel each of ``handles`` still running whose
+        cancellation was not asked yet, and wait for their outcomes (kept by each handle).
+
+        The wait ends at the last of their deadlines, or at a second ``KeyboardInterrupt``,
+        which is raised; an error meanwhile (the connection lost) ends it quietly, as the
+        first interruption is what the caller goes on with.
+        """
+        if not handles or self._closed:
+            return
+        budget = max(handle.budget for handle in handles)
+        with contextlib.suppress(RPCError):
+            self._run(_cancel_and_wait(handles), budget)
 
     # --- topics ---------------------------------------------------------------------------
 
@@ -571,7 +595,13 @@ class Client:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        self.close()
+        try:
+            if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+                with self._goals_lock:
+                    handles = list(self._goals)
+                self._stop_goals(handles)
+        finally:
+            self.close()
 
 
 class Goal:
@@ -609,7 +639,11 @@ class Goal:
         """Yield the goal's feedback (typed, the latest each time) until it ends."""
         feedback = self._handle.feedback()
         while True:
-            step = self.client._run(_next(feedback), self._budget, self.name)
+            try:
+                step = self.client._run(_next(feedback), self._budget, self.name)
+            except KeyboardInterrupt:
+                self.client._stop_goals([self._handle])
+                raise
             if step is _END:
                 return
             yield step
@@ -623,13 +657,17 @@ class Goal:
         goes on: ask again, or :meth:`cancel` it.
         """
         if timeout is None:
-            return self.client._run(self._handle.result(), self._budget, self.name)
-        wait = check_timeout(timeout)
-        return self.client._run(
-            _within(self._handle.result(), wait, self.name, "the goal had no outcome"),
-            min(wait, self._budget),
-            self.name,
-        )
+            waiting = self._handle.result()
+            budget = self._budget
+        else:
+            wait = check_timeout(timeout)
+            waiting = _within(self._handle.result(), wait, self.name, "the goal had no outcome")
+            budget = min(wait, self._budget)
+        try:
+            return self.client._run(waiting, budget, self.name)
+        except KeyboardInterrupt:  # ask the server to stop it before the program leaves
+            self.client._stop_goals([self._handle])
+            raise
 
     def cancel(self) -> bool:
         """Ask the server to cancel the goal; see :meth:`srvwire.ClientGoal.cancel`."""
@@ -648,6 +686,14 @@ async def _within(awaitable: Awaitable[T], seconds: float, name: str, what: str)
         raise DeadlineExceeded(
             f"{what} within {seconds:g} s", {"timeout": seconds}, service=name
         ) from None
+
+
+async def _cancel_and_wait(handles: list[ClientGoal[Any]]) -> None:
+    """Ask the server to cancel each goal still running, once; then wait for their outcomes."""
+    stopping = [handle for handle in handles if not handle.done and not handle.cancel_sent]
+    for handle in stopping:
+        await handle.cancel()
+    await asyncio.gather(*(handle.result() for handle in stopping), return_exceptions=True)
 
 
 async def _next(iterator: AsyncIterator[Any]) -> Any:

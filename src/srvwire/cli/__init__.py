@@ -31,6 +31,7 @@ from srvwire.cli.common import (
     Parser,
     UsageError,
     exit_code_for,
+    size_limit_hint,
 )
 from srvwire.errors import RPCError, ServiceNotFound, SrvwireError
 
@@ -169,6 +170,9 @@ def _describe_rpc_error(exc: RPCError) -> str:
             data = {key: value for key, value in data.items() if key != "candidates"} or None
     if data is not None:
         text += f" (data: {json.dumps(data, default=str, ensure_ascii=False)})"
+    hint = size_limit_hint(exc)
+    if hint is not None:
+        text += f"; {hint}"
     return text
 
 

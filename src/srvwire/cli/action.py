@@ -14,6 +14,7 @@ from typing import Any
 import pydantic
 import yaml
 
+from srvwire.actions import ClientGoal, GoalResult
 from srvwire.cli.call import _TYPE_SHAPE, _parse_values
 from srvwire.cli.common import (
     EXIT_CODES_HELP,
@@ -80,7 +81,8 @@ def register(commands: Commands) -> None:
         "  srvwire action send_goal /fibonacci example_interfaces/action/Fibonacci "
         "'{order: 5}' --feedback\n\n"
         "TYPE may be left out when the server advertises the action's type. --timeout bounds\n"
-        "the whole goal, until its result. Ctrl-C cancels the goal.\n\n"
+        "the whole goal, until its result. Ctrl-C asks the server to cancel the goal and\n"
+        "waits for its outcome (exit 130); a second Ctrl-C stops waiting.\n\n"
         "A goal that ends canceled exits with 8, aborted or rejected with 7.\n\n" + EXIT_CODES_HELP,
         [remote, local_options()],
     )
@@ -165,19 +167,41 @@ async def _send_goal(
                 f"{name} is the service {advertised}, not an action: use srvwire call",
                 ExitCode.USAGE,
             )
-        print("Sending goal:")
-        print(_yaml(values or {}), flush=True)
+        # Said once the goal got past the client's own checks (a known action, values that fit
+        # its Goal), which send nothing when they fail, and the server accepted it.
         handle = await client.send_goal(name, values, timeout=args.timeout, action_type=action)
+        print("Sending goal:")
+        print(_yaml(values or {}))
         print(f"\nGoal accepted with ID: {handle.goal_id}", flush=True)
         try:
             if args.feedback:
                 async for feedback in handle.feedback():
                     print(f"\nFeedback:\n{_yaml(feedback)}", flush=True)
             outcome = await handle.result()
-        except asyncio.CancelledError:  # Ctrl-C: ask the server to stop it, and wait no more
-            await handle.cancel()
-            handle.forget()
-            raise
-        print(f"\nResult:\n{_yaml(outcome.result)}")
-        print(f"\nGoal finished with status: {outcome.status.upper()}", flush=True)
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if task is None or task.uncancel() > 0:
+                raise  # cancelled by something other than asyncio.run's first Ctrl-C
+            outcome = await _cancel_on_interrupt(handle)
+            _print_outcome(outcome)
+            return ExitCode.INTERRUPTED
+        _print_outcome(outcome)
         return GOAL_EXIT_CODES[outcome.status]
+
+
+async def _cancel_on_interrupt(handle: ClientGoal[Any]) -> GoalResult[Any]:
+    """After a first Ctrl-C: ask the server to cancel the goal, and wait for its outcome.
+
+    The wait ends with the outcome the handler chose (``canceled``, or what it reached first),
+    with the goal's deadline (``DeadlineExceeded``), or at a second Ctrl-C, which
+    :func:`asyncio.run` raises as ``KeyboardInterrupt``; leaving then closes the connection,
+    which stops the handler at once.
+    """
+    print("\nCanceling goal (Ctrl-C again to stop waiting)...", flush=True)
+    await handle.cancel()
+    return await handle.result()
+
+
+def _print_outcome(outcome: GoalResult[Any]) -> None:
+    print(f"\nResult:\n{_yaml(outcome.result)}")
+    print(f"\nGoal finished with status: {outcome.status.upper()}", flush=True)

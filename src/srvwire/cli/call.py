@@ -100,6 +100,12 @@ def _cmd_call(args: argparse.Namespace) -> int:
     if values_arg is None and type_arg is not None and not _TYPE_SHAPE.match(type_arg):
         type_arg, values_arg = None, type_arg
     values = _parse_values(values_arg)
+    if type_arg is not None and "/action/" in type_arg:
+        raise CommandError(
+            f"{type_arg} is an action type, not a service type: send it a goal with "
+            f"srvwire action send_goal {args.name}",
+            ExitCode.USAGE,
+        )
     # The process's classes: the client types the call's nested messages with them too.
     loader = InterfaceLoader(args.path)
     srv_type = loader.load_service(type_arg) if type_arg is not None else None
@@ -177,6 +183,12 @@ async def _call(
         # The server advertised its services' types on connecting; an unknown service is left
         # for the call to report.
         advertised = client.services.get(name)
+        if advertised is not None and "/action/" in advertised:
+            raise CommandError(
+                f"{name} is the action {advertised}, not a service: use srvwire action "
+                f"send_goal {name}",
+                ExitCode.USAGE,
+            )
         if advertised is not None:
             if srv_type is None:
                 type_name = advertised

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import enum
+import logging
 import os
 import re
 import ssl
@@ -22,9 +23,21 @@ from pathlib import Path
 from typing import Final, NoReturn, TypeAlias
 
 from srvwire.client import DEFAULT_TIMEOUT, DEFAULT_URL, Client, connect, plaintext_host
-from srvwire.errors import ErrorCode, InterfaceError, RPCError, is_reserved_code
+from srvwire.errors import (
+    ErrorCode,
+    InterfaceError,
+    ResourceExhausted,
+    RPCError,
+    is_reserved_code,
+)
 from srvwire.loader import InterfaceLoader
 from srvwire.typeregistry import TypeRegistry
+
+DEFAULT_MAX_MESSAGE_SIZE = 2**20
+"""``--max-message-size``'s default, in bytes: the client's and the server's own."""
+
+CLOSE_MESSAGE_TOO_BIG = 1009
+"""The WebSocket close code of a message over the reading side's limit (RFC 6455)."""
 
 URL_ENV_VAR = "SRVWIRE_URL"
 TOKEN_ENV_VAR = "SRVWIRE_TOKEN"
@@ -181,6 +194,14 @@ def remote_options() -> Parser:
         type=header,
         metavar="'NAME: VALUE'",
         help="send this header with the opening request (repeatable)",
+    )
+    remote.add_argument(
+        "--max-message-size",
+        type=positive_int,
+        default=DEFAULT_MAX_MESSAGE_SIZE,
+        metavar="BYTES",
+        help="the largest reply or message taken from the server, and the largest request "
+        f"sent (default: {DEFAULT_MAX_MESSAGE_SIZE}, 1 MiB); the server has its own limit",
     )
     remote.add_argument(
         "--cacert",
@@ -341,6 +362,8 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
             token=token,
             headers=headers,
             ssl=client_tls(args),
+            logger=_unlogged(),
+            max_message_size=getattr(args, "max_message_size", DEFAULT_MAX_MESSAGE_SIZE),
         )
     except ValueError as exc:
         raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
@@ -352,6 +375,38 @@ async def open_client(args: argparse.Namespace) -> AsyncIterator[Client]:
         if entered:  # raised by the command, not by connecting: not about --url
             raise
         raise CommandError(f"bad {source}: {exc}", ExitCode.USAGE) from None
+
+
+def _unlogged() -> logging.Logger:
+    """The client's logger in a command: one that writes nothing.
+
+    What goes wrong reaches the command as an error, which it says in its one line; the
+    client's own warnings (a connection lost, with the calls it failed) would be a second.
+    """
+    logger = logging.Logger("srvwire.client")  # not the process's: nothing else changes
+    logger.addHandler(logging.NullHandler())  # else logging's last resort writes to stderr
+    return logger
+
+
+def size_limit_hint(error: RPCError) -> str | None:
+    """What to do about ``error`` when a message was over a ``max_message_size``, else None.
+
+    The client refuses to send a request over its limit (``ResourceExhausted`` with the
+    limit in its data); a message over the limit of the side that reads it closes the
+    connection with 1009, whose reason says which side's limit it was.
+    """
+    data = error.data if isinstance(error.data, dict) else {}
+    mine = "raise this command's limit with --max-message-size BYTES"
+    if isinstance(error, ResourceExhausted) and "max_message_size" in data:
+        return f"{mine} (a request that size needs the server's limit raised too)"
+    if data.get("close_code") != CLOSE_MESSAGE_TOO_BIG:
+        return None
+    if str(data.get("close_reason", "")).startswith("over the server's"):
+        return (
+            "the message was over the server's limit: raise it there (srvwire serve "
+            "--max-message-size BYTES, or Server(max_message_size=...))"
+        )
+    return mine
 
 
 def plural(count: int, noun: str) -> str:

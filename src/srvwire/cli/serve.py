@@ -13,16 +13,25 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import inspect
 import logging
 import os
 import re
 import ssl
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from srvwire.cli.common import CommandError, Commands, ExitCode, add_command, port
+from srvwire.cli.common import (
+    CommandError,
+    Commands,
+    ExitCode,
+    add_command,
+    port,
+    positive_int,
+)
 from srvwire.handshake import EdgePolicy, is_loopback
 from srvwire.server import RunningServer, Server
 from srvwire.transports import get_transport
@@ -91,6 +100,13 @@ def register(commands: Commands) -> None:
         "authenticate (only on a network you trust)",
     )
     serve.add_argument(
+        "--max-message-size",
+        type=positive_int,
+        metavar="BYTES",
+        help="the largest message a client may send, such as a large request (default: the "
+        "Server's max_message_size, 1048576 unless the code sets it)",
+    )
+    serve.add_argument(
         "--log-level",
         type=str.lower,
         choices=["debug", "info", "warning", "error"],
@@ -120,6 +136,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise CommandError(str(exc), ExitCode.USAGE) from None
     hosts: list[str] = args.host or ["127.0.0.1"]
     host: str | list[str] = hosts[0] if len(hosts) == 1 else hosts
+    if args.max_message_size is not None:
+        server.max_message_size = args.max_message_size
     if args.access_log:
         server.access_log = logging.getLogger("srvwire.access")
     if args.origin:
@@ -178,23 +196,89 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _tls_context(args: argparse.Namespace) -> ssl.SSLContext | None:
-    """The server's TLS context from ``--certfile``/``--keyfile``/``--client-ca``, or None."""
-    if args.certfile is None:
-        if args.keyfile is not None or args.client_ca is not None:
+    """The server's TLS context from ``--certfile``/``--keyfile``/``--client-ca``, or None.
+
+    A file that cannot be used is a usage error that names the option and the file and says
+    what is wrong with it: missing or unreadable, no certificate in it, no private key where
+    one is expected (a CA's file given as the key), or a key that is not the certificate's.
+    """
+    certfile: Path | None = args.certfile
+    keyfile: Path | None = args.keyfile
+    client_ca: Path | None = args.client_ca
+    if certfile is None:
+        if keyfile is not None or client_ca is not None:
             raise CommandError(
                 "--keyfile and --client-ca need --certfile (the server's certificate)",
                 ExitCode.USAGE,
             )
         return None
+    cert_pem = _read_pem("--certfile", certfile)
+    if not _has_block(cert_pem, "CERTIFICATE"):
+        holds = " (it holds a private key: give that as --keyfile)" if _has_key(cert_pem) else ""
+        raise _tls_error(f"--certfile {certfile} holds no PEM certificate{holds}")
+    if keyfile is not None:
+        key_pem = _read_pem("--keyfile", keyfile)
+        if not _has_key(key_pem):
+            holds = " (it holds a certificate)" if _has_block(key_pem, "CERTIFICATE") else ""
+            raise _tls_error(f"--keyfile {keyfile} holds no PEM private key{holds}")
+    elif not _has_key(cert_pem):
+        raise _tls_error(
+            f"--certfile {certfile} holds no private key: give the certificate's key with "
+            "--keyfile FILE"
+        )
     context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    key_source = f"--keyfile {keyfile}" if keyfile is not None else f"--certfile {certfile}"
     try:
-        context.load_cert_chain(args.certfile, args.keyfile)
-        if args.client_ca is not None:
-            context.verify_mode = ssl.CERT_REQUIRED
-            context.load_verify_locations(args.client_ca)
-    except (OSError, ssl.SSLError) as exc:
-        raise CommandError(f"cannot use the TLS files: {exc}") from None
+        context.load_cert_chain(certfile, keyfile, password=_no_password(key_source))
+    except ssl.SSLError as exc:
+        if exc.reason == "KEY_VALUES_MISMATCH":
+            raise _tls_error(
+                f"the private key in {key_source} is not the key of the certificate in "
+                f"--certfile {certfile}"
+            ) from None
+        raise _tls_error(f"cannot use --certfile {certfile} with {key_source}: {exc}") from None
+    if client_ca is not None:
+        ca_pem = _read_pem("--client-ca", client_ca)
+        if not _has_block(ca_pem, "CERTIFICATE"):
+            raise _tls_error(f"--client-ca {client_ca} holds no PEM certificate")
+        try:
+            context.load_verify_locations(client_ca)
+        except ssl.SSLError as exc:
+            raise _tls_error(f"cannot use --client-ca {client_ca}: {exc}") from None
+        context.verify_mode = ssl.CERT_REQUIRED
     return context
+
+
+def _read_pem(option: str, path: Path) -> str:
+    try:
+        return path.read_bytes().decode("ascii", errors="replace")
+    except OSError as exc:
+        raise _tls_error(f"cannot read {option} {path}: {exc.strerror or exc}") from None
+
+
+def _has_block(pem: str, label: str) -> bool:
+    """Whether ``pem`` has a ``-----BEGIN <label>-----`` block."""
+    return f"-----BEGIN {label}-----" in pem
+
+
+def _has_key(pem: str) -> bool:
+    """Whether ``pem`` has a private key block (PKCS #8, RSA, EC, or encrypted)."""
+    return re.search(r"-----BEGIN (?:[A-Z]+ )?PRIVATE KEY-----", pem) is not None
+
+
+def _no_password(key_source: str) -> Callable[[], str]:
+    """The password callback of an encrypted key: refuse, instead of a prompt on the terminal."""
+
+    def refuse() -> str:
+        raise _tls_error(
+            f"the private key in {key_source} is encrypted; serve needs it unencrypted"
+        )
+
+    return refuse
+
+
+def _tls_error(message: str) -> CommandError:
+    return CommandError(message, ExitCode.USAGE)
 
 
 def _printed_already(record: logging.LogRecord) -> bool:
@@ -233,8 +317,13 @@ def _load_target(target: str, *, factory: bool = False) -> Server:
                     f"{location}:{name}() returned {type(found).__name__!r}, not a srvwire Server"
                 )
         if not isinstance(found, Server):
+            hint = (
+                "; if it returns the Server, add --factory"
+                if inspect.isfunction(found) or inspect.ismethod(found)
+                else ""
+            )
             raise CommandError(
-                f"{location}:{name} is {type(found).__name__!r}, not a srvwire Server"
+                f"{location}:{name} is {type(found).__name__!r}, not a srvwire Server{hint}"
             )
         return found
     wanted = " or ".join(repr(name) for name in names)

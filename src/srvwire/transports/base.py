@@ -374,18 +374,26 @@ def opening_failed(
     *,
     refused: tuple[int, str] | None = None,
     closed_early: bool = False,
+    not_websocket: bool = False,
 ) -> TransportError:
     """Say why opening a connection to ``url`` failed, as a person can act on it.
 
     ``refused`` is the HTTP status and body of an upgrade the server answered with something
     else; ``closed_early`` says the server closed the connection during the opening handshake
-    (what a TLS server does to a plain client). Every transport words its failures here.
+    (what a TLS server does to a plain client); ``not_websocket`` that it answered with
+    something other than an HTTP/1.1 upgrade (a plain web server, such as an HTTP/1.0 one).
+    Every transport words its failures here.
     """
     tls = url.lower().startswith("wss:")
     if refused is not None:
         status, body = refused
         return TransportError(
             f"the server refused the connection: HTTP {status}" + (f": {body}" if body else "")
+        )
+    if not_websocket:
+        return TransportError(
+            f"the server did not answer as a WebSocket server does ({exc}); "
+            "is a srvwire server at this address?"
         )
     if isinstance(exc, _ssl.SSLCertVerificationError):
         return TransportError(f"the server's TLS certificate is not trusted: {exc.verify_message}")

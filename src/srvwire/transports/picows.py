@@ -1051,4 +1051,6 @@ def _refusal(exc: Exception, url: str) -> TransportError:
     if isinstance(exc, WSHandshakeError) and exc.response is not None:
         body = (exc.raw_body or b"").decode("utf-8", "replace").strip()
         refused = (_code(exc.response.status), body)
-    return opening_failed(url, exc, refused=refused, closed_early=isinstance(exc, WSError))
+    # A connection that ends before the answer never gets here (see connect): a WSError is
+    # an answer that is not a WebSocket upgrade.
+    return opening_failed(url, exc, refused=refused, not_websocket=isinstance(exc, WSError))

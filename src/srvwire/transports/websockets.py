@@ -740,7 +740,15 @@ def _refusal(exc: Exception, url: str) -> TransportError:
     if isinstance(exc, InvalidStatus):
         body = exc.response.body.decode("utf-8", "replace").strip()
         refused = (exc.response.status_code, body)
-    return opening_failed(url, exc, refused=refused, closed_early=isinstance(exc, InvalidMessage))
+    # A response websockets cannot parse is a ValueError; one that never came, an EOFError.
+    unreadable = isinstance(exc, InvalidMessage) and isinstance(exc.__cause__, ValueError)
+    return opening_failed(
+        url,
+        exc.__cause__ if unreadable and exc.__cause__ is not None else exc,
+        refused=refused,
+        closed_early=isinstance(exc, InvalidMessage) and not unreadable,
+        not_websocket=unreadable,
+    )
 
 
 _WILDCARDS = ("", "0.0.0.0", "::")
