@@ -43,8 +43,12 @@ typecheck: $(INSTALLED)
 docs: $(INSTALLED)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir site
 
+# The suite on every core (pytest-xdist): PYTEST_WORKERS=0 runs it in this one process. Tests
+# marked xdist_group share an expensive module fixture and run on one worker (--dist loadgroup).
+# Not in pytest's addopts, so that `pytest tests/test_x.py` starts no workers.
+PYTEST_WORKERS ?= auto
 pytest: $(INSTALLED) $(NODE_INSTALLED) chromium
-	$(BIN)/pytest
+	$(BIN)/pytest -n $(PYTEST_WORKERS) --dist loadgroup
 
 test: lint typecheck docs pytest
 

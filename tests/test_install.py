@@ -26,6 +26,9 @@ import pytest
 import srvwire
 from support import ROOT, scaled
 
+# Under pytest-xdist (make test), on one worker: the wheel is built and installed once.
+pytestmark = pytest.mark.xdist_group("install")
+
 
 @dataclass(frozen=True)
 class Installed:
