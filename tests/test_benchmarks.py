@@ -12,6 +12,7 @@ import asyncio
 import importlib
 import importlib.util
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -401,6 +402,29 @@ def test_the_bare_typed_floor_on_picows_is_the_floor_with_its_deadline_switched_
     assert client.deadline_asked()
     monkeypatch.setattr(sys, "argv", [*command, *options])
     assert not client.deadline_asked()
+
+
+async def test_the_harness_samples_the_load_only_where_the_limit_can_be_passed(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The smoke runs above give --max-other-load 64: no machine is busier than its CPUs, so the
+    # harness measures at once instead of sampling /proc/stat over a window before each run.
+    run = floors["run"]
+    samples: list[float] = []
+
+    def quiet_machine() -> float:
+        samples.append(0.0)
+        return 0.0
+
+    monkeypatch.setattr(run, "machine_busy_seconds", quiet_machine)
+    monkeypatch.setattr(run, "QUIET_WINDOW", 0.001)
+    cpus = os.cpu_count() or 1
+    await run.wait_for_quiet(cpus + 0.5, "smoke")
+    assert samples == []
+    await run.wait_for_quiet(cpus, "every CPU")  # a limit that can be reached: sampled
+    assert len(samples) == 2  # one window of a quiet machine: before and after
+    await run.wait_for_quiet(0.25, "quiet")
+    assert len(samples) == 4
 
 
 @pytest.fixture
