@@ -308,8 +308,9 @@ def test_the_client_path_benchmark_compares_source_trees(
     # A smoke run of the in-process client benchmark, the same tree twice: every call got
     # its typed reply (the child asserts it), and each tree has a figure and a ratio. With
     # --server, the calls go to a real server over the transport, which is stopped after.
+    # Ten calls of warm-up on each connection, not 200: fan-in's 100 connections each make them.
     src = str(ROOT / "src")
-    sources = ["--repeat", "1", "--src", src, "--src", src, *options]
+    sources = ["--repeat", "1", "--warmup", "10", "--src", src, "--src", src, *options]
     result = run_benchmark(ROOT / "benchmarks" / "client_path.py", "--calls", "800", *sources)
     lines = result.stdout.splitlines()
     assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == shapes
@@ -325,8 +326,9 @@ def test_the_client_path_benchmark_measures_the_raw_client_beside() -> None:
     # server in the same shape (its child asserts every reply); here with the heap kept and
     # on uvloop, which the child must have been able to do.
     src = str(ROOT / "src")
-    options = ["--calls", "800", "--repeat", "1", "--src", src, "--server", "websockets",
-               "--shapes", "fan-in", "--raw", "--keep-heap", "--loop", "uvloop"]  # fmt: skip
+    options = ["--calls", "800", "--repeat", "1", "--warmup", "10", "--src", src,
+               "--server", "websockets", "--shapes", "fan-in", "--raw", "--keep-heap",
+               "--loop", "uvloop"]  # fmt: skip
     result = run_benchmark(ROOT / "benchmarks" / "client_path.py", *options)
     lines = result.stdout.splitlines()
     assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == ["fan-in"]
