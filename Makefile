@@ -43,12 +43,13 @@ typecheck: $(INSTALLED)
 docs: $(INSTALLED)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir site
 
-# The suite on every core (pytest-xdist): PYTEST_WORKERS=0 runs it in this one process. Tests
-# marked xdist_group share an expensive module fixture and run on one worker (--dist loadgroup).
-# Not in pytest's addopts, so that `pytest tests/test_x.py` starts no workers.
+# The suite on every core (pytest-xdist); PYTEST_WORKERS=0 runs it in this one process. Each
+# file runs on one worker (--dist loadfile), so a module's fixtures (the docs site, the wheel,
+# the harness's quick run) are made once. Not in pytest's addopts: `pytest tests/test_x.py`
+# starts no workers.
 PYTEST_WORKERS ?= auto
 pytest: $(INSTALLED) $(NODE_INSTALLED) chromium
-	$(BIN)/pytest -n $(PYTEST_WORKERS) --dist loadgroup
+	$(BIN)/pytest -n $(PYTEST_WORKERS) --dist loadfile
 
 test: lint typecheck docs pytest
 

@@ -64,10 +64,6 @@ def check_quick_runs(runs: list[dict[str, Any]], impls: list[str]) -> None:
     assert [run["reply_bytes"] for run in large] == [large_reply_bytes()] * len(impls)  # MB/s
 
 
-QUICK_RUN = pytest.mark.xdist_group("quick_run")
-"""For the tests that read :func:`quick_run`: under pytest-xdist, on one worker, so it runs once."""
-
-
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], str]:
     # Other processes (this suite) may be busy: do not wait for a quiet machine here.
@@ -80,7 +76,6 @@ def quick_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any],
     return json.loads(out.read_text()), done.stdout
 
 
-@QUICK_RUN
 def test_both_implementations_run_every_workload_alike(
     quick_run: tuple[dict[str, Any], str],
 ) -> None:
@@ -89,7 +84,6 @@ def test_both_implementations_run_every_workload_alike(
     check_quick_runs(report["asyncio"]["runs"], ["baseline"] * 2 + ["srvwire"] * 2)
 
 
-@QUICK_RUN
 def test_medians_and_ratios_follow_from_the_runs(quick_run: tuple[dict[str, Any], str]) -> None:
     report, table = quick_run
     runs = report["asyncio"]["runs"]

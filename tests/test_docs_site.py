@@ -27,9 +27,6 @@ import yaml
 from support import ROOT, scaled
 from test_docs_examples import nav_pages
 
-# Under pytest-xdist (make test), on one worker: the site is built, and its index opened, once.
-pytestmark = pytest.mark.xdist_group("docs_site")
-
 # The resources a page loads, as (tag, attribute); <a href> is a link, not a resource.
 RESOURCES = {("script", "src"), ("img", "src"), ("iframe", "src"), ("source", "src")}
 LOADED_LINKS = {"stylesheet", "preconnect", "preload", "modulepreload", "icon", "manifest"}
