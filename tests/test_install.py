@@ -11,6 +11,7 @@ a folder outside the clone, as they would on a robot.
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -182,10 +183,13 @@ def test_the_supported_pythons_agree_everywhere() -> None:
 
 
 def make_pytest(*assignments: str) -> list[str]:
-    """The commands ``make pytest`` would run with ``assignments`` (a dry run: nothing runs)."""
+    """The commands ``make pytest`` would run with ``assignments`` (a dry run: nothing runs),
+    whatever the make that runs this suite was given (``make test PYTEST_WORKERS=0``)."""
+    inherited = {"MAKEFLAGS", "MFLAGS", "MAKELEVEL", "PYTEST_WORKERS"}
     result = subprocess.run(
         ["make", "--dry-run", "pytest", *assignments],
         cwd=ROOT,
+        env={name: value for name, value in os.environ.items() if name not in inherited},
         capture_output=True,
         text=True,
         timeout=scaled(60),
