@@ -43,8 +43,14 @@ typecheck: $(INSTALLED)
 docs: $(INSTALLED)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir site
 
+# The suite on every core (pytest-xdist); PYTEST_WORKERS=0 runs it in this one process. Each
+# file runs on one worker (--dist loadfile), so a module's fixtures (the docs site, the wheel,
+# the harness's quick run) are made once; files are handed out in name order, not most tests
+# first, which would start the benchmark harness's few long tests last. Not in pytest's
+# addopts: `pytest tests/test_x.py` starts no workers.
+PYTEST_WORKERS ?= auto
 pytest: $(INSTALLED) $(NODE_INSTALLED) chromium
-	$(BIN)/pytest
+	$(BIN)/pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 test: lint typecheck docs pytest
 

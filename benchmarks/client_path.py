@@ -65,14 +65,16 @@ RAW = "raw websockets"  # the row of --raw: the harness's baseline client, not a
 PIPELINE = 64  # calls in flight in the pipelined shape, as W2
 FAN_IN = 100  # connections in the fan-in shape, as W3
 TIMEOUT = 30.0  # every call's deadline, as the harness's
+WARMUP = 200  # calls on each connection before the measured ones: the type, the fingerprint, caches
 
 
 def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
             transport: str = "websockets", proxy: bool = False,
-            raw: bool = False, loop: str = "asyncio") -> dict[str, float]:  # fmt: skip
+            raw: bool = False, loop: str = "asyncio",
+            warmup: int = WARMUP) -> dict[str, float]:  # fmt: skip
     """Measure this process's srvwire (the one first on ``sys.path``); µs of CPU per call
     (``url``: of a real server, on ``transport``; ``raw``: the raw websockets client there;
-    ``loop``: asyncio or uvloop)."""
+    ``loop``: asyncio or uvloop; ``warmup``: calls on each connection first)."""
     from srvwire.client import connect
     from srvwire.protocol import services_notification
     from srvwire.transports.base import Connection, Transport, TransportClosed
@@ -235,7 +237,7 @@ def measure(calls: int, shapes: list[str], push: bool, url: str | None = None,
                 )
                 clients.append(await stack.enter_async_context(opened))
             for client in clients:
-                await caller(client)(200)  # warm up: the type, the fingerprint check, caches
+                await caller(client)(warmup)
             for shape in shapes:
                 if shape == "fan-in":  # one caller per connection
                     callers = [caller(client) for client in clients]
@@ -265,6 +267,7 @@ def child(
     proxy: bool = False,
     keep_heap: bool = False,
     loop: str = "asyncio",
+    warmup: int = WARMUP,
 ) -> Any:
     """Run :func:`measure` in a child process with ``src`` first on its path; return what it
     printed, parsed, and what it wrote on stderr (``prefix``: a command to run it under;
@@ -282,7 +285,7 @@ def child(
         command.append("--raw")
     if keep_heap:
         command.append("--keep-heap")
-    command += ["--loop", loop]
+    command += ["--loop", loop, "--warmup", str(warmup)]
     done = subprocess.run(
         [*prefix, *command, "--shapes", ",".join(shapes), *server],
         env=env,
@@ -297,12 +300,12 @@ def child(
 
 def instructions(src: str, calls: int, shape: str, push: bool, server: Sequence[str],
                  proxy: bool = False, keep_heap: bool = False,
-                 loop: str = "asyncio") -> float:  # fmt: skip
+                 loop: str = "asyncio", warmup: int = WARMUP) -> float:  # fmt: skip
     """Instructions per call (valgrind's count): the difference between a run of ``calls``
     and one of three times as many, so that starting up and warming up cancel out."""
     counted = []
     for n in (calls, 3 * calls):
-        _, err = child(src, n, [shape], push, VALGRIND, server, proxy, keep_heap, loop)
+        _, err = child(src, n, [shape], push, VALGRIND, server, proxy, keep_heap, loop, warmup)
         found = re.search(r"I\s+refs:\s+([0-9,]+)", err)
         if found is None:
             raise SystemExit(f"valgrind did not count {src}'s instructions:\n{err}")
@@ -376,6 +379,13 @@ def main() -> None:
     parser.add_argument(
         "--loop", choices=["asyncio", "uvloop"], default="asyncio", help="the client's event loop"
     )
+    parser.add_argument(
+        "--warmup",
+        type=int,
+        default=WARMUP,
+        help=f"calls on each connection before the measured ones ({WARMUP}; the test suite's "
+        "smoke runs take fewer)",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--url", help=argparse.SUPPRESS)
     parser.add_argument("--transport", default="websockets", help=argparse.SUPPRESS)
@@ -389,7 +399,15 @@ def main() -> None:
 
             keep_freed_heap()
         figures = measure(
-            args.calls, shapes, args.push, args.url, args.transport, args.proxy, args.raw, args.loop
+            args.calls,
+            shapes,
+            args.push,
+            args.url,
+            args.transport,
+            args.proxy,
+            args.raw,
+            args.loop,
+            args.warmup,
         )
         print(json.dumps(figures))
         return
@@ -409,7 +427,15 @@ def report(
             print(f"{shape} (instructions per call, valgrind)")
             counts = [
                 instructions(
-                    src, calls, shape, args.push, server, args.proxy, args.keep_heap, args.loop
+                    src,
+                    calls,
+                    shape,
+                    args.push,
+                    server,
+                    args.proxy,
+                    args.keep_heap,
+                    args.loop,
+                    args.warmup,
                 )
                 for src in sources
             ]
@@ -429,6 +455,7 @@ def report(
                 args.proxy,
                 args.keep_heap,
                 args.loop,
+                args.warmup,
             )[0]
             for shape, value in measured.items():
                 runs[src][shape].append(value)

@@ -13,6 +13,7 @@ import functools
 import importlib
 import importlib.util
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -302,8 +303,9 @@ def test_the_client_path_benchmark_compares_source_trees(
     # A smoke run of the in-process client benchmark, the same tree twice: every call got
     # its typed reply (the child asserts it), and each tree has a figure and a ratio. With
     # --server, the calls go to a real server over the transport, which is stopped after.
+    # Ten calls of warm-up on each connection, not 200: fan-in's 100 connections each make them.
     src = str(ROOT / "src")
-    sources = ["--repeat", "1", "--src", src, "--src", src, *options]
+    sources = ["--repeat", "1", "--warmup", "10", "--src", src, "--src", src, *options]
     result = run_benchmark(ROOT / "benchmarks" / "client_path.py", "--calls", "800", *sources)
     lines = result.stdout.splitlines()
     assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == shapes
@@ -319,8 +321,9 @@ def test_the_client_path_benchmark_measures_the_raw_client_beside() -> None:
     # server in the same shape (its child asserts every reply); here with the heap kept and
     # on uvloop, which the child must have been able to do.
     src = str(ROOT / "src")
-    options = ["--calls", "800", "--repeat", "1", "--src", src, "--server", "websockets",
-               "--shapes", "fan-in", "--raw", "--keep-heap", "--loop", "uvloop"]  # fmt: skip
+    options = ["--calls", "800", "--repeat", "1", "--warmup", "10", "--src", src,
+               "--server", "websockets", "--shapes", "fan-in", "--raw", "--keep-heap",
+               "--loop", "uvloop"]  # fmt: skip
     result = run_benchmark(ROOT / "benchmarks" / "client_path.py", *options)
     lines = result.stdout.splitlines()
     assert [line.split(" ")[0] for line in lines if not line.startswith(" ")] == ["fan-in"]
@@ -403,6 +406,29 @@ def test_the_bare_typed_floor_on_picows_is_the_floor_with_its_deadline_switched_
         assert (server_script, client_script) == (server, script)
         monkeypatch.setattr(sys, "argv", [*command, *options])
         assert client.asked().cork and client.deadline_asked() == deadline
+
+
+async def test_the_harness_samples_the_load_only_where_the_limit_can_be_passed(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The smoke runs above give --max-other-load 64: no machine is busier than its CPUs, so the
+    # harness measures at once instead of sampling /proc/stat over a window before each run.
+    run = floors["run"]
+    samples: list[float] = []
+
+    def quiet_machine() -> float:
+        samples.append(0.0)
+        return 0.0
+
+    monkeypatch.setattr(run, "machine_busy_seconds", quiet_machine)
+    monkeypatch.setattr(run, "QUIET_WINDOW", 0.001)
+    cpus = os.cpu_count() or 1
+    await run.wait_for_quiet(cpus + 0.5, "smoke")
+    assert samples == []
+    await run.wait_for_quiet(cpus, "every CPU")  # a limit that can be reached: sampled
+    assert len(samples) == 2  # one window of a quiet machine: before and after
+    await run.wait_for_quiet(0.25, "quiet")
+    assert len(samples) == 4
 
 
 @pytest.fixture

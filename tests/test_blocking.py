@@ -8,6 +8,7 @@ outlives it.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 import time
@@ -39,7 +40,7 @@ def status(reply: Any) -> str:
 
 class Blocker:
     """A blocking handler that waits for ``release``; counts how many run at once, and tells
-    the event loop each time one starts (``started``)."""
+    the event loop each time one starts (``started``, and ``changed``)."""
 
     def __init__(self) -> None:
         self.release = threading.Event()
@@ -49,6 +50,7 @@ class Blocker:
         self.runs = 0
         self.loop = asyncio.get_running_loop()
         self.started: asyncio.Queue[int] = asyncio.Queue()
+        self.changed = asyncio.Event()  # set on the loop when a handler starts
 
     def __call__(self, request: Any) -> Any:
         with self.lock:
@@ -57,6 +59,7 @@ class Blocker:
             self.most = max(self.most, self.running)
             number = self.runs
         self.loop.call_soon_threadsafe(self.started.put_nowait, number)
+        self.loop.call_soon_threadsafe(self.changed.set)
         try:
             self.release.wait(scaled(30))
         finally:
@@ -67,6 +70,29 @@ class Blocker:
     async def next_start(self) -> int:
         async with asyncio.timeout(scaled(5)):
             return await self.started.get()
+
+
+class WatchedThreads(HandlerThreads):
+    """Handler threads that set ``changed`` on the loop as each piece of work ends: a future's
+    callbacks run once its result is set, after the pool's accounting (``abandoned``)."""
+
+    def __init__(self, changed: asyncio.Event, **options: Any) -> None:
+        super().__init__(**options)
+        self.changed = changed
+        self.loop = asyncio.get_running_loop()
+
+    def submit(self, fn: Any, /, *args: Any, **kwargs: Any) -> Any:
+        work = super().submit(fn, *args, **kwargs)
+        work.add_done_callback(self.wake)
+        return work
+
+    def wake(self, work: Any) -> None:
+        # A handler released as its test ends returns after that test's loop closed: nobody
+        # waits then (call_soon_threadsafe raises RuntimeError on a closed loop, and
+        # concurrent.futures would log it as an error, into whichever test runs next).
+        if not self.loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # closed in between
+                self.loop.call_soon_threadsafe(self.changed.set)
 
 
 @pytest.fixture
@@ -83,7 +109,7 @@ async def test_handlers_past_their_deadline_do_not_starve_a_fast_service(
 ) -> None:
     # The issue's case: every thread is taken by slow handlers whose callers gave up. Their
     # threads are abandoned and replaced, so an unrelated fast service still gets one.
-    threads = HandlerThreads(max_workers=2, max_abandoned=8)
+    threads = WatchedThreads(blocker.changed, max_workers=2, max_abandoned=8)
     server = Server(executor=threads)
     server.add_service("/slow", Subtract, blocker)
     server.add_service("/fast", Subtract, lambda request: {"difference": 1})
@@ -96,10 +122,15 @@ async def test_handlers_past_their_deadline_do_not_starve_a_fast_service(
         assert [status(r) for r in replies] == ["DEADLINE_EXCEEDED"] * 8
         # A replacement may have taken a call whose deadline had not quite passed yet. Every
         # handler that runs still blocks its thread, and was abandoned. A thread is abandoned
-        # once it has taken its call, which may be before it has entered the handler: wait
-        # for each abandoned thread's handler to start.
-        while blocker.runs < threads.abandoned:
-            await blocker.next_start()
+        # once it has taken its call, which may be before it has entered the handler, or
+        # before it sees that the caller left and skips the handler (then it stops counting
+        # as abandoned as it ends): wait until every abandoned thread's handler has started.
+        async with asyncio.timeout(scaled(5)):
+            while True:
+                blocker.changed.clear()
+                if blocker.runs == threads.abandoned:
+                    break
+                await blocker.changed.wait()
         assert 2 <= blocker.runs == blocker.running == threads.abandoned
         reply = await w.call(call("fast", 100, timeout=scaled(5)))
         assert reply["result"] == {"difference": 1}

@@ -53,6 +53,10 @@ COMMANDS: dict[str, str] = {
     ),
     r"make demo": "tests/test_examples.py runs examples/demo.py, which is what make demo runs",
     r"make test": "the whole suite: what CI runs (.ci/run)",
+    r"make (test|pytest) PYTEST_WORKERS=\d+": (
+        "the whole suite, or its tests alone, on as many pytest workers: what CI runs"
+    ),
+    r"\.venv/bin/pytest tests/test_\w+\.py -q": "one file of the suite: make test runs every file",
     r"make bench": "minutes long; tests/test_benchmarks.py runs the harness's --quick mode",
     r"\.venv/bin/python benchmarks/run\.py .*": (
         "the benchmark harness: minutes long; tests/test_benchmarks.py runs it in --quick mode"

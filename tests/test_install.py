@@ -11,6 +11,7 @@ a folder outside the clone, as they would on a robot.
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -179,3 +180,32 @@ def test_the_supported_pythons_agree_everywhere() -> None:
     installation = " ".join((ROOT / "docs" / "installation.md").read_text(encoding="utf-8").split())
     [runs_on] = re.findall(r"srvwire runs on Python ([\d., and]+?),? and their", installation)
     assert re.split(r",? and |, ", runs_on.strip()) == listed
+
+
+def make_pytest(*assignments: str) -> list[str]:
+    """The commands ``make pytest`` would run with ``assignments`` (a dry run: nothing runs),
+    whatever the make that runs this suite was given (``make test PYTEST_WORKERS=0``)."""
+    inherited = {"MAKEFLAGS", "MFLAGS", "MAKELEVEL", "PYTEST_WORKERS"}
+    result = subprocess.run(
+        ["make", "--dry-run", "pytest", *assignments],
+        cwd=ROOT,
+        env={name: value for name, value in os.environ.items() if name not in inherited},
+        capture_output=True,
+        text=True,
+        timeout=scaled(60),
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result.stdout.splitlines()
+
+
+def test_make_runs_the_tests_on_every_core_and_pytest_alone_in_one_process() -> None:
+    # docs/installation.md: make asks for the workers (each file on one, so that a module's
+    # fixtures are made once); pytest's own options do not, so a file run by hand starts none.
+    command = ".venv/bin/pytest -n {} --dist loadfile --no-loadscope-reorder"
+    assert command.format("auto") in make_pytest()
+    assert command.format(0) in make_pytest("PYTEST_WORKERS=0")
+    options = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]
+    assert not re.search(
+        r"(^|\s)(-n|--numprocesses|--dist)\b", options["pytest"]["ini_options"]["addopts"]
+    )

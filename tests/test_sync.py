@@ -252,15 +252,26 @@ def test_a_stuck_loop_cannot_make_a_call_wait_forever(client: srvwire.sync.Clien
 def test_ctrl_c_in_a_blocking_call_cancels_it_on_the_server(
     client: srvwire.sync.Client, handlers: Handlers
 ) -> None:
+    # Ctrl-C once the handler runs, however long the call takes to reach it: bounded well
+    # within the call's own deadline (30 s), so that the signal never lands after the call
+    # ended, and not a guess of a few seconds, past which nothing would press and the call
+    # would end at its deadline instead. Whether it pressed is kept, to say so if it did not.
+    pressed = threading.Event()
+
     def press_ctrl_c() -> None:
-        if handlers.hanging.wait(scaled(5)):
+        if handlers.hanging.wait(scaled(20)):
+            pressed.set()
             os.kill(os.getpid(), signal.SIGINT)
 
     presser = threading.Thread(target=press_ctrl_c)
     presser.start()
     try:
         with pytest.raises(KeyboardInterrupt):
-            client.call("/hang", timeout=scaled(30))
+            try:
+                client.call("/hang", timeout=scaled(30))
+            except DeadlineExceeded:
+                assert pressed.is_set(), "the /hang handler did not start within 20 s"
+                raise
     finally:
         presser.join()
     assert handlers.hung_up.wait(scaled(5))  # the server was told: its handler was cancelled
