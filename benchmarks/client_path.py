@@ -38,8 +38,8 @@ harness's clients do, building W4's request), where a small client that never di
 unmaps asyncio's 256 KiB read buffer on every read.
 
     python benchmarks/client_path.py                       # this checkout's src/
-    python benchmarks/client_path.py --src /tmp/old/src --src src --repeat 7
-    python benchmarks/client_path.py --src /tmp/old/src --src src --server websockets --instructions
+    python benchmarks/client_path.py --src OLD/src --src src --repeat 7
+    python benchmarks/client_path.py --src OLD/src --src src --server websockets --instructions
     python benchmarks/client_path.py --server websockets --shapes fan-in --raw --instructions
 """
 
