@@ -2087,6 +2087,8 @@ async def test_a_late_failure_of_a_handler_already_answered_is_logged_once(
 ) -> None:
     stubborn = Stubborn(raises=RuntimeError("failed in its cleanup"))
     server.add_service("/stubborn", Echo, stubborn)
+    server.access_log = logging.getLogger("srvwire.access")
+    caplog.set_level(logging.INFO, logger="srvwire.access")
     loop = asyncio.get_running_loop()
     reported: list[dict[str, Any]] = []
     previous = loop.get_exception_handler()
@@ -2106,6 +2108,10 @@ async def test_a_late_failure_of_a_handler_already_answered_is_logged_once(
     assert len(failures) == 1
     assert failures[0].getMessage() == "handler for /stubborn raised an exception (request id 1)"
     assert reported == []
+    # Its access line, written when its task ended, has the outcome answered, not the failure.
+    lines = [r.getMessage() for r in caplog.records if r.name == "srvwire.access"]
+    (line,) = [line for line in lines if " /stubborn " in line]
+    assert " /stubborn DEADLINE_EXCEEDED " in line, line
 
 
 async def test_shutdown_answers_a_call_whose_handler_ignores_its_cancellation(

@@ -13,7 +13,6 @@ import contextlib
 import gc
 import inspect
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -261,7 +260,12 @@ def test_ctrl_c_in_a_blocking_call_cancels_it_on_the_server(
     def press_ctrl_c() -> None:
         if handlers.hanging.wait(scaled(20)):
             pressed.set()
-            os.kill(os.getpid(), signal.SIGINT)
+            # To the main thread, where the call waits, as a terminal's Ctrl-C reaches it: sent
+            # to the process from this thread, the kernel may hand it to this thread instead,
+            # whose handling does not wake the main thread's wait until the call's deadline.
+            main = threading.main_thread().ident
+            assert main is not None
+            signal.pthread_kill(main, signal.SIGINT)
 
     presser = threading.Thread(target=press_ctrl_c)
     presser.start()
@@ -773,3 +777,25 @@ def test_ctrl_c_asks_the_server_to_cancel_a_goal_before_the_connection_closes(wh
             process.stderr.close()
         assert (code, err) == (0, "")
         assert printed == "accepted\ninterrupted: canceled\n"
+
+
+async def test_ctrl_c_waits_for_a_goal_cancelled_already_without_asking_again() -> None:
+    # What a Ctrl-C does to the goals still running: each not yet cancelled is asked once, and
+    # every one of them, the ones cancelled already by the program included, is waited for.
+    class Goal:
+        def __init__(self, done: bool, cancel_sent: bool) -> None:
+            self.done, self.cancel_sent = done, cancel_sent
+            self.asked = self.waited = 0
+
+        async def cancel(self) -> None:
+            self.asked += 1
+            self.cancel_sent = True
+
+        async def result(self) -> None:
+            self.waited += 1
+
+    running, cancelled, finished = Goal(False, False), Goal(False, True), Goal(True, False)
+    await srvwire.sync._cancel_and_wait([running, cancelled, finished])  # type: ignore[list-item]
+    assert [(goal.asked, goal.waited) for goal in (running, cancelled, finished)] == [
+        (1, 1), (0, 1), (0, 0)
+    ]  # fmt: skip

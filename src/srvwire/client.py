@@ -1192,9 +1192,10 @@ class Subscription:
 
     Messages arrive in a queue of the granted ``depth``: a best-effort subscriber that does
     not keep up loses the oldest (counted in :attr:`dropped`), a reliable one is ended with
-    :class:`~srvwire.errors.ResourceExhausted`, as on the server. Not keeping up means more
-    than ``depth`` messages came while the code reading the subscription was not waiting for
-    one; whatever arrives while it waits (a burst read at once) is kept for it.
+    :class:`~srvwire.errors.ResourceExhausted`, as on the server. Not keeping up means a
+    message came while the code reading the subscription was not waiting for one and found
+    ``depth`` messages queued (what is left of a burst included); whatever arrives while it
+    waits (a burst read at once) is kept for it.
     """
 
     def __init__(

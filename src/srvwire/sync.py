@@ -689,11 +689,13 @@ async def _within(awaitable: Awaitable[T], seconds: float, name: str, what: str)
 
 
 async def _cancel_and_wait(handles: list[ClientGoal[Any]]) -> None:
-    """Ask the server to cancel each goal still running, once; then wait for their outcomes."""
-    stopping = [handle for handle in handles if not handle.done and not handle.cancel_sent]
-    for handle in stopping:
-        await handle.cancel()
-    await asyncio.gather(*(handle.result() for handle in stopping), return_exceptions=True)
+    """Ask the server to cancel each goal still running, once (a goal cancelled already is
+    not asked again); then wait for the outcomes of them all."""
+    running = [handle for handle in handles if not handle.done]
+    for handle in running:
+        if not handle.cancel_sent:
+            await handle.cancel()
+    await asyncio.gather(*(handle.result() for handle in running), return_exceptions=True)
 
 
 async def _next(iterator: AsyncIterator[Any]) -> Any:
