@@ -381,6 +381,42 @@ async def test_a_described_type_with_more_fixed_values_than_a_message_can_carry_
             assert Rows.Response().small == [0] * 16
 
 
+async def test_a_described_topic_or_action_type_with_too_many_fixed_values_is_refused() -> None:
+    # The same limit for the types of topics and actions built from the server's description:
+    # a message received or a goal's outcome that leaves the field out would hold every value.
+    from srvwire.models import build_action
+    from srvwire.parser import parse_action
+
+    server = srvwire.Server()
+    server.topic("/huge", build_message(parse_message(HUGE_MSG, "huge_pkg", "Scan")))
+    action = build_action(parse_action(HUGE_ACTION, "huge_pkg", "Sweep"))
+
+    async def sweep(goal: Any, handle: Any) -> Any:
+        return {}
+
+    server.add_action("/sweep", action, sweep)
+    async with srvwire.serve(server, "127.0.0.1", 0) as running:
+        async with srvwire.connect(running.url, timeout=scaled(5)) as client:
+            await client.wait_for_topic("/huge")
+            with pytest.raises(InterfaceError) as excinfo:
+                await client.topic_type("/huge")
+            assert str(excinfo.value) == (
+                f"the server {running.url} describes huge_pkg/Scan, which holds 4294967296 "
+                "values, 4294967295 of them in the field 'ranges' (float32[4294967295]), more "
+                "than max_message_size=1048576 can carry; refused, so that a reply that leaves "
+                "them out cannot make this client hold them"
+            )
+            with pytest.raises(InterfaceError) as excinfo:
+                await client.send_goal("/sweep", {"order": 1})
+            assert "holds 4294967295 values, 4294967295 of them in the field 'seen'" in str(
+                excinfo.value
+            )
+
+
+HUGE_MSG = "int32 count\nfloat32[4294967295] ranges\n"
+HUGE_ACTION = "int32 order\n---\nint32[4294967295] seen\n---\nint32 step\n"
+
+
 def test_a_description_with_bad_names_or_text_is_an_interface_error() -> None:
     from srvwire.calls import ServiceTypes
     from srvwire.errors import InterfaceError

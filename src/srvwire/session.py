@@ -92,7 +92,6 @@ from srvwire.protocol import (
     read_cancel,
     serialize_batch,
     services_notification,
-    valid_id,
     write_call,
     write_response,
 )
@@ -455,7 +454,7 @@ class ServerSession(Generic[E]):
             named = read_cancel(request.params)
             if isinstance(named, InvalidParams):  # a request is answered; a notification not
                 return self._refuse(request.id, named)
-            cancel = self._cancel(request.params)
+            cancel = self._cancel(named)
             if cancel is not None:
                 events.append(cancel)
             return Response(request.id, None).serialize()
@@ -519,7 +518,7 @@ class ServerSession(Generic[E]):
             if method == PUBLISH_METHOD and self.topics is not None and not self.closing:
                 publish = self._publish(note.params, None)
                 return publish if type(publish) is Publish else None
-            return self._cancel(note.params) if method == CANCEL_METHOD else None
+            return self._cancel(read_cancel(note.params)) if method == CANCEL_METHOD else None
         entry = self.services.get(method)
         if entry is None or self.closing:
             return None
@@ -544,12 +543,10 @@ class ServerSession(Generic[E]):
             service=entry.name,
         )
 
-    def _cancel(self, params: Any) -> CancelCall[E] | None:
-        """``$/cancel``: the call with ``params["id"]``, if it is still in flight."""
-        if type(params) is not dict:
-            return None
-        id = params.get("id")
-        if id is None or not valid_id(id):  # a boolean is not an id: true is never 1
+    def _cancel(self, id: Id | InvalidParams) -> CancelCall[E] | None:
+        """``$/cancel`` of the call ``id`` (what :func:`read_cancel` read of its params), if it
+        is still in flight; params that name no call cancel nothing."""
+        if isinstance(id, InvalidParams):
             return None
         call = self.calls.get(id)
         if call is None:
