@@ -1537,6 +1537,42 @@ def test_gen_into_a_folder_packages_that_nest_each_other_import_in_any_order(
     )
 
 
+USE_PREFIXED = """
+from shapes import p, q
+
+assert q.Uses.model_fields["arrays"].annotation is p.p_msg_Arrays
+assert q.Uses.model_validate({"arrays": {"values": [1, 2]}}).arrays.values == [1, 2]
+assert p.p_srv_Arrays.Request().arrays.values == []
+"""
+
+
+def test_gen_into_a_folder_refers_to_a_prefixed_class_by_its_name_in_its_module(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # p has a message and a service both named Arrays, so its module prefixes both classes;
+    # q's module must name the message as p's module does.
+    interfaces = tmp_path / "interfaces"
+    write(interfaces, "p/msg/Arrays.msg", "int32[] values\n")
+    write(interfaces, "p/srv/Arrays.srv", "Arrays arrays\n---\n")
+    write(interfaces, "q/msg/Uses.msg", "p/Arrays arrays\n")
+    folder = tmp_path / "shapes"
+    code, out, err = run(capsys, "gen", "q", "p", "-o", str(folder), "--path", str(interfaces))
+    assert (code, err) == (ExitCode.OK, "")
+    assert out == (
+        f"wrote {folder / 'q.py'} (1 interface)\nwrote {folder / 'p.py'} (2 interfaces)\n"
+    )
+    assert "    arrays: p.p_msg_Arrays = " in (folder / "q.py").read_text(encoding="utf-8")
+    for first in ("q", "p"):
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import shapes.{first}\n{USE_PREFIXED}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first
+
+
 def test_gen_reports_a_cycle_across_files_at_its_field(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

@@ -780,3 +780,60 @@ def test_a_cycle_through_a_message_not_asked_for_is_found_too(tmp_path: Path) ->
             check=False,
         )
         assert (ran.returncode, ran.stderr) == (0, ""), first
+
+
+def test_modules_name_a_prefixed_class_of_another_module_as_that_module_does(
+    tmp_path: Path,
+) -> None:
+    # p has a message and a service both named Arrays, so its module prefixes both classes. q
+    # nests the message; a and b nest each other and a nests it too, from their shared module.
+    arrays = MessageSpec("p", "Arrays", (FieldSpec(arr("int32", UNBOUNDED), "values"),))
+    request = MessageSpec("p", "Arrays_Request", (FieldSpec(t("Arrays", "p"), "arrays"),))
+    service = ServiceSpec("p", "Arrays", request, MessageSpec("p", "Arrays_Response", ()))
+    uses = MessageSpec("q", "Uses", (FieldSpec(t("Arrays", "p"), "arrays"),))
+    a_top = MessageSpec(
+        "a", "Top", (FieldSpec(t("Mid", "b"), "mid"), FieldSpec(t("Arrays", "p"), "arrays"))
+    )
+    a_leaf = MessageSpec("a", "Leaf", (FieldSpec(t("int8"), "x", 5),))
+    b_mid = MessageSpec("b", "Mid", (FieldSpec(t("Leaf", "a"), "leaf"),))
+    groups: dict[str, list[Spec]] = {
+        "q": [uses],
+        "a": [a_top, a_leaf],
+        "b": [b_mid],
+        "p": [arrays, service],
+    }
+    sources = generate_modules(groups)
+    assert list(sources) == ["q", "a", "b", "p", "_a__b"]
+    assert "    arrays: p.p_msg_Arrays = " in sources["q"]
+    assert "    arrays: p.p_msg_Arrays = " in sources["_a__b"]
+    package = tmp_path / "named"
+    package.mkdir()
+    (package / "__init__.py").write_text("", encoding="utf-8")
+    for module, source in sources.items():
+        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    use = (
+        "from named import a, p, q\n"
+        "assert q.Uses.model_fields['arrays'].annotation is p.p_msg_Arrays\n"
+        "assert a.Top.model_fields['arrays'].annotation is p.p_msg_Arrays\n"
+        "assert q.Uses.model_validate({'arrays': {'values': [1, 2]}}).arrays.values == [1, 2]\n"
+        "assert a.Top().mid.leaf.x == 5 and p.p_srv_Arrays.Request().arrays.values == []\n"
+    )
+    for first in ("q", "a", "b", "p", "_a__b"):
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import named.{first}\n{use}"],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first
+
+
+def test_a_message_nested_from_a_group_that_lacks_it_is_an_interface_error() -> None:
+    point = MessageSpec("p", "Point", (FieldSpec(t("int8"), "x"),))
+    uses = MessageSpec("q", "Uses", (FieldSpec(t("Other", "p"), "other"),))
+    with pytest.raises(InterfaceError) as caught:
+        generate_modules({"q": [uses], "p": [point]})
+    assert str(caught.value) == (
+        "p/msg/Other is nested but not among the interfaces of p's module; add it to the group of p"
+    )

@@ -138,8 +138,10 @@ def generate_module(
     messages they nest are included too: found among ``interfaces``, inside the given classes,
     or else through ``resolve_spec``; a nested type found nowhere is an
     :class:`~srvwire.errors.InterfaceError`. The messages of the packages in ``siblings`` are
-    not included but imported from the modules of the same names beside this one. ``docstring``
-    replaces the module docstring, which otherwise lists the interfaces.
+    not included but imported from the modules of the same names beside this one, under their
+    ROS names (which such a module gives them unless two of its classes share a name: then
+    :func:`generate_modules` knows the names they take). ``docstring`` replaces the module
+    docstring, which otherwise lists the interfaces.
     """
     plan = _Plan(resolve_spec, frozenset(siblings))
     for interface in interfaces:
@@ -154,17 +156,23 @@ def generate_modules(
 
     ``groups`` maps each interface package to its interfaces. Each package gets a module of its
     name, which imports the messages it nests from the other packages' modules (as
-    :func:`generate_module` does with ``siblings``). Packages whose messages nest each other,
+    :func:`generate_module` does with ``siblings``), by the names those modules give them
+    (``p.p_msg_Arrays`` when ``p`` has a message and a service both named ``Arrays``); a message
+    nested from a package whose group does not hold it is an
+    :class:`~srvwire.errors.InterfaceError`. Packages whose messages nest each other,
     directly or through others, have their classes written together in one more module,
     ``_`` and their names joined by ``__`` (``_my_nav__my_robot``), and each of their modules
     takes its own classes from there under the names it would have given them. The packages'
     modules come first, in the order of ``groups``, then these.
     """
     members = {package: list(interfaces) for package, interfaces in groups.items()}
-    writers = {
-        package: _Writer(_plan_of(interfaces, resolve_spec, frozenset(members) - {package}))
+    plans = {
+        package: _plan_of(interfaces, resolve_spec, frozenset(members) - {package})
         for package, interfaces in members.items()
     }
+    # What each package's module names its classes, which the modules that import them use.
+    exported = {package: _class_names(plan.ordered()) for package, plan in plans.items()}
+    writers = {package: _Writer(plan, exported) for package, plan in plans.items()}
     # The sibling packages whose messages each module uses, its own nested ones' included.
     nests = {
         package: frozenset(name.split("/")[0] for name in writer.plan.imported)
@@ -175,7 +183,8 @@ def generate_modules(
     for packages in _import_cycles(nests):
         shared = "_" + "__".join(packages)
         together = [interface for package in packages for interface in members[package]]
-        writer = _Writer(_plan_of(together, resolve_spec, frozenset(members) - set(packages)))
+        plan = _plan_of(together, resolve_spec, frozenset(members) - set(packages))
+        writer = _Writer(plan, exported)
         shared_modules[shared] = writer.module(None)
         for package in packages:
             others = [other for other in packages if other != package]
@@ -269,7 +278,7 @@ class _Plan:
     def __init__(self, resolve_spec: SpecResolver | None, siblings: frozenset[str]) -> None:
         self._resolve_spec = resolve_spec
         self.siblings = siblings
-        self.imported: dict[str, str] = {}  # type name -> sibling.Class, for nested messages
+        self.imported: dict[str, str] = {}  # type name -> sibling package, for nested messages
         self._known: dict[str, MessageSpec] = {}  # pkg/msg/Name -> spec, for nested lookups
         self.requested: list[_Item] = []
         self.items: list[_Item] = []
@@ -296,6 +305,8 @@ class _Plan:
                     self._learn_nested(nested)
 
     def ordered(self) -> list[_Item]:
+        """The items, each after the ones it nests; the same list each time it is asked."""
+        self.items = []
         done: set[str] = set()
         for item in self.requested:
             self._visit(item, done, ())
@@ -310,8 +321,7 @@ class _Plan:
         for part in item.parts:
             for field in part.fields:
                 if field.type.package in self.siblings:
-                    name = field.type.qualified_name
-                    self.imported[name] = f"{field.type.package}.{field.type.name}"
+                    self.imported[field.type.qualified_name] = field.type.package
                 elif not field.type.is_primitive:
                     nested = self.lookup(field.type, part)
                     self._visit(_Item(nested, nested.type_name), done, (*chain, item.type_name))
@@ -358,50 +368,68 @@ def _part_attribute(item: _Item, part: MessageSpec) -> str:
     return "goal" if part is spec.goal else "result" if part is spec.result else "feedback"
 
 
+def _class_names(items: Iterable[_Item]) -> dict[str, str]:
+    """Map each type name (``pkg/msg/Name``, ``pkg/srv/Name_Request``...) to a class name.
+
+    The one place that names the classes of a module: the module that defines them and every
+    module that imports them from it use these names. A class takes its ROS name (``Point``,
+    ``AddTwoInts_Request``) unless another class of the module would take the same one; then
+    both are prefixed with their package and kind (``geometry_msgs_msg_Point``). ROS type names
+    hold no ``_``, so these cannot collide with a ROS name.
+    """
+    wanted: dict[str, tuple[str, str]] = {}  # type name -> (ROS name, qualified fallback)
+    for item in items:
+        spec = item.spec
+        fallback = f"{spec.package}_{item.kind}_{spec.name}"
+        wanted[item.type_name] = (spec.name, fallback)
+        if not isinstance(spec, MessageSpec):
+            for part in item.parts:
+                suffix = part.name.removeprefix(spec.name)
+                suffix = suffix if suffix != part.name else f"_{part.name}"
+                wanted[_part_type_name(item, part)] = (part.name, f"{fallback}{suffix}")
+    counts: dict[str, int] = {}
+    for short, _ in wanted.values():
+        counts[short] = counts.get(short, 0) + 1
+    names = {key: short if counts[short] == 1 else full for key, (short, full) in wanted.items()}
+    if len(set(names.values())) != len(names):
+        raise InterfaceError("two interfaces would get the same class name; split the module")
+    return names
+
+
 # --- writing ---------------------------------------------------------------------------------
 
 
 class _Writer:
-    """Turns a plan into source text; knows the Python name of every class and helper."""
+    """Turns a plan into source text; knows the Python name of every class and helper.
 
-    def __init__(self, plan: _Plan) -> None:
+    ``exported`` holds, by sibling package, the class names its module gives its types; a
+    sibling not there is taken to give them their ROS names.
+    """
+
+    def __init__(
+        self, plan: _Plan, exported: Mapping[str, Mapping[str, str]] | None = None
+    ) -> None:
         self.plan = plan
         self.items = plan.ordered()
-        self.class_names = self._class_names()
+        self.class_names = _class_names(self.items)
+        self.exported = exported or {}
         self.used: set[str] = set()
         self.builtins_used = False
 
-    def _class_names(self) -> dict[str, str]:
-        """Map each type name (``pkg/msg/Name``, ``pkg/srv/Name_Request``...) to a class name.
-
-        A class takes its ROS name (``Point``, ``AddTwoInts_Request``) unless another class of
-        the module would take the same one; then both are prefixed with their package and kind
-        (``geometry_msgs_msg_Point``). ROS type names hold no ``_``, so these cannot collide
-        with a ROS name.
-        """
-        wanted: dict[str, tuple[str, str]] = {}  # type name -> (ROS name, qualified fallback)
-        for item in self.items:
-            spec = item.spec
-            fallback = f"{spec.package}_{item.kind}_{spec.name}"
-            wanted[item.type_name] = (spec.name, fallback)
-            if not isinstance(spec, MessageSpec):
-                for part in item.parts:
-                    suffix = part.name.removeprefix(spec.name)
-                    suffix = suffix if suffix != part.name else f"_{part.name}"
-                    wanted[_part_type_name(item, part)] = (part.name, f"{fallback}{suffix}")
-        counts: dict[str, int] = {}
-        for short, _ in wanted.values():
-            counts[short] = counts.get(short, 0) + 1
-        names = {
-            key: short if counts[short] == 1 else full for key, (short, full) in wanted.items()
-        }
-        if len(set(names.values())) != len(names):
-            raise InterfaceError("two interfaces would get the same class name; split the module")
-        return names
-
     def class_of(self, type_name: str) -> str:
         """The expression naming the class of the message ``type_name`` in this module."""
-        return self.class_names.get(type_name) or self.plan.imported[type_name]
+        if type_name in self.class_names:
+            return self.class_names[type_name]
+        package = self.plan.imported[type_name]
+        if package not in self.exported:
+            return f"{package}.{type_name.rpartition('/')[2]}"
+        name = self.exported[package].get(type_name)
+        if name is None:
+            raise InterfaceError(
+                f"{type_name} is nested but not among the interfaces of {package}'s module; "
+                f"add it to the group of {package}"
+            )
+        return f"{package}.{name}"
 
     def name(self, helper: str) -> str:
         """Return the local name of an imported helper, recording that it is used."""
