@@ -543,8 +543,8 @@ def test_interface_proto_refuses_a_template_too_large_to_send(
     assert one_error_line(err) == (
         "the template of big/Huge_Request would hold 4294967296 values, 4294967295 of them in "
         "the field 'values' (int32[4294967295]), more than the 1048576 bytes of a message "
-        "srvwire call sends by default (--max-message-size raises it): write the values of "
-        "such a type yourself"
+        "srvwire call sends by default (srvwire call --max-message-size raises its limit): "
+        "write the values of such a type yourself"
     )
     code, out, err = run(capsys, "interface", "proto", "big/srv/Rows", "--path", str(tmp_path))
     assert (code, out) == (ExitCode.FAILURE, "")

@@ -345,8 +345,8 @@ def _refuse_a_template_too_large_to_send(
             f"the template of {part.package}/{part.name} would hold "
             f"{sum(size for size, _ in sizes)} values, {size} of them in the field "
             f"{field.name!r} ({field.type}), more than the {limit} bytes of a message "
-            "srvwire call sends by default (--max-message-size raises it): write the values "
-            "of such a type yourself"
+            "srvwire call sends by default (srvwire call --max-message-size raises its limit): "
+            "write the values of such a type yourself"
         )
 
 
