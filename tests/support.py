@@ -11,7 +11,7 @@ import ssl
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import IO, Any
@@ -81,6 +81,30 @@ def run_python(*args: str) -> subprocess.CompletedProcess[str]:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     return result
+
+
+def import_each_first(root: Path, package: str, modules: Iterable[str], use: str) -> None:
+    """Import each of ``package``'s ``modules`` first, in a fresh interpreter each (working in
+    ``root``), then run ``use``: every order in which a program may import generated modules."""
+    for first in modules:
+        ran = subprocess.run(
+            [sys.executable, "-c", f"import {package}.{first}\n{use}"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        assert (ran.returncode, ran.stderr) == (0, ""), first
+
+
+def write_package(root: Path, package: str, sources: dict[str, str]) -> Path:
+    """Write generated ``sources`` (module name -> text) as the package ``package`` in ``root``."""
+    folder = root / package
+    folder.mkdir()
+    (folder / "__init__.py").write_text("", encoding="utf-8")
+    for module, source in sources.items():
+        (folder / f"{module}.py").write_text(source, encoding="utf-8")
+    return folder
 
 
 def tls_on_localhost(tls: bool) -> tuple[ssl.SSLContext | None, ssl.SSLContext | None]:

@@ -38,7 +38,7 @@ from srvwire.errors import (
 )
 from srvwire.loader import InterfaceLoader, default_search_path
 from srvwire.server import Server, serve
-from support import ROOT, scaled
+from support import ROOT, import_each_first, scaled
 
 # --- helpers ----------------------------------------------------------------------------------
 
@@ -1562,15 +1562,7 @@ def test_gen_into_a_folder_refers_to_a_prefixed_class_by_its_name_in_its_module(
         f"wrote {folder / 'q.py'} (1 interface)\nwrote {folder / 'p.py'} (2 interfaces)\n"
     )
     assert "    arrays: p.p_msg_Arrays = " in (folder / "q.py").read_text(encoding="utf-8")
-    for first in ("q", "p"):
-        ran = subprocess.run(
-            [sys.executable, "-c", f"import shapes.{first}\n{USE_PREFIXED}"],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        assert (ran.returncode, ran.stderr) == (0, ""), first
+    import_each_first(tmp_path, "shapes", ("q", "p"), USE_PREFIXED)
 
 
 def test_gen_reports_a_cycle_across_files_at_its_field(

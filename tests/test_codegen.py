@@ -41,7 +41,7 @@ from srvwire.models import (
     validation_errors,
 )
 from srvwire.parser import parse_file, parse_service
-from support import ROOT, ros_test_interfaces
+from support import ROOT, import_each_first, ros_test_interfaces, write_package
 
 Spec = MessageSpec | ServiceSpec | ActionSpec
 
@@ -727,11 +727,7 @@ def test_packages_that_nest_each_other_share_one_module_and_import_in_any_order(
     assert list(sources) == ["a", "b", "c", "d", "_a__b__c"]
     assert "from . import a\n" in sources["d"] and "\nclass " not in sources["a"]
     assert "a_msg_Point" in sources["_a__b__c"] and "Point: TypeAlias" in sources["c"]
-    package = tmp_path / "cyc"
-    package.mkdir()
-    (package / "__init__.py").write_text("", encoding="utf-8")
-    for module, source in sources.items():
-        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    package = write_package(tmp_path, "cyc", sources)
     use = (
         "from cyc import a, b, c, d\n"
         "top = d.Top.model_validate({'outers': [{'mid': {'point': {'inner': {'x': 3}}}}, {}]})\n"
@@ -739,15 +735,7 @@ def test_packages_that_nest_each_other_share_one_module_and_import_in_any_order(
         "assert c.Point.model_fields['inner'].annotation is a.Point is not c.Point\n"
         "assert a.Point.model_json_schema()['title'] == 'Point'\n"
     )
-    for first in ("a", "b", "c", "d", "_a__b__c"):
-        ran = subprocess.run(
-            [sys.executable, "-c", f"import cyc.{first}\n{use}"],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        assert (ran.returncode, ran.stderr) == (0, ""), first
+    import_each_first(tmp_path, "cyc", ("a", "b", "c", "d", "_a__b__c"), use)
     linted = ruff(package, "check", "--select", "E,F,W,I,B,UP,ASYNC,RUF", "--line-length", "100")
     assert linted.returncode == 0, linted.stdout
     formatted = ruff(package, "format", "--check", "--line-length", "100")
@@ -765,21 +753,9 @@ def test_a_cycle_through_a_message_not_asked_for_is_found_too(tmp_path: Path) ->
         {"a": [top], "b": [mid]}, resolve_spec=lambda type_: found[type_.qualified_name]
     )
     assert list(sources) == ["a", "b", "_a__b"]
-    package = tmp_path / "hid"
-    package.mkdir()
-    (package / "__init__.py").write_text("", encoding="utf-8")
-    for module, source in sources.items():
-        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    write_package(tmp_path, "hid", sources)
     use = "from hid import a, b\nassert a.Top().hidden.mid.leaf.x == 5 == b.Mid().leaf.x\n"
-    for first in ("a", "b"):
-        ran = subprocess.run(
-            [sys.executable, "-c", f"import hid.{first}\n{use}"],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        assert (ran.returncode, ran.stderr) == (0, ""), first
+    import_each_first(tmp_path, "hid", ("a", "b"), use)
 
 
 def test_modules_name_a_prefixed_class_of_another_module_as_that_module_does(
@@ -806,11 +782,7 @@ def test_modules_name_a_prefixed_class_of_another_module_as_that_module_does(
     assert list(sources) == ["q", "a", "b", "p", "_a__b"]
     assert "    arrays: p.p_msg_Arrays = " in sources["q"]
     assert "    arrays: p.p_msg_Arrays = " in sources["_a__b"]
-    package = tmp_path / "named"
-    package.mkdir()
-    (package / "__init__.py").write_text("", encoding="utf-8")
-    for module, source in sources.items():
-        (package / f"{module}.py").write_text(source, encoding="utf-8")
+    write_package(tmp_path, "named", sources)
     use = (
         "from named import a, p, q\n"
         "assert q.Uses.model_fields['arrays'].annotation is p.p_msg_Arrays\n"
@@ -818,15 +790,7 @@ def test_modules_name_a_prefixed_class_of_another_module_as_that_module_does(
         "assert q.Uses.model_validate({'arrays': {'values': [1, 2]}}).arrays.values == [1, 2]\n"
         "assert a.Top().mid.leaf.x == 5 and p.p_srv_Arrays.Request().arrays.values == []\n"
     )
-    for first in ("q", "a", "b", "p", "_a__b"):
-        ran = subprocess.run(
-            [sys.executable, "-c", f"import named.{first}\n{use}"],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        assert (ran.returncode, ran.stderr) == (0, ""), first
+    import_each_first(tmp_path, "named", ("q", "a", "b", "p", "_a__b"), use)
 
 
 def test_a_message_nested_from_a_group_that_lacks_it_is_an_interface_error() -> None:
