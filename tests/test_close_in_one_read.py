@@ -90,6 +90,31 @@ class RawEnd:
         ]
 
 
+ECHO_SERVICES = [{"name": "/echo", "type": "srvwire_tests/srv/Echo"}]
+"""What a raw server announces when its client calls ``/echo``."""
+
+
+async def raw_server_end(
+    reader: asyncio.StreamReader, writer: asyncio.StreamWriter, services: list[dict[str, str]]
+) -> RawEnd:
+    """A raw server's end of a connection a client opened: the opening accepted, and
+    ``$/services`` announcing ``services`` written."""
+    end = RawEnd(ServerProtocol(), reader, writer)
+    protocol = end.protocol
+    assert isinstance(protocol, ServerProtocol)
+    requests: list[object] = []
+    while not requests:
+        protocol.receive_data(await reader.read(2**16))
+        requests = protocol.events_received()
+    (request,) = requests
+    assert isinstance(request, Request)
+    protocol.send_response(protocol.accept(request))
+    announce = {"jsonrpc": "2.0", "method": "$/services", "params": {"services": services}}
+    protocol.send_text(json.dumps(announce).encode())
+    end.write()
+    return end
+
+
 async def raw_client(port: int, url: str, ssl: SSLContext | None = None) -> RawEnd:
     """A raw client connected to the server at ``url``, past its ``$/services``."""
     reader, writer = await asyncio.open_connection("127.0.0.1", port, ssl=ssl)
@@ -175,20 +200,8 @@ async def test_replies_in_the_same_read_as_the_servers_close_reach_their_calls(
     answered: asyncio.Future[None] = asyncio.get_running_loop().create_future()
 
     async def raw_server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        server = RawEnd(ServerProtocol(), reader, writer)
+        server = await raw_server_end(reader, writer, ECHO_SERVICES)
         protocol = server.protocol
-        assert isinstance(protocol, ServerProtocol)
-        requests: list[object] = []
-        while not requests:
-            protocol.receive_data(await reader.read(2**16))
-            requests = protocol.events_received()
-        (request,) = requests
-        assert isinstance(request, Request)
-        protocol.send_response(protocol.accept(request))
-        services = {"services": [{"name": "/echo", "type": "srvwire_tests/srv/Echo"}]}
-        announce = {"jsonrpc": "2.0", "method": "$/services", "params": services}
-        protocol.send_text(json.dumps(announce).encode())
-        server.write()
         calls = [await server.text() for _ in range(3)]
         for message in calls[:2]:  # the last call gets no reply
             result = {"text": message["params"]["text"]}

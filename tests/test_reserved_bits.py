@@ -19,14 +19,12 @@ from typing import Any
 
 import pytest
 from websockets.frames import Close, Frame, Opcode
-from websockets.http11 import Request
-from websockets.server import ServerProtocol
 
 from conftest import Echo
 from srvwire import ConnectionLost, connect
 from srvwire.server import Server, serve
 from support import scaled
-from test_close_in_one_read import RawEnd, raw_client
+from test_close_in_one_read import ECHO_SERVICES, RawEnd, raw_client, raw_server_end
 
 REASON = "reserved bits must be 0"
 RSV = {"rsv1": 0x40, "rsv2": 0x20, "rsv3": 0x10}
@@ -122,20 +120,7 @@ async def test_a_client_fails_a_frame_with_a_reserved_bit_with_1002(
     answered: asyncio.Future[list[tuple[int, str]]] = asyncio.get_running_loop().create_future()
 
     async def raw_server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        end = RawEnd(ServerProtocol(), reader, writer)
-        protocol = end.protocol
-        assert isinstance(protocol, ServerProtocol)
-        requests: list[object] = []
-        while not requests:
-            protocol.receive_data(await reader.read(2**16))
-            requests = protocol.events_received()
-        (request,) = requests
-        assert isinstance(request, Request)
-        protocol.send_response(protocol.accept(request))
-        services = {"services": [{"name": "/echo", "type": "srvwire_tests/srv/Echo"}]}
-        announce = {"jsonrpc": "2.0", "method": "$/services", "params": services}
-        protocol.send_text(json.dumps(announce).encode())
-        end.write()
+        end = await raw_server_end(reader, writer, ECHO_SERVICES)
         call = await end.text()
         assert call["method"] == "/echo"
         # The reply the call waits for, with the reserved bit (for a text or binary frame),
@@ -181,18 +166,8 @@ async def test_a_client_answers_a_ping_without_reserved_bits_with_its_pong(trans
     ponged: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
 
     async def raw_server(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        end = RawEnd(ServerProtocol(), reader, writer)
+        end = await raw_server_end(reader, writer, [])
         protocol = end.protocol
-        assert isinstance(protocol, ServerProtocol)
-        requests: list[object] = []
-        while not requests:
-            protocol.receive_data(await reader.read(2**16))
-            requests = protocol.events_received()
-        (request,) = requests
-        assert isinstance(request, Request)
-        protocol.send_response(protocol.accept(request))
-        announce = {"jsonrpc": "2.0", "method": "$/services", "params": {"services": []}}
-        protocol.send_text(json.dumps(announce).encode())
         protocol.send_ping(b"are you there")
         end.write()
         while not any(frame.opcode is Opcode.PONG for frame in end.frames):
