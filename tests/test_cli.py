@@ -1435,8 +1435,13 @@ def test_gen_into_a_folder_imports_nested_types_from_sibling_modules(
     finally:
         for name in [name for name in sys.modules if name.startswith("robot_types")]:
             del sys.modules[name]
-    # Lint-clean as written, and ruff format leaves them as they are; run inside the folder,
-    # isolated, so srvwire is a third-party package there, as in a user's project.
+    assert_lint_clean(folder)
+
+
+def assert_lint_clean(folder: Path) -> None:
+    """Generated modules are lint-clean as written, and ruff format leaves them as they are;
+    ruff runs inside ``folder``, isolated, so srvwire is a third-party package there, as in a
+    user's project."""
     for arguments in (["check", "--select", "E,F,W,I,B,UP,RUF"], ["format", "--check"]):
         linted = subprocess.run(
             [sys.executable, "-m", "ruff", *arguments, "--isolated", "--line-length", "100", "."],
@@ -1501,15 +1506,7 @@ def test_gen_into_a_folder_packages_that_nest_each_other_import_in_any_order(
         )
         assert (ran.returncode, ran.stderr) == (0, ""), order
     # Lint-clean as written, and mypy --strict sees each package's classes with their fields.
-    for arguments in (["check", "--select", "E,F,W,I,B,UP,RUF"], ["format", "--check"]):
-        linted = subprocess.run(
-            [sys.executable, "-m", "ruff", *arguments, "--isolated", "--line-length", "100", "."],
-            cwd=folder,
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        assert linted.returncode == 0, linted.stdout
+    assert_lint_clean(folder)
     (tmp_path / "use.py").write_text(
         "from robot_types import my_nav, my_robot\n\n"
         "status: my_robot.Status = my_robot.Status(name='x')\n"
