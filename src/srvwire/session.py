@@ -571,8 +571,6 @@ class ServerSession(Generic[E]):
     def fail(self, call: Call[E], error: RPCError) -> bytes | None:
         """Write the error reply to ``call``; None while its batch waits, or when ``call`` was
         answered already."""
-        if not self.answering(call):
-            return None  # answered already: a call has one reply
         return self._answer(call, ErrorResponse(call.id, error).serialize())
 
     def _answer(self, call: Call[E], reply: bytes) -> bytes | None:
