@@ -318,14 +318,19 @@ class CallRunner:
         """Send the answer to a call cancelled while it ran (or its batch's), in a task of its
         own, counted as calls are, so that shutdown waits for it too."""
         try:
-            await self.conn.send(reply)
-        except TransportClosed:
-            pass  # the caller left; its calls are being cancelled
-        else:
-            if self.outbox.queued:
-                self.outbox.fit()
+            await self.send_ahead(reply)
         finally:
             self.settle()
+
+    async def send_ahead(self, data: bytes) -> None:
+        """Send one message ahead of the topic data the outbox holds, which gives up what no
+        longer fits in the budget; a connection that is gone is not an error here."""
+        try:
+            await self.conn.send(data)
+        except TransportClosed:
+            return  # the caller left; its calls are being cancelled
+        if self.outbox.queued:
+            self.outbox.fit()
 
     @staticmethod
     async def take_back_cancellation() -> None:
@@ -437,7 +442,7 @@ class CallRunner:
                 InternalError(f"the server failed to answer {entry.name}", service=entry.name),
             )
         try:
-            if reply is not None:  # sent here, not through ServedConnection.send: a step less
+            if reply is not None:  # send_ahead, inline: a step less on every call
                 try:
                     await self.conn.send(reply)
                 except TransportClosed:
@@ -1014,14 +1019,9 @@ class ServedConnection:
         return task
 
     async def send(self, data: bytes) -> None:
-        """Send one message ahead of the topic data the outbox holds, which gives up what no
-        longer fits in the budget; a connection that is gone is not an error here."""
-        try:
-            await self.conn.send(data)
-        except TransportClosed:
-            return  # the caller left; its calls are being cancelled
-        if self.outbox.queued:
-            self.outbox.fit()
+        """Send one message ahead of the topic data the outbox holds (see
+        :meth:`CallRunner.send_ahead`)."""
+        await self.runner.send_ahead(data)
 
     # --- goals' feedback (what an action's GoalHandle needs of its connection) ----------------
 
@@ -1393,7 +1393,7 @@ class ServedConnection:
         for event in events:
             kind = type(event)
             if kind is bytes:
-                await self.send(event)
+                await runner.send_ahead(event)
             elif kind is Call:
                 if event.batch is not None:
                     runner.start_in_task(event)
