@@ -35,10 +35,10 @@ from srvwire.models import (
     build_action,
     build_message,
     build_service,
-    default_size,
     dump_json,
     error_data,
     json_writer,
+    largest_default,
     listed_errors,
     summarize_errors,
     unencodable_strings,
@@ -500,10 +500,10 @@ class _RemoteMessages:
         if limit is None:
             return
         for part in parts:
-            sizes = [(self.values(field.type), field) for field in part.fields]
-            total = sum(size for size, _ in sizes)
+            if not part.fields:
+                continue
+            total, size, field = largest_default(part, self.spec_of, self._values)
             if total > limit:
-                size, field = max(sizes, key=lambda pair: pair[0])
                 raise InterfaceError(
                     f"the {self.source} describes {part.package}/{part.name}, which holds "
                     f"{total} values, {size} of them in the field {field.name!r} "
@@ -511,9 +511,9 @@ class _RemoteMessages:
                     "so that a reply that leaves them out cannot make this client hold them"
                 )
 
-    def values(self, type_: TypeSpec) -> int:
-        """How many values a field of ``type_`` holds when an instance leaves it out."""
-        return default_size(type_, lambda name: self.load(name).spec, self._values)
+    def spec_of(self, name: str) -> MessageSpec:
+        """The spec of the message ``name``, as this process has its class."""
+        return self.load(name).spec
 
     def load(self, name: str) -> type[Message]:
         """Return the process's class of the message ``name``, checked against the server's."""

@@ -155,6 +155,7 @@ __all__ = [
     "dump_json",
     "error_data",
     "json_writer",
+    "largest_default",
     "listed_errors",
     "python_name",
     "reply_writer",
@@ -235,6 +236,16 @@ def default_size(
     if type_.array is ArrayKind.FIXED:
         return each * (type_.size or 0)
     return 0 if type_.is_array else each
+
+
+def largest_default(
+    part: MessageSpec, nested: Callable[[str], MessageSpec], counted: dict[str, int]
+) -> tuple[int, int, FieldSpec]:
+    """The values an instance of ``part`` made without its fields holds (see
+    :func:`default_size`), and those of its largest field, with that field; ``part`` has one."""
+    sizes = [(default_size(field.type, nested, counted), field) for field in part.fields]
+    size, field = max(sizes, key=lambda pair: pair[0])
+    return sum(size for size, _ in sizes), size, field
 
 
 def _is_bytes(type_: TypeSpec) -> bool:

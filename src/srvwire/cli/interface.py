@@ -34,7 +34,7 @@ from srvwire.client import DEFAULT_TIMEOUT
 from srvwire.errors import InterfaceError, InterfaceSyntaxError
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
 from srvwire.loader import InterfaceLoader
-from srvwire.models import default_size
+from srvwire.models import largest_default
 from srvwire.parser import parse_action, parse_file, parse_message, parse_service, split_comment
 from srvwire.transports.base import Options
 from srvwire.typeregistry import TypeRegistry
@@ -337,13 +337,13 @@ def _refuse_a_template_too_large_to_send(
     part = _parts_of(spec)[0]  # the message, the request or the goal
     limit = Options().max_message_size  # what srvwire call's client has
     assert limit is not None
-    counted: dict[str, int] = {}
-    sizes = [(default_size(f.type, loader.message_spec, counted), f) for f in part.fields]
-    if sum(size for size, _ in sizes) > limit:
-        size, field = max(sizes, key=lambda pair: pair[0])
+    if not part.fields:
+        return
+    total, size, field = largest_default(part, loader.message_spec, {})
+    if total > limit:
         raise CommandError(
             f"the template of {part.package}/{part.name} would hold "
-            f"{sum(size for size, _ in sizes)} values, {size} of them in the field "
+            f"{total} values, {size} of them in the field "
             f"{field.name!r} ({field.type}), more than the {limit} bytes of a message "
             "srvwire call sends by default (srvwire call --max-message-size raises its limit): "
             "write the values of such a type yourself"
