@@ -57,7 +57,7 @@ from collections import deque
 from collections.abc import AsyncIterator, Coroutine, Generator, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType, TracebackType
-from typing import Any, Generic, TypeAlias, TypeVar, overload
+from typing import Any, Generic, NoReturn, TypeAlias, TypeVar, overload
 
 from pydantic import BaseModel, ValidationError
 
@@ -919,7 +919,10 @@ class Client:
         link = self._link
         if link is None:
             raise self._not_connected(topic)
-        cls = await self._topic_type(link, topic, msg_type, deadline, budget)
+        # What _topic_type does, without its coroutine level on every message published.
+        cls = await self._find_topic_type(link, topic, msg_type, deadline, budget)
+        if self._differs(topic, cls):
+            await self._topic_conflict(link, topic, cls, deadline, budget)
         params = (
             '{"topic":'
             + encode_json(topic)
@@ -1016,19 +1019,32 @@ class Client:
         :class:`~srvwire.errors.InterfaceConflictError` naming the first declaration that
         differs, read from the server's description (asked for only then)."""
         cls = await self._find_topic_type(link, topic, msg_type, deadline, budget)
+        if self._differs(topic, cls):
+            await self._topic_conflict(link, topic, cls, deadline, budget)
+        return cls
+
+    def _differs(self, topic: str, cls: type[BaseModel]) -> bool:
+        """Whether ``cls`` differs from the type ``$/topics`` announced for ``topic``, by its
+        fingerprint (announced without one, or as another type, it is not compared)."""
         announced = self._topics.get(topic, {})
         theirs = announced.get("fingerprint")
         if isinstance(theirs, str) and getattr(cls, "type_name", None) == announced.get("type"):
             ours = self._types.fingerprint(cls)
-            if ours is not None and ours != theirs:
-                try:
-                    methods = await self._methods(link, deadline, budget)
-                except RPCError:
-                    methods = []
-                entry = _topic_entry(methods, topic)
-                definitions = None if entry is None else _definitions_of(entry)
-                raise self._types.conflict(cls, definitions, f"server {self.url}")
-        return cls
+            return ours is not None and ours != theirs
+        return False
+
+    async def _topic_conflict(
+        self, link: Link, topic: str, cls: type[BaseModel], deadline: float, budget: float
+    ) -> NoReturn:
+        """Raise the conflict of ``cls`` with the server's type of ``topic``, naming the first
+        declaration that differs, read from the server's description (asked for only now)."""
+        try:
+            methods = await self._methods(link, deadline, budget)
+        except RPCError:
+            methods = []
+        entry = _topic_entry(methods, topic)
+        definitions = None if entry is None else _definitions_of(entry)
+        raise self._types.conflict(cls, definitions, f"server {self.url}")
 
     async def _find_topic_type(
         self,
