@@ -171,7 +171,12 @@ def add_process_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--cork",
         action="store_true",
-        help="write what one turn makes in one system call (the floor_picows scripts only)",
+        help="write what one turn makes in one system call (the picows scripts only)",
+    )
+    parser.add_argument(
+        "--deadline",
+        action="store_true",
+        help="await each reply under asyncio.wait_for (picows_client.py only)",
     )
 
 

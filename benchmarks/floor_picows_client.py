@@ -28,39 +28,29 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 from contextlib import AsyncExitStack
 from typing import Any
 
-from picows import WSFrame, WSMsgType, WSTransport, ws_connect
+from picows import ws_connect
 from pydantic_core import from_json
-from websockets.speedups import apply_mask
 
 from srvwire.link import Answer
-from srvwire.transports.picows import CLIENT_WRITE_AT
 
 from common import CALL_TIMEOUT, MAX_MESSAGE
 from floor_client import PARAMS_PREFIX, serialize_request, validate_response
-from picows_client import Caller
+from picows_client import HoldingCaller
 from typed import make_request, values_of
 from workloads import Adapter, Call, main
 
 
-class TypedCaller(Caller):
+class TypedCaller(HoldingCaller):
     """Pending calls by id over one connection, resolved as their replies arrive: raw picows'
-    caller (its connection, its close, its futures failed when the connection ends), typed."""
+    caller (its connection, its close, its futures failed when the connection ends, its
+    holding of a turn's calls), typed."""
 
-    def __init__(self, deadline: bool, cork: bool = False) -> None:
-        super().__init__()
-        self._deadline = deadline
-        self._cork = cork
-        self._held: list[bytes] = []  # with --cork: the calls of this turn, not yet written
-        self._held_size = 0
-        self._handed = 0  # replies the current read has brought so far
-        self._single = False  # the last read brought one reply, and no call was made since
+    decode = staticmethod(from_json)
 
     async def call(self, request: Any) -> Any:  # type: ignore[override]
-        assert self.transport is not None
         fields = serialize_request(request, by_alias=True)  # b'{"query_type":...}'
         rest = fields[1:] if fields == b"{}" else b"," + fields[1:]
         request_id = next(self._ids)
@@ -70,10 +60,7 @@ class TypedCaller(Caller):
         )
         self._pending[request_id] = future
         try:
-            if self._cork:
-                self.hold(message)
-            else:
-                self.transport.send(WSMsgType.TEXT, message)
+            self.write(message)
             if self._deadline:
                 reply = await asyncio.wait_for(future, CALL_TIMEOUT)
             else:
@@ -83,58 +70,6 @@ class TypedCaller(Caller):
         if "error" in reply:
             raise RuntimeError(f"error reply: {reply['error']}")
         return validate_response(reply["result"])
-
-    def hold(self, message: bytes) -> None:
-        """Hold ``message`` until the turn ends, or write what is held once it is large."""
-        if self._single:  # one call at a time: nothing would join it
-            self._single = False
-            assert self.transport is not None
-            self.flush()
-            self.transport.send(WSMsgType.TEXT, message)
-            return
-        if not self._held:
-            self._loop.call_soon(self.flush)
-        self._held.append(message)
-        self._held_size += len(message)
-        if self._held_size >= CLIENT_WRITE_AT:
-            self.flush()
-
-    def flush(self) -> None:
-        """Write the held calls in one system call, each a final text frame masked with a key
-        of its own (RFC 6455, 5.3)."""
-        held = self._held
-        transport = self.transport
-        if not held or transport is None or transport.is_close_frame_sent:
-            held.clear()
-        elif len(held) == 1:
-            transport.send(WSMsgType.TEXT, held.pop())
-        else:
-            keys = os.urandom(4 * len(held))
-            parts: list[bytes] = []
-            for index, data in enumerate(held):
-                size = len(data)
-                key = keys[4 * index : 4 * index + 4]
-                if size < 126:
-                    parts.append(bytes((0x81, 0x80 | size)))
-                else:
-                    parts.append(bytes((0x81, 0x80 | 126)) + size.to_bytes(2, "big"))
-                parts += (key, apply_mask(data, key))
-            held.clear()
-            transport.underlying_transport.write(b"".join(parts))
-        self._held_size = 0
-
-    def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
-        kind = frame.msg_type
-        if kind == WSMsgType.TEXT or kind == WSMsgType.BINARY:
-            message = from_json(frame.get_payload_as_bytes())
-            if isinstance(message, dict):
-                future = self._pending.pop(message.get("id", 0), None)
-                if future is not None and not future.done():
-                    future.set_result(message)
-                    self._handed += 1
-        if self._cork and frame.last_in_buffer:
-            self._single = self._handed == 1
-            self._handed = 0
 
 
 def adapter(deadline: bool, cork: bool = False) -> Adapter:

@@ -36,7 +36,7 @@ from srvwire.inline import Pending
 
 from common import run, server_parser
 from floor_server import reply_to
-from picows_server import main as serve
+from picows_server import HoldingResponder, header, main as serve
 
 DONE = object()  # what ``next`` returns for an answer that finished in its first step
 
@@ -48,22 +48,14 @@ async def answer(send: Callable[[bytes], None], data: bytes) -> None:
         send(reply)
 
 
-def header(size: int) -> bytes:
-    """The header of a server's final, unmasked text frame of ``size`` bytes (RFC 6455, 5.2)."""
-    if size < 126:
-        return bytes((0x81, size))
-    if size < 2**16:
-        return bytes((0x81, 126)) + size.to_bytes(2, "big")
-    return bytes((0x81, 127)) + size.to_bytes(8, "big")
-
-
 async def finish(pending: Pending) -> None:
     """Drive an answer that waited at its first step to its end, in a task of its own."""
     await inline.finish(pending)
 
 
-class TypedResponder(WSListener):  # type: ignore[misc]
-    """One connection: answer each request frame as it arrives, typed as the floor's."""
+class TypedResponder(HoldingResponder):
+    """One connection: answer each request frame as it arrives, typed as the floor's; with
+    ``cork``, the replies of a read are held and written as the raw picows server holds them."""
 
     def __init__(self, cork: bool = False) -> None:
         super().__init__()
@@ -71,7 +63,6 @@ class TypedResponder(WSListener):  # type: ignore[misc]
         self._cork = cork
         self._transport: WSTransport | None = None
         self._stepping = False  # whether a frame's answer is being stepped in on_ws_frame
-        self._held: list[bytes] = []  # with --cork: the framed replies of this read so far
 
     def on_ws_connected(self, transport: WSTransport) -> None:
         self._transport = transport
@@ -83,15 +74,6 @@ class TypedResponder(WSListener):  # type: ignore[misc]
             self._held += (header(len(reply)), reply)
         else:
             self._transport.send(WSMsgType.TEXT, reply)
-
-    def flush(self, transport: WSTransport) -> None:
-        """Write the replies held while answering one read's frames, in one system call."""
-        held = self._held
-        if len(held) == 2:
-            transport.send(WSMsgType.TEXT, held[1])  # picows frames a lone reply itself
-        elif held:
-            transport.underlying_transport.write(b"".join(held))
-        held.clear()
 
     def on_ws_frame(self, transport: WSTransport, frame: WSFrame) -> None:
         kind = frame.msg_type

@@ -16,9 +16,12 @@ first on both sides, as an application of large messages would; ``floor-picows``
 floor on the native transport (the floor's typed work on both ends, on raw ``picows``' shape,
 each wait under ``asyncio.wait_for``) and ``floor-picows-bare`` the same with the futures
 awaited bare, without a deadline; ``floor-picows-corked`` (and ``-corked-bare``) the same with
-what one turn or one read makes written in one system call on both ends, as srvwire writes it.
-Given several times, every implementation named is measured
-once per repeat, in the same alternation, and one table is printed per pair.
+what one turn or one read makes written in one system call on both ends, as srvwire writes it;
+``picows-corked`` is raw picows writing that way, nothing typed, and ``picows-corked-deadline``
+the same with each wait under ``asyncio.wait_for``: the least any design that batches and keeps
+the design's per-call deadline can cost on this transport. Given several times, every
+implementation named is measured once per repeat, in the same alternation, and one table is
+printed per pair.
 
 Every measurement starts a fresh server process (on 127.0.0.1, port 0, its port read from its
 stdout) and a fresh client process, pinned to different CPUs when there are two. The client
@@ -90,6 +93,12 @@ IMPLEMENTATIONS: dict[str, tuple[Path, Path, tuple[str, ...]]] = {
         HERE / "floor_picows_server.py",
         HERE / "floor_picows_client.py",
         ("--cork", "--no-deadline"),
+    ),
+    "picows-corked": (HERE / "picows_server.py", HERE / "picows_client.py", ("--cork",)),
+    "picows-corked-deadline": (
+        HERE / "picows_server.py",
+        HERE / "picows_client.py",
+        ("--cork", "--deadline"),
     ),
 }
 """Each implementation's server script, client script, and the options both take."""

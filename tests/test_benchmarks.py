@@ -437,7 +437,10 @@ def floors(monkeypatch: pytest.MonkeyPatch) -> Iterator[dict[str, ModuleType]]:
     benchmarks/ as its scripts import one another, and forgotten afterwards."""
     folder = ROOT / "benchmarks"
     monkeypatch.syspath_prepend(str(folder))
-    names = ("floor_server", "floor_picows_server", "floor_picows_client", "run")
+    names = (
+        "floor_server", "floor_picows_server", "floor_picows_client",
+        "picows_server", "picows_client", "run",
+    )  # fmt: skip
     yield {name: importlib.import_module(name) for name in names}
     for name, module in list(sys.modules.items()):
         if Path(getattr(module, "__file__", None) or "/").parent == folder:
@@ -645,6 +648,163 @@ async def test_the_corked_typed_floor_on_picows_writes_a_turns_calls_and_a_reads
     finally:
         server.close()
         await server.wait_closed()
+
+
+RAW_MESSAGES = [
+    "not json",
+    "[]",  # a batch: no reply from the raw server
+    '{"jsonrpc":"2.0","method":"/get_robot_state","params":{}}',  # a notification: none either
+    '{"jsonrpc":"2.0","id":1,"method":"/nothing","params":{}}',
+    '{"jsonrpc":"2.0","id":2,"method":"/get_robot_state","params":{"query_type":"position"}}',
+]
+
+
+async def test_raw_picows_corked_answers_every_message_as_raw_picows_does(
+    floors: dict[str, ModuleType],
+) -> None:
+    # The corked raw server holds a read's replies and frames them itself: what reaches the
+    # client is the same, byte for byte, as what the raw server sends a reply at a time.
+    raw = floors["picows_server"]
+    got = []
+    for cork in (False, True):
+        server = await ws_create_server(functools.partial(raw.accept, cork=cork), "127.0.0.1", 0)
+        try:
+            url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+            got.append(await exchange(url, RAW_MESSAGES))
+        finally:
+            server.close()
+            await server.wait_closed()
+    assert got[1] == got[0]
+    codes = [[json.loads(reply).get("error", {"code": 0})["code"] for reply in r] for r in got[1]]
+    assert codes == [[-32700], [], [], [-32601], [0]]
+
+
+async def test_raw_picows_corked_writes_a_turns_calls_and_a_reads_replies_at_once(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    raw_server, raw_client = floors["picows_server"], floors["picows_client"]
+    # The raw server's handler, with the reply naming the frame its request asked for: a
+    # reply that reached the wrong call would show.
+    monkeypatch.setitem(
+        raw_server.HANDLERS, "/get_robot_state",
+        lambda params: {**raw_server.get_robot_state(params), "message": params["target_frame"]},
+    )  # fmt: skip
+    client_writes: list[int] = []
+    server_writes: list[int] = []
+    caller_flush = raw_client.HoldingCaller.flush
+    responder_flush = raw_server.HoldingResponder.flush
+
+    def counted_caller_flush(self: Any) -> None:
+        if self._held:
+            client_writes.append(len(self._held))
+        caller_flush(self)
+
+    def counted_responder_flush(self: Any, transport: Any) -> None:
+        if self._held:
+            server_writes.append(len(self._held) // 2)  # a header and a reply each
+        responder_flush(self, transport)
+
+    monkeypatch.setattr(raw_client.HoldingCaller, "flush", counted_caller_flush)
+    monkeypatch.setattr(raw_server.HoldingResponder, "flush", counted_responder_flush)
+    # Each wait under asyncio.wait_for, with the client's deadline: counted.
+    deadlines: list[float] = []
+    wait_for = asyncio.wait_for
+
+    def counted_wait_for(awaitable: Any, timeout: float) -> Any:
+        deadlines.append(timeout)
+        return wait_for(awaitable, timeout)
+
+    monkeypatch.setattr(raw_client.asyncio, "wait_for", counted_wait_for)
+    accept = functools.partial(raw_server.accept, cork=True)
+    server = await ws_create_server(accept, "127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+    frames = [f"frame{index}" for index in range(8)]
+    try:
+        async with AsyncExitStack() as stack:
+            call = await raw_client.holding_adapter(deadline=True, cork=True).open(url, stack)
+
+            async def answered(frame: str) -> str:
+                request = raw_client.make_request({"query_type": "position", "target_frame": frame})
+                reply = await call(request)
+                assert raw_client.values_of(reply) == 5
+                return str(reply["message"])
+
+            # Eight calls of one turn: one write of eight masked frames (a wrong mask would be a
+            # parse error at picows' server), answered in writes of several replies.
+            assert await asyncio.gather(*map(answered, frames)) == frames
+            assert client_writes == [8]
+            assert sum(server_writes) == 8 and max(server_writes) > 1
+            assert deadlines == [raw_client.CALL_TIMEOUT] * 8
+            # One call at a time: each after a read of one reply is written at once.
+            client_writes.clear()
+            server_writes.clear()
+            assert [await answered(frame) for frame in frames[:3]] == frames[:3]
+            assert client_writes == [1] and server_writes == [1, 1, 1]
+            # Without the deadline, the same calls wait bare.
+            deadlines.clear()
+            call = await raw_client.holding_adapter(deadline=False, cork=True).open(url, stack)
+            assert await asyncio.gather(*map(answered, frames)) == frames
+            assert deadlines == []
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
+async def test_raw_picows_with_its_deadline_ends_a_wait_the_server_never_answers(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    raw_client = floors["picows_client"]
+    monkeypatch.setattr(raw_client, "CALL_TIMEOUT", 0.05)
+    received = asyncio.Event()
+
+    async def silent(websocket: Any) -> None:
+        async for _ in websocket:
+            received.set()
+
+    async with serve(silent, "127.0.0.1", 0, compression=None) as server:
+        url = f"ws://127.0.0.1:{next(iter(server.sockets)).getsockname()[1]}"
+        async with AsyncExitStack() as stack:
+            call = await raw_client.holding_adapter(deadline=True, cork=True).open(url, stack)
+            with pytest.raises(TimeoutError):
+                await call(raw_client.make_request({"query_type": "position"}))
+            assert received.is_set()
+
+
+def test_raw_picows_corked_with_and_without_its_deadline_runs_the_small_call_workloads(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "report.json"
+    done = harness(
+        "--quick", "--repeat", "1", "--workloads", "W1,W2,W3", "--loop", "asyncio",
+        "--compare", "picows-corked,picows-corked-deadline",
+        "--no-pin", "--max-other-load", "64", "--json", str(out),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    runs = json.loads(out.read_text())["asyncio"]["runs"]
+    impls = ["picows-corked", "picows-corked-deadline"]
+    for workload, calls in (("W1", 20_000 // 20), ("W2", 100_000 // 20)):
+        mine = [run for run in runs if run["workload"] == workload]
+        assert sorted(run["impl"] for run in mine) == impls
+        assert all(run["calls"] == calls and run["server_cpu_s"] > 0 for run in mine), mine
+    fan_in = [run for run in runs if run["workload"] == "W3"]
+    assert sorted(run["impl"] for run in fan_in) == impls
+    assert all(run["calls"] > 0 for run in fan_in)
+    assert "ratio = picows-corked-deadline / picows-corked" in done.stdout
+
+
+def test_raw_picows_corked_pair_is_raw_picows_told_to_cork_with_and_without_its_deadline(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run, raw_client = floors["run"], floors["picows_client"]
+    scripts = run.IMPLEMENTATIONS["picows"][:2]
+    command = ["picows_client.py", "--url", "ws://127.0.0.1:1", "--workload", "W1"]
+    monkeypatch.setattr(sys, "argv", command)
+    assert not raw_client.asked().cork and not raw_client.asked().deadline
+    for name, deadline in (("picows-corked", False), ("picows-corked-deadline", True)):
+        server_script, client_script, options = run.IMPLEMENTATIONS[name]
+        assert (server_script, client_script) == scripts
+        monkeypatch.setattr(sys, "argv", [*command, *options])
+        assert raw_client.asked().cork and raw_client.asked().deadline == deadline
 
 
 def test_the_corked_typed_floor_on_picows_masks_each_frame_with_its_own_key(
