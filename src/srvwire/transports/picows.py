@@ -274,6 +274,7 @@ class PicowsConnection(WSListener, Connection):
         "_parts_text",
         "_ping_interval",
         "_ping_timeout",
+        "_pong_due",
         "_reading",
         "_receive",
         "_received",
@@ -305,6 +306,8 @@ class PicowsConnection(WSListener, Connection):
         self._ping_timeout = options.ping_timeout
         self._keepalive: asyncio.TimerHandle | None = None  # the next ping, or its deadline
         self._awaiting_pong = False
+        # The latest ping received while congested, answered once it drains (see on_ws_frame).
+        self._pong_due: bytes | None = None
         self._messages: deque[str | bytes] = deque()
         self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
         self._reading = True
@@ -396,7 +399,10 @@ class PicowsConnection(WSListener, Connection):
                 if not self._failed:  # as websockets, whose parser stops at a failure
                     if self._corked:  # the replies made before it was read go out first
                         self._flush()
-                    transport.send_pong(frame.get_payload_as_bytes())
+                    if self.congested:  # only the latest, once it drains (RFC 6455, 5.5.3)
+                        self._pong_due = frame.get_payload_as_bytes()
+                    else:
+                        transport.send_pong(frame.get_payload_as_bytes())
             elif kind is _PONG:
                 self._pong()
         finally:
@@ -446,6 +452,11 @@ class PicowsConnection(WSListener, Connection):
             self._stall = None
         writable, self._writable = self._writable, None
         self.congested = False
+        pong, self._pong_due = self._pong_due, None
+        ws = self._ws
+        if pong is not None and ws is not None and self._ended is None:
+            if not ws.underlying_transport.is_closing():
+                ws.send_pong(pong)
         if writable is not None and not writable.done():
             writable.set_result(None)
 
