@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import logging
 import os
 import socket
 import struct
@@ -253,3 +254,27 @@ async def test_pings_from_a_client_that_never_reads_queue_no_more_than_the_budge
             sock.close()
         assert served.conn.congested or most > budget // 2  # the pongs did fill the buffer
         assert most <= budget + READ_SIZE, most
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
+async def test_pings_from_a_client_that_resets_write_no_warning_per_pong(
+    transport: srvwire.transports.base.Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The client closes with its pongs unread: the kernel resets the connection while the
+    # server still answers the pings it read. asyncio warns for every write to a transport
+    # that failed; the server writes no pong to one that is closing.
+    caplog.set_level(logging.WARNING, logger="asyncio")
+    async with srvwire.serve(srvwire.Server(), "127.0.0.1", 0, transport=transport) as running:
+        sock = await open_stuck_connection(running.port, [])
+        loop = asyncio.get_running_loop()
+        opening = b""
+        while b"$/services" not in opening:  # sent once the connection is served
+            opening += await asyncio.wait_for(loop.sock_recv(sock, 4096), scaled(10))
+        (served,) = running._connections
+        handler = served.serving
+        assert handler is not None
+        await loop.sock_sendall(sock, b"".join(masked_ping(b"p" * 125) for _ in range(20_000)))
+        sock.close()  # what it received unread: a reset
+        await asyncio.wait([handler])
+    warnings = [r for r in caplog.records if "socket.send() raised" in r.getMessage()]
+    assert warnings == []

@@ -401,7 +401,7 @@ class PicowsConnection(WSListener, Connection):
                         self._flush()
                     if self.congested:  # only the latest, once it drains (RFC 6455, 5.5.3)
                         self._pong_due = frame.get_payload_as_bytes()
-                    else:
+                    elif not transport.underlying_transport.is_closing():
                         transport.send_pong(frame.get_payload_as_bytes())
             elif kind is _PONG:
                 self._pong()

@@ -580,15 +580,19 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         answers a client's close frame as it parses it, before any event of that read is
         taken: the frames before the close are handed over first, so that the replies they
         make at once go out ahead of the answer, as when the close comes in a later read. A
-        message refused meanwhile (:meth:`refuse`) turns the answer into its own close. While
-        the connection is congested only the latest pong is kept, written once it drains (RFC
-        6455, section 5.5.3): a peer that pings and does not read holds one pong, not one per
-        ping. Every other frame passes as it is: only websockets' own frames come here (a pong,
-        a close, a message it frames itself), not those the connection frames."""
+        message refused meanwhile (:meth:`refuse`) turns the answer into its own close. A pong
+        is not written to a transport that is closing, and while the connection is congested
+        only the latest is kept, written once it drains (RFC 6455, section 5.5.3): a peer that
+        pings and does not read holds one pong, not one per ping. Every other frame passes as
+        it is: only websockets' own frames come here (a pong, a close, a message it frames
+        itself), not those the connection frames."""
         protocol = self.protocol
-        if frame.opcode is PONG and self.paused:
-            self.pong_due = frame
-            return
+        if frame.opcode is PONG:
+            if self.transport.is_closing():
+                return
+            if self.paused:
+                self.pong_due = frame
+                return
         if frame.opcode is CLOSE and protocol.state is OPEN and protocol.close_rcvd is not None:
             for event in protocol.events_received():  # the close frame is not among them yet
                 self.process_event(event)
@@ -617,6 +621,23 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
             self.set_connection_exc(error)
         if self.close_timeout is not None and self.closing is None:
             self.closing = self.loop.call_later(self.close_timeout, self.transport.abort)
+
+    def send_data(self) -> None:
+        """Write what the protocol has to send, as websockets does, but nothing once the
+        transport is closing: websockets writes each frame on its own, and asyncio warns for
+        each write past the fifth to a transport whose write failed, so the pongs to a read of
+        pings from a peer that reset the connection would each log a line."""
+        protocol = self.protocol
+        writes = protocol.data_to_send()
+        transport = self.transport
+        for at, data in enumerate(writes):
+            if transport.is_closing():  # nobody left to write to
+                return
+            if not data:  # websockets half-closes the connection: let it, as it does itself
+                protocol.writes[:0] = writes[at:]
+                super().send_data()
+                return
+            transport.write(data)
 
     def pause_writing(self) -> None:
         super().pause_writing()
