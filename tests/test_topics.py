@@ -989,3 +989,38 @@ async def test_a_writer_that_fails_inside_srvwire_is_logged_and_ends_the_connect
     [record] = [r for r in caplog.records if "writer" in r.getMessage()]
     assert record.levelname == "ERROR" and "failed inside srvwire" in record.getMessage()
     assert record.exc_info is not None and "a bug in the writer" in str(record.exc_info[1])
+
+
+@pytest.mark.parametrize("access_log", [False, True], ids=["plain", "access-logged"])
+async def test_subscriptions_past_max_subscriptions_are_refused_resource_exhausted(
+    transport: Transport, access_log: bool
+) -> None:
+    server = Server(max_subscriptions=2, access_log=access_log)
+    server.add_service("/subtract", Subtract, subtract)
+    pub = server.topic("/joint_states", JointState)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with client_of(running) as client:
+            await client.wait_for_topic("/joint_states")
+            first = await client.subscribe("/joint_states").start()
+            await client.subscribe("/joint_states", qos={"depth": 1}).start()
+            with pytest.raises(ResourceExhausted) as caught:
+                await client.subscribe("/joint_states").start()
+            assert caught.value.message == (
+                "too many subscriptions on this connection (the limit is 2); end one with "
+                "$/cancel first, or give the server a larger max_subscriptions"
+            )
+            assert caught.value.data == {"limit": 2}
+            assert pub.subscription_count == 2
+            await first.close()  # its $/cancel, read once a call sent after it is answered
+            await client.call("/subtract", {"minuend": 1, "subtrahend": 1})
+            assert pub.subscription_count == 1
+            async with client_of(running) as other:  # the limit is per connection
+                await other.wait_for_topic("/joint_states")
+                await other.subscribe("/joint_states").start()
+            third = await client.subscribe("/joint_states").start()
+            assert third.active and pub.subscription_count == 2
+
+
+def test_max_subscriptions_must_not_be_negative() -> None:
+    with pytest.raises(ValueError, match="max_subscriptions must not be negative, not -1"):
+        Server(max_subscriptions=-1)

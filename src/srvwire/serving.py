@@ -749,6 +749,7 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         peer: Any,
         topics: Any = None,
         outbox: Outbox | None = None,
+        max_subscriptions: int = 256,
     ) -> None:
         super().__init__(
             services,
@@ -757,6 +758,7 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
             scopes=scopes,
             topics=topics,
             outbox=outbox,
+            max_subscriptions=max_subscriptions,
         )
         self.access = (
             outbox.access if isinstance(outbox, AccessLoggedOutbox) else AccessLog(access_log, peer)
@@ -945,6 +947,7 @@ class ServedConnection:
         logger: logging.Logger,
         access_log: logging.Logger | None = None,
         max_queued_bytes: int = 4 * 2**20,
+        max_subscriptions: int = 256,
     ) -> None:
         self.conn = conn
         self.log = logger
@@ -970,6 +973,7 @@ class ServedConnection:
                 scopes=scopes,
                 topics=registry.topics,
                 outbox=self.writer.outbox,
+                max_subscriptions=max_subscriptions,
             )
         else:
             self.session = AccessLoggedSession(
@@ -981,6 +985,7 @@ class ServedConnection:
                 peer=conn.remote_address,
                 topics=registry.topics,
                 outbox=self.writer.outbox,
+                max_subscriptions=max_subscriptions,
             )
             self.access = self.session
         self.runner = CallRunner(
