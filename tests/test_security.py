@@ -275,6 +275,23 @@ async def test_a_wrong_token_is_refused_and_never_logged(
     assert robot.calls == []
 
 
+async def test_a_client_knocking_in_a_loop_gets_no_log_line_per_knock(
+    authed_robot: tuple[Robot, RunningServer], caplog: pytest.LogCaptureFixture
+) -> None:
+    # srvwire logs refusals at most once a second; the transport adds no line of its own per
+    # connection (picows logs each connection accepted and each disconnected at INFO).
+    robot, running = authed_robot
+    caplog.set_level(logging.INFO)
+    for _ in range(20):
+        status, _, _ = await http(running.port, headers={"Authorization": "Bearer guess"})
+        assert status == 401
+    lines = [(r.name, r.getMessage()) for r in caplog.records]
+    assert lines and all(message.startswith("refused a connection from") for _, message in lines), (
+        lines
+    )
+    assert robot.calls == []
+
+
 async def test_the_right_token_reaches_the_handler_as_an_identity(
     authed_robot: tuple[Robot, RunningServer],
 ) -> None:

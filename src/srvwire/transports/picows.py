@@ -887,7 +887,7 @@ class PicowsTransport(Transport):
         _check_options(options)
         loop = asyncio.get_running_loop()
         handlers: set[asyncio.Task[None]] = set()
-        logger = logging.getLogger("picows.server")
+        logger = _WithoutConnectionNews(logging.getLogger("picows.server"))
 
         async def run(connection: PicowsConnection) -> None:
             # As websockets does: 1000 when the handler returns, 1011 when it raises.
@@ -976,6 +976,17 @@ class PicowsTransport(Transport):
             raise ValueError(f"not a WebSocket URL: {url!r} ({exc})") from exc
         if parts.scheme.lower() not in ("ws", "wss") or not parts.hostname:
             raise ValueError(f"not a WebSocket URL: {url!r} (the scheme must be ws or wss)")
+
+
+class _WithoutConnectionNews(logging.LoggerAdapter[logging.Logger]):
+    """``picows``' server logger without its INFO lines: it writes two for every connection,
+    refused at the upgrade or not (accepted, and disconnected), so a client knocking in a loop
+    would fill the log past the one line a second srvwire logs refusals at. Its warnings and
+    errors pass, and its DEBUG lines when the logger is set to show them. Given an adapter,
+    ``picows`` also makes no logger of its own per connection."""
+
+    def isEnabledFor(self, level: int) -> bool:
+        return level != logging.INFO and self.logger.isEnabledFor(level)
 
 
 class _Opening(WSProtocol):  # type: ignore[misc]
