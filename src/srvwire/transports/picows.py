@@ -125,7 +125,8 @@ READ_HIGH_WATER = 64
 READ_LOW_WATER = 16
 """Messages still queued at which reading the socket resumes."""
 HANDSHAKE_TIMEOUT = 10.0
-"""Seconds a server waits for a new connection's opening request (as ``websockets``)."""
+"""Seconds a server waits for a new connection's TLS handshake, and then for its opening
+request (as ``websockets``)."""
 CLOSE_TIMEOUT = 10.0
 """Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
 NO_LIMIT = 2**62
@@ -930,7 +931,11 @@ class PicowsTransport(Transport):
             return ws_protocol
 
         hosts = list(host) if isinstance(host, Sequence) and not isinstance(host, str) else host
-        server = await loop.create_server(protocol, hosts, port, ssl=ssl)
+        # asyncio gives a TLS handshake 60 s, and picows' timeout starts once it is done: a
+        # silent connection would be held 60 s. The TLS handshake gets the same timeout, as
+        # websockets gives it (its open_timeout).
+        tls: dict[str, Any] = {} if ssl is None else {"ssl_handshake_timeout": HANDSHAKE_TIMEOUT}
+        server = await loop.create_server(protocol, hosts, port, ssl=ssl, **tls)
         return PicowsListener(server, handlers, host, tls=ssl is not None)
 
     async def connect(
