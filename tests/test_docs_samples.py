@@ -268,7 +268,7 @@ EXPLAINED: dict[tuple[str, str], str] = {
         "the publishes' access-log lines: tests/test_logging.py checks an acknowledged one and "
         "the summary of those without an answer, on every transport"
     ),
-    ("limits.md", "M  ≤  C + B + (3 + W)·R + P + F·(c + q) + (Q + 2)·m"): (
+    ("limits.md", "M  ≤  C + B + (3 + W)·R + P + F·(c + q) + S·s + (Q + 2)·m"): (
         "the memory formula: tests/test_limits.py measures a server against it"
     ),
     ("tutorial.md", "make demo: robot_state_server.py is serving on ws://127.0.0.1:41111"): (

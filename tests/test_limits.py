@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import logging
 import os
 import socket
 import struct
@@ -23,6 +24,7 @@ from pathlib import Path
 import pytest
 
 import srvwire
+from srvwire.transports.websockets import READ_SIZE
 from support import ROOT, scaled
 
 SERVER = ROOT / "tests" / "servers" / "large_reply_server.py"
@@ -210,3 +212,69 @@ async def test_a_subscriber_that_never_reads_holds_no_more_than_the_budget() -> 
     finally:
         process.kill()
         await process.wait()
+
+
+# --- pings from a client that never reads ---------------------------------------------------------
+
+
+def masked_ping(payload: bytes) -> bytes:
+    """One client-to-server ping (at most 125 bytes), masked."""
+    mask = os.urandom(4)
+    masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    return struct.pack("!BB", 0x89, 0x80 | len(payload)) + mask + masked
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
+async def test_pings_from_a_client_that_never_reads_queue_no_more_than_the_budget(
+    transport: srvwire.transports.base.Transport,
+) -> None:
+    # Each ping asks for a pong; a client that never reads would have them all queued. Past
+    # the budget the server keeps the answer to the latest ping only; the pongs to the pings
+    # of one read (websockets writes them after the read) may cross it, as a reply does.
+    budget = 64 * KIB
+    server = srvwire.Server(max_queued_bytes=budget)
+    async with srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running:
+        sock = await open_stuck_connection(running.port, [])
+        loop = asyncio.get_running_loop()
+        opening = b""
+        while b"$/services" not in opening:  # sent once the connection is served
+            opening += await asyncio.wait_for(loop.sock_recv(sock, 4096), scaled(10))
+        (served,) = running._connections
+        ws = served.conn._ws  # type: ignore[attr-defined]
+        sending = getattr(ws, "underlying_transport", None) or ws.transport
+        sending.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 8 * KIB)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 * KIB)
+        chunk = b"".join(masked_ping(b"p" * 125) for _ in range(1000))
+        most = 0
+        try:
+            for _ in range(20):  # 2.6 MB of pongs asked for; the server reads as it goes
+                await loop.sock_sendall(sock, chunk)
+                most = max(most, served.conn.buffered())
+        finally:
+            sock.close()
+        assert served.conn.congested or most > budget // 2  # the pongs did fill the buffer
+        assert most <= budget + READ_SIZE, most
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
+async def test_pings_from_a_client_that_resets_write_no_warning_per_pong(
+    transport: srvwire.transports.base.Transport, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The client closes with its pongs unread: the kernel resets the connection while the
+    # server still answers the pings it read. asyncio warns for every write to a transport
+    # that failed; the server writes no pong to one that is closing.
+    caplog.set_level(logging.WARNING, logger="asyncio")
+    async with srvwire.serve(srvwire.Server(), "127.0.0.1", 0, transport=transport) as running:
+        sock = await open_stuck_connection(running.port, [])
+        loop = asyncio.get_running_loop()
+        opening = b""
+        while b"$/services" not in opening:  # sent once the connection is served
+            opening += await asyncio.wait_for(loop.sock_recv(sock, 4096), scaled(10))
+        (served,) = running._connections
+        handler = served.serving
+        assert handler is not None
+        await loop.sock_sendall(sock, b"".join(masked_ping(b"p" * 125) for _ in range(20_000)))
+        sock.close()  # what it received unread: a reset
+        await asyncio.wait([handler])
+    warnings = [r for r in caplog.records if "socket.send() raised" in r.getMessage()]
+    assert warnings == []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import errno
 import json
 import logging
@@ -37,6 +38,7 @@ from srvwire.auth import bearer_subprotocol
 from srvwire.handshake import NOT_WEBSOCKET
 from srvwire.inline import Pending, finish, first_step
 from srvwire.server import RunningServer
+from srvwire.transports import picows as picows_transport
 from srvwire.transports.base import Handshake
 from support import scaled
 
@@ -275,6 +277,23 @@ async def test_a_wrong_token_is_refused_and_never_logged(
     assert robot.calls == []
 
 
+async def test_a_client_knocking_in_a_loop_gets_no_log_line_per_knock(
+    authed_robot: tuple[Robot, RunningServer], caplog: pytest.LogCaptureFixture
+) -> None:
+    # srvwire logs refusals at most once a second; the transport adds no line of its own per
+    # connection (picows logs each connection accepted and each disconnected at INFO).
+    robot, running = authed_robot
+    caplog.set_level(logging.INFO)
+    for _ in range(20):
+        status, _, _ = await http(running.port, headers={"Authorization": "Bearer guess"})
+        assert status == 401
+    lines = [(r.name, r.getMessage()) for r in caplog.records]
+    assert lines and all(message.startswith("refused a connection from") for _, message in lines), (
+        lines
+    )
+    assert robot.calls == []
+
+
 async def test_the_right_token_reaches_the_handler_as_an_identity(
     authed_robot: tuple[Robot, RunningServer],
 ) -> None:
@@ -471,6 +490,24 @@ def server_context(ca: trustme.CA, *, client_ca: trustme.CA | None = None) -> ss
         context.verify_mode = ssl.CERT_REQUIRED
         client_ca.configure_trust(context)
     return context
+
+
+async def test_a_silent_connection_to_a_picows_tls_listener_ends_at_the_handshake_timeout(
+    ca: trustme.CA, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # picows' own handshake timeout starts once the TLS handshake is done, for which asyncio
+    # waits 60 s by default: the listener gives the TLS handshake the same timeout. Made
+    # short here, so that the 60 s, were they still there, would stand out.
+    monkeypatch.setattr(picows_transport, "HANDSHAKE_TIMEOUT", 0.2)
+    async with serve(
+        Robot().server, "localhost", 0, transport="picows", ssl=server_context(ca)
+    ) as running:
+        reader, writer = await asyncio.open_connection("127.0.0.1", running.port)
+        try:
+            with contextlib.suppress(ConnectionResetError):  # asyncio aborts it
+                assert await asyncio.wait_for(reader.read(), 30) == b""
+        finally:
+            writer.close()
 
 
 async def test_tls_round_trip_with_a_ca_file(ca: trustme.CA, tmp_path: Path, edge: str) -> None:

@@ -33,7 +33,7 @@ from srvwire import (
 )
 from srvwire.errors import RegistrationError
 from srvwire.server import RunningServer
-from srvwire.serving import ServedConnection
+from srvwire.serving import ServedConnection, Writer
 from srvwire.transports.base import Connection, Transport, TransportClosed
 from srvwire.transports.memory import MemoryConnection, MemoryTransport
 from srvwire.typeregistry import fingerprint, full_definition
@@ -926,3 +926,101 @@ async def test_a_calls_reply_takes_its_room_from_the_best_effort_data_queued() -
     assert served.outbox.queued <= 40 * size - conn.buffered()
     assert subscription.dropped > 0 and len(served.outbox.subscriptions) == 1
     served.writer.stop()
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"], indirect=True)
+async def test_best_effort_subscriptions_that_give_up_their_data_all_end_with_the_connection(
+    transport: Transport,
+) -> None:
+    # Two best-effort subscriptions hold a small message each when a message larger than the
+    # connection's budget is published: the first gives up its message and the new one (the
+    # other holds the room), the second keeps the large one. The writer goes on, and when the
+    # peer leaves, both subscriptions leave the topic.
+    server = Server(max_queued_bytes=64 * KIB)
+    flood = server.topic("/flood", String, qos={"depth": 1, "reliability": "best_effort"})
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        reader, writer = await stalled_subscriber(running.port, {})
+        params = {"topic": "/flood"}
+        writer.write(
+            masked_text_frame(
+                json.dumps({"jsonrpc": "2.0", "id": 2, "method": "$/subscribe", "params": params})
+            )
+        )
+        while (await read_frame(reader)).get("method") != "$/subscribed":
+            pass
+        (served,) = running._connections
+        flood.publish({"data": "small"})  # in one turn: both queue it, the writer has not run
+        flood.publish({"data": "x" * 100_000})
+        while len((await read_frame(reader))["params"]["message"]["data"]) < 100_000:
+            pass
+        flood.publish({"data": "last"})
+        last: dict[int, str] = {}
+        while sorted(last.items()) != [(1, "last"), (2, "last")]:
+            message = (await read_frame(reader))["params"]
+            last[message["subscription"]] = message["message"]["data"]
+        handler = served.serving
+        assert handler is not None
+        writer.close()
+        await asyncio.wait([handler])
+        assert flood.subscription_count == 0 and not served.outbox.subscriptions
+        assert not running._connections
+
+
+async def test_a_writer_that_fails_inside_srvwire_is_logged_and_ends_the_connection(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken(self: Writer) -> Any:
+        raise RuntimeError("a bug in the writer")
+
+    server = Server()
+    flood = server.topic("/flood", String)
+    async with serve(server, "127.0.0.1", 0) as running:
+        reader, writer = await stalled_subscriber(running.port, {})
+        (served,) = running._connections
+        handler = served.serving
+        assert handler is not None
+        monkeypatch.setattr(Writer, "next", broken)
+        flood.publish({"data": "x"})
+        head = await asyncio.wait_for(reader.readexactly(4), scaled(10))
+        assert head[0] == 0x88 and int.from_bytes(head[2:4], "big") == 1011  # a close frame
+        writer.close()
+        await asyncio.wait([handler])
+        assert flood.subscription_count == 0
+    [record] = [r for r in caplog.records if "writer" in r.getMessage()]
+    assert record.levelname == "ERROR" and "failed inside srvwire" in record.getMessage()
+    assert record.exc_info is not None and "a bug in the writer" in str(record.exc_info[1])
+
+
+@pytest.mark.parametrize("access_log", [False, True], ids=["plain", "access-logged"])
+async def test_subscriptions_past_max_subscriptions_are_refused_resource_exhausted(
+    transport: Transport, access_log: bool
+) -> None:
+    server = Server(max_subscriptions=2, access_log=access_log)
+    server.add_service("/subtract", Subtract, subtract)
+    pub = server.topic("/joint_states", JointState)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with client_of(running) as client:
+            await client.wait_for_topic("/joint_states")
+            first = await client.subscribe("/joint_states").start()
+            await client.subscribe("/joint_states", qos={"depth": 1}).start()
+            with pytest.raises(ResourceExhausted) as caught:
+                await client.subscribe("/joint_states").start()
+            assert caught.value.message == (
+                "too many subscriptions on this connection (the limit is 2); end one with "
+                "$/cancel first, or give the server a larger max_subscriptions"
+            )
+            assert caught.value.data == {"limit": 2}
+            assert pub.subscription_count == 2
+            await first.close()  # its $/cancel, read once a call sent after it is answered
+            await client.call("/subtract", {"minuend": 1, "subtrahend": 1})
+            assert pub.subscription_count == 1
+            async with client_of(running) as other:  # the limit is per connection
+                await other.wait_for_topic("/joint_states")
+                await other.subscribe("/joint_states").start()
+            third = await client.subscribe("/joint_states").start()
+            assert third.active and pub.subscription_count == 2
+
+
+def test_max_subscriptions_must_not_be_negative() -> None:
+    with pytest.raises(ValueError, match="max_subscriptions must not be negative, not -1"):
+        Server(max_subscriptions=-1)

@@ -515,3 +515,133 @@ def test_order_and_sequence_numbers_hold_under_any_depth(
     elif not ended:
         assert previous == chatter.seq
     assert outbox.queued == 0
+
+
+def ready_holds_exactly_what_has_data(outbox: Outbox) -> None:
+    """The outbox's invariant: a subscription is in the round-robin, once, exactly when its
+    queue holds something, and ``queued`` counts the bytes the queues hold."""
+    ready = list(outbox.ready)
+    assert len(ready) == len(set(map(id, ready)))
+    for subscription in outbox.subscriptions.values():
+        assert subscription.ready == bool(subscription.queue) == (subscription in ready)
+    assert all(subscription.id in outbox.subscriptions for subscription in ready)
+    queued = sum(len(m) for s in outbox.subscriptions.values() for _, m in s.queue)
+    assert outbox.queued == queued
+
+
+def test_a_best_effort_subscription_that_gives_up_its_last_message_leaves_the_round_robin() -> None:
+    # Two best-effort subscriptions hold a message each when the transport's bytes grow (a
+    # reply): the next publication leaves no room, and each drops its old message and the new
+    # one. Neither may stay in the round-robin with nothing queued: the writer would take
+    # from an empty queue, and the close would end nothing after it.
+    size = len(data(0))
+    transport = Transport()
+    chatter = topic(qos=QoS(depth=5))
+    lossy = QoS(depth=5, reliability="best_effort")
+    outbox = Outbox(budget=3 * size, buffered=transport.buffered, writable=lambda: True)
+    pair = [outbox.subscribe(name, chatter, lossy) for name in "ab"]
+    drain(outbox)
+    chatter.publish(data(1))
+    transport.held = 2 * size
+    chatter.publish(data(2))  # the first of them in the topic's order gives up everything
+    assert sorted(len(subscription.queue) for subscription in pair) == [0, 1]
+    ready_holds_exactly_what_has_data(outbox)
+    messages = drain(outbox)  # the other kept the new message: it goes out, nothing fails
+    assert [m["params"]["seq"] for m in messages] == [2]
+    transport.held = 0
+    chatter.publish(data(3))
+    assert sorted((m["params"]["subscription"], m["params"]["seq"]) for m in drain(outbox))[
+        -2:
+    ] == [("a", 3), ("b", 3)]
+    outbox.close()
+    assert not chatter.subscriptions and not outbox.ready and outbox.queued == 0
+
+
+def test_a_congested_connection_with_two_best_effort_subscriptions_keeps_the_invariant() -> None:
+    # A writer that sends a message at a time between publications, 30 000 bytes of replies
+    # written beside them, a peer that reads 20 000 bytes in between, a budget of 4 MiB.
+    budget = 4 * 2**20
+    transport = Transport()
+    chatter = topic(qos=QoS(depth=1))
+    outbox = Outbox(
+        budget=budget, buffered=transport.buffered, writable=lambda: transport.held <= budget
+    )
+    lossy = QoS(depth=1, reliability="best_effort")
+    for n in range(2):
+        outbox.subscribe(n, chatter, lossy)
+    drain(outbox)
+    payload = b'"' + b"x" * 9_998 + b'"'
+    for _ in range(2000):
+        chatter.publish(payload)
+        ready_holds_exactly_what_has_data(outbox)
+        if transport.held <= budget and (taken := outbox.next()) is not None:
+            transport.held += len(taken)
+        transport.held = max(0, transport.held + 30_000 - 20_000)
+    outbox.close()
+    assert not chatter.subscriptions and not outbox.ready and outbox.queued == 0
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(
+            st.sampled_from(["publish", "take", "fit", "held"]),
+            st.integers(min_value=0, max_value=3),
+            st.integers(min_value=0, max_value=12),
+        ),
+        min_size=1,
+        max_size=80,
+    ),
+    reliable=st.lists(st.booleans(), min_size=1, max_size=4),
+    depth=st.integers(min_value=1, max_value=4),
+)
+def test_the_round_robin_holds_exactly_the_subscriptions_with_data(
+    steps: list[tuple[str, int, int]], reliable: list[bool], depth: int
+) -> None:
+    """Whatever the transport holds, whatever is published, taken or fitted: a subscription
+    is ready exactly when it has data, and closing leaves nothing on any topic."""
+    size = len(data(0))
+    transport = Transport()
+    topics = [topic(f"/t{n}", QoS(depth=depth)) for n in range(2)]
+    outbox = Outbox(
+        budget=6 * size,
+        buffered=transport.buffered,
+        writable=lambda: transport.held <= 6 * size,
+    )
+    for n, steady in enumerate(reliable):
+        qos = QoS(depth=depth, reliability="reliable" if steady else "best_effort")
+        outbox.subscribe(n, topics[n % 2], qos)
+    drain(outbox)
+    for action, which, amount in steps:
+        if action == "publish":
+            topics[which % 2].publish(data(amount))
+        elif action == "take":
+            for _ in range(which):
+                outbox.next()
+        elif action == "fit":
+            outbox.fit()
+        else:
+            transport.held = amount * size
+        ready_holds_exactly_what_has_data(outbox)
+    outbox.close()
+    assert not any(t.subscriptions for t in topics)
+    assert not outbox.ready and outbox.queued == 0
+
+
+def test_closing_ends_every_subscription_even_when_ending_one_fails() -> None:
+    class Failing(Outbox):
+        def end(self, subscription: Any, error: Any) -> bool:
+            ended = super().end(subscription, error)
+            if subscription.id == "a":
+                raise RuntimeError("a bug")
+            return ended
+
+    chatter = topic(qos=QoS(depth=5))
+    outbox = Failing()
+    for name in "abc":
+        outbox.subscribe(name, chatter, chatter.qos)
+    chatter.publish(data(1))
+    with pytest.raises(RuntimeError, match="a bug"):
+        outbox.close()
+    assert not chatter.subscriptions and not outbox.subscriptions
+    assert not outbox.ready and outbox.queued == 0 and not outbox.control

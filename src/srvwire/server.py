@@ -114,8 +114,10 @@ class Server:
     """A set of services and the options to serve them with; :func:`serve` makes it listen.
 
     ``max_in_flight`` bounds the calls running at once on one connection (a reply counts until
-    it is sent); ``max_batch`` the messages of one batch; ``notification_timeout`` how long a
-    notification's handler may run when the notification gives no deadline (None: forever);
+    it is sent); ``max_subscriptions`` the subscriptions running at once on one connection
+    (past it ``$/subscribe`` is answered ``RESOURCE_EXHAUSTED``); ``max_batch`` the messages
+    of one batch; ``notification_timeout`` how long a notification's handler may run when
+    the notification gives no deadline (None: forever);
     ``max_message_size`` the size of one incoming message in bytes (None: no limit);
     ``max_queued_bytes`` the budget of a connection's bytes waiting to be sent, replies and
     topic data together (topic data takes what replies leave): past it the connection reads no
@@ -167,6 +169,7 @@ class Server:
         max_connections: int | None = 512,
         inf_nan: InfNan = INF_NAN_MODES[0],
         access_log: bool | logging.Logger = False,
+        max_subscriptions: int = 256,
     ) -> None:
         if max_connections is not None and max_connections < 1:
             raise ValueError(f"max_connections must be at least 1, not {max_connections}")
@@ -183,6 +186,8 @@ class Server:
             raise ValueError(f"max_in_flight must be at least 1, not {max_in_flight}")
         if max_batch < 1:
             raise ValueError(f"max_batch must be at least 1, not {max_batch}")
+        if max_subscriptions < 0:
+            raise ValueError(f"max_subscriptions must not be negative, not {max_subscriptions}")
         if notification_timeout is not None and not notification_timeout > 0:
             raise ValueError(
                 f"notification_timeout must be a number of seconds > 0, not {notification_timeout}"
@@ -197,6 +202,7 @@ class Server:
             raise ValueError(f"grace_period must not be negative, not {grace_period}")
         self.registry = ServiceRegistry(inf_nan=inf_nan)
         self.max_in_flight = max_in_flight
+        self.max_subscriptions = max_subscriptions
         self.max_batch = max_batch
         self.notification_timeout = notification_timeout
         self.max_message_size = max_message_size
@@ -920,6 +926,7 @@ class RunningServer:
             logger=server.logger,
             access_log=server.access_log,
             max_queued_bytes=server.max_queued_bytes,
+            max_subscriptions=server.max_subscriptions,
         )
         if self.closing:
             conn.session.close()

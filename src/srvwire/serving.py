@@ -496,7 +496,17 @@ class Writer:
     of each goal whose feedback went out.
     """
 
-    __slots__ = ("conn", "feedback", "feedback_sent", "loop", "outbox", "task", "turn", "waiter")
+    __slots__ = (
+        "conn",
+        "failed",
+        "feedback",
+        "feedback_sent",
+        "loop",
+        "outbox",
+        "task",
+        "turn",
+        "waiter",
+    )
 
     def __init__(
         self,
@@ -512,6 +522,8 @@ class Writer:
         self.outbox = make_outbox(self.wake, budget, buffered, lambda: not conn.congested)
         self.feedback = FeedbackOutbox()
         self.feedback_sent: Callable[[Any], object] = lambda call: None
+        # Told of a failure inside srvwire that ended the task (the connection ends it).
+        self.failed: Callable[[Exception], object] = lambda exc: None
         self.turn = False  # whether feedback goes before topic data next time both wait
         self.task: asyncio.Task[None] | None = None
         self.waiter: asyncio.Future[None] | None = None
@@ -567,12 +579,16 @@ class Writer:
                     self.feedback_sent(goal)
         except TransportClosed:
             outbox.close()
+        except Exception as exc:  # a bug in srvwire: nothing more goes out, say so
+            self.failed(exc)
 
     def stop(self) -> None:
         """The connection ended: end every subscription and stop the task."""
-        self.outbox.close()
-        if self.task is not None:
-            self.task.cancel()
+        try:
+            self.outbox.close()
+        finally:
+            if self.task is not None:
+                self.task.cancel()
 
 
 def _peer(address: Any) -> str:
@@ -733,6 +749,7 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         peer: Any,
         topics: Any = None,
         outbox: Outbox | None = None,
+        max_subscriptions: int = 256,
     ) -> None:
         super().__init__(
             services,
@@ -741,6 +758,7 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
             scopes=scopes,
             topics=topics,
             outbox=outbox,
+            max_subscriptions=max_subscriptions,
         )
         self.access = (
             outbox.access if isinstance(outbox, AccessLoggedOutbox) else AccessLog(access_log, peer)
@@ -929,6 +947,7 @@ class ServedConnection:
         logger: logging.Logger,
         access_log: logging.Logger | None = None,
         max_queued_bytes: int = 4 * 2**20,
+        max_subscriptions: int = 256,
     ) -> None:
         self.conn = conn
         self.log = logger
@@ -942,6 +961,7 @@ class ServedConnection:
                 AccessLoggedOutbox, access=AccessLog(access_log, conn.remote_address)
             )
             self.writer = Writer(conn, self.loop, max_queued_bytes, logged)
+        self.writer.failed = self.writer_failed
         self.outbox = self.writer.outbox
         self.session: ServerSession[ServiceEntry]
         self.access: AccessLoggedSession | None = None  # the session, when it is logged
@@ -953,6 +973,7 @@ class ServedConnection:
                 scopes=scopes,
                 topics=registry.topics,
                 outbox=self.writer.outbox,
+                max_subscriptions=max_subscriptions,
             )
         else:
             self.session = AccessLoggedSession(
@@ -964,6 +985,7 @@ class ServedConnection:
                 peer=conn.remote_address,
                 topics=registry.topics,
                 outbox=self.writer.outbox,
+                max_subscriptions=max_subscriptions,
             )
             self.access = self.session
         self.runner = CallRunner(
@@ -1069,29 +1091,51 @@ class ServedConnection:
         self.session.expire()
         self.log.info("the credentials of the connection from %s expired", self.peer)
 
+    def writer_failed(self, exc: Exception) -> None:
+        """The writer stopped on a failure inside srvwire: log it and end the connection with
+        1011, as a handler that raises does, since nothing more would be sent on it."""
+        self.log.error(
+            "the writer of the connection from %s failed inside srvwire; closing the connection",
+            self.peer,
+            exc_info=exc,
+        )
+        self.spawn(self.conn.close(1011))
+
     def cancel_all(self, error: RPCError | None) -> None:
         """Cancel every call in flight; with ``error`` they answer it, without they stay silent.
 
         Without ``error`` (the connection is gone) every task is cancelled, even one that has
         not started; since such a task never runs its coroutine's ``finally``, each counted
-        task gets a done-callback that settles it.
+        task gets a done-callback that settles it. Each step of that cleanup runs even if
+        one before it fails inside srvwire (logged), so that nothing of the connection stays.
         """
         runner = self.runner
         for cancel in self.session.cancel_all(error):
             runner.cancel(cancel.call, cancel.error)
         if error is None:
-            self.writer.stop()
-            if self.access is not None:
-                self.access.summarize()
-            if self.expiry is not None:
-                self.expiry.cancel()
-                self.expiry = None
-            for task in list(self.tasks):
-                task.cancel()
-            counted = runner.counted
-            for task in list(counted):
-                task.cancel()
-                task.add_done_callback(counted.discard)
+            for step in (self.writer.stop, self.summarize, self.stop_tasks):
+                try:
+                    step()
+                except Exception:
+                    self.log.exception(
+                        "ending the connection from %s failed inside srvwire", self.peer
+                    )
+
+    def summarize(self) -> None:
+        if self.access is not None:
+            self.access.summarize()
+
+    def stop_tasks(self) -> None:
+        """Cancel the expiry timer, the connection's tasks and its counted calls."""
+        if self.expiry is not None:
+            self.expiry.cancel()
+            self.expiry = None
+        for task in list(self.tasks):
+            task.cancel()
+        counted = self.runner.counted
+        for task in list(counted):
+            task.cancel()
+            task.add_done_callback(counted.discard)
 
     # --- reading ------------------------------------------------------------------------------
 

@@ -20,7 +20,8 @@ Server invariants:
   that is not a service is discovery, ``$/cancel`` or ``SERVICE_NOT_FOUND``; a service whose
   ``scopes`` the connection does not all hold is ``PERMISSION_DENIED`` (before its params are
   read); past ``max_in_flight`` a call is answered ``RESOURCE_EXHAUSTED``; an id already in
-  flight is ``INVALID_REQUEST``.
+  flight is ``INVALID_REQUEST``. A ``$/subscribe`` past ``max_subscriptions`` running on the
+  connection is answered ``RESOURCE_EXHAUSTED`` too.
 * **A connection sees only what it may call**: ``rpc.discover`` and ``$/services`` list the
   services whose scopes it holds.
 * **In flight** counts calls from admission until the runner says :meth:`~ServerSession.sent`:
@@ -301,12 +302,14 @@ class ServerSession(Generic[E]):
         scopes: frozenset[str] = frozenset(),
         topics: Topics | None = None,
         outbox: Outbox | None = None,
+        max_subscriptions: int = 256,
     ) -> None:
         self.services = services
         self.topics = topics
         self.outbox: Outbox = _NoOutbox() if outbox is None else outbox
         """What this connection has to write besides replies: subscriptions and their data."""
         self.max_in_flight = max_in_flight
+        self.max_subscriptions = max_subscriptions
         self.max_batch = max_batch
         self.scopes = scopes
         self.expired = False
@@ -483,6 +486,16 @@ class ServerSession(Generic[E]):
             )
             return self._refuse(request.id, duplicate)
         if request.method == SUBSCRIBE_METHOD:
+            limit = self.max_subscriptions
+            if len(self.outbox.subscriptions) >= limit:
+                topic = request.params.get("topic") if type(request.params) is dict else None
+                exhausted = ResourceExhausted(
+                    f"too many subscriptions on this connection (the limit is {limit}); end "
+                    "one with $/cancel first, or give the server a larger max_subscriptions",
+                    {"limit": limit},
+                    service=topic if type(topic) is str else None,
+                )
+                return self._refuse(id, exhausted)
             subscribed = self.topics.subscribe(self.outbox, id, request.params, self.scopes)
             if type(subscribed) is bytes:
                 return subscribed

@@ -232,7 +232,7 @@ class Subscription:
         self.outbox = outbox
         self.queue: deque[tuple[int, bytes]] = deque()
         self.dropped = 0  # dropped since the last message taken out
-        self.ready = False  # in the outbox's round-robin
+        self.ready = False  # in the outbox's round-robin: exactly while its queue is not empty
         self.timer: Any = None  # its deadline's timer (has cancel()), set by the asyncio shell
         self.prefix = (
             b'{"jsonrpc":"2.0","method":"$/message","params":{"subscription":'
@@ -276,6 +276,9 @@ class Subscription:
                 return False
             if not queue:  # the connection's budget is held by other subscriptions
                 self.dropped += 1
+                if self.ready:  # it gave up its last message: nothing left to take turns
+                    self.ready = False
+                    outbox.ready.remove(self)
                 return False
             _, old = queue.popleft()
             outbox.queued -= len(old)
@@ -479,10 +482,23 @@ class Outbox:
         )
 
     def close(self) -> None:
-        """The connection is gone: end every subscription silently and drop what is queued."""
+        """The connection is gone: end every subscription silently and drop what is queued.
+
+        Every subscription leaves its topic even if ending one of them fails; the first
+        failure is raised once all are ended.
+        """
+        for subscription in self.ready:  # emptied at once, not one subscription at a time
+            subscription.ready = False
+        self.ready.clear()
+        failure: Exception | None = None
         for subscription in list(self.subscriptions.values()):
-            self.end(subscription, None)
+            try:
+                self.end(subscription, None)
+            except Exception as exc:  # the others still leave their topics
+                failure = failure or exc
         self.control.clear()
+        if failure is not None:
+            raise failure
 
 
 class TopicBoard(Generic[T]):

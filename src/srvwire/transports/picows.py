@@ -125,7 +125,8 @@ READ_HIGH_WATER = 64
 READ_LOW_WATER = 16
 """Messages still queued at which reading the socket resumes."""
 HANDSHAKE_TIMEOUT = 10.0
-"""Seconds a server waits for a new connection's opening request (as ``websockets``)."""
+"""Seconds a server waits for a new connection's TLS handshake, and then for its opening
+request (as ``websockets``)."""
 CLOSE_TIMEOUT = 10.0
 """Seconds :meth:`PicowsConnection.close` waits for the peer's close frame (as ``websockets``)."""
 NO_LIMIT = 2**62
@@ -274,6 +275,7 @@ class PicowsConnection(WSListener, Connection):
         "_parts_text",
         "_ping_interval",
         "_ping_timeout",
+        "_pong_due",
         "_reading",
         "_receive",
         "_received",
@@ -305,6 +307,8 @@ class PicowsConnection(WSListener, Connection):
         self._ping_timeout = options.ping_timeout
         self._keepalive: asyncio.TimerHandle | None = None  # the next ping, or its deadline
         self._awaiting_pong = False
+        # The latest ping received while congested, answered once it drains (see on_ws_frame).
+        self._pong_due: bytes | None = None
         self._messages: deque[str | bytes] = deque()
         self._waiter: asyncio.Future[None] | None = None  # a recv waiting for a message
         self._reading = True
@@ -396,7 +400,10 @@ class PicowsConnection(WSListener, Connection):
                 if not self._failed:  # as websockets, whose parser stops at a failure
                     if self._corked:  # the replies made before it was read go out first
                         self._flush()
-                    transport.send_pong(frame.get_payload_as_bytes())
+                    if self.congested:  # only the latest, once it drains (RFC 6455, 5.5.3)
+                        self._pong_due = frame.get_payload_as_bytes()
+                    elif not transport.underlying_transport.is_closing():
+                        transport.send_pong(frame.get_payload_as_bytes())
             elif kind is _PONG:
                 self._pong()
         finally:
@@ -446,6 +453,11 @@ class PicowsConnection(WSListener, Connection):
             self._stall = None
         writable, self._writable = self._writable, None
         self.congested = False
+        pong, self._pong_due = self._pong_due, None
+        ws = self._ws
+        if pong is not None and ws is not None and self._ended is None:
+            if not ws.underlying_transport.is_closing():
+                ws.send_pong(pong)
         if writable is not None and not writable.done():
             writable.set_result(None)
 
@@ -876,7 +888,7 @@ class PicowsTransport(Transport):
         _check_options(options)
         loop = asyncio.get_running_loop()
         handlers: set[asyncio.Task[None]] = set()
-        logger = logging.getLogger("picows.server")
+        logger = _WithoutConnectionNews(logging.getLogger("picows.server"))
 
         async def run(connection: PicowsConnection) -> None:
             # As websockets does: 1000 when the handler returns, 1011 when it raises.
@@ -919,7 +931,11 @@ class PicowsTransport(Transport):
             return ws_protocol
 
         hosts = list(host) if isinstance(host, Sequence) and not isinstance(host, str) else host
-        server = await loop.create_server(protocol, hosts, port, ssl=ssl)
+        # asyncio gives a TLS handshake 60 s, and picows' timeout starts once it is done: a
+        # silent connection would be held 60 s. The TLS handshake gets the same timeout, as
+        # websockets gives it (its open_timeout).
+        tls: dict[str, Any] = {} if ssl is None else {"ssl_handshake_timeout": HANDSHAKE_TIMEOUT}
+        server = await loop.create_server(protocol, hosts, port, ssl=ssl, **tls)
         return PicowsListener(server, handlers, host, tls=ssl is not None)
 
     async def connect(
@@ -965,6 +981,17 @@ class PicowsTransport(Transport):
             raise ValueError(f"not a WebSocket URL: {url!r} ({exc})") from exc
         if parts.scheme.lower() not in ("ws", "wss") or not parts.hostname:
             raise ValueError(f"not a WebSocket URL: {url!r} (the scheme must be ws or wss)")
+
+
+class _WithoutConnectionNews(logging.LoggerAdapter[logging.Logger]):
+    """``picows``' server logger without its INFO lines: it writes two for every connection,
+    refused at the upgrade or not (accepted, and disconnected), so a client knocking in a loop
+    would fill the log past the one line a second srvwire logs refusals at. Its warnings and
+    errors pass, and its DEBUG lines when the logger is set to show them. Given an adapter,
+    ``picows`` also makes no logger of its own per connection."""
+
+    def isEnabledFor(self, level: int) -> bool:
+        return level != logging.INFO and self.logger.isEnabledFor(level)
 
 
 class _Opening(WSProtocol):  # type: ignore[misc]

@@ -374,6 +374,9 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
     # What answers the peer's close instead of its echo (see send_close_last): a class default,
     # set on a connection only then.
     refused: Close | None = None
+    # The answer to the latest ping received while congested, sent once it drains (see
+    # send_close_last): a class default, set on a connection only then.
+    pong_due: Frame | None = None
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -577,10 +580,19 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         answers a client's close frame as it parses it, before any event of that read is
         taken: the frames before the close are handed over first, so that the replies they
         make at once go out ahead of the answer, as when the close comes in a later read. A
-        message refused meanwhile (:meth:`refuse`) turns the answer into its own close. Every
-        other frame passes as it is: only websockets' own frames come here (a pong, a close, a
-        message it frames itself), not those the connection frames."""
+        message refused meanwhile (:meth:`refuse`) turns the answer into its own close. A pong
+        is not written to a transport that is closing, and while the connection is congested
+        only the latest is kept, written once it drains (RFC 6455, section 5.5.3): a peer that
+        pings and does not read holds one pong, not one per ping. Every other frame passes as
+        it is: only websockets' own frames come here (a pong, a close, a message it frames
+        itself), not those the connection frames."""
         protocol = self.protocol
+        if frame.opcode is PONG:
+            if self.transport.is_closing():
+                return
+            if self.paused:
+                self.pong_due = frame
+                return
         if frame.opcode is CLOSE and protocol.state is OPEN and protocol.close_rcvd is not None:
             for event in protocol.events_received():  # the close frame is not among them yet
                 self.process_event(event)
@@ -610,6 +622,23 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         if self.close_timeout is not None and self.closing is None:
             self.closing = self.loop.call_later(self.close_timeout, self.transport.abort)
 
+    def send_data(self) -> None:
+        """Write what the protocol has to send, as websockets does, but nothing once the
+        transport is closing: websockets writes each frame on its own, and asyncio warns for
+        each write past the fifth to a transport whose write failed, so the pongs to a read of
+        pings from a peer that reset the connection would each log a line."""
+        protocol = self.protocol
+        writes = protocol.data_to_send()
+        transport = self.transport
+        for at, data in enumerate(writes):
+            if transport.is_closing():  # nobody left to write to
+                return
+            if not data:  # websockets half-closes the connection: let it, as it does itself
+                protocol.writes[:0] = writes[at:]
+                super().send_data()
+                return
+            transport.write(data)
+
     def pause_writing(self) -> None:
         super().pause_writing()
         self.drained.clear()
@@ -622,6 +651,12 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         if self.stall is not None:
             self.stall.cancel()
             self.stall = None
+        pong = self.pong_due
+        if pong is not None:
+            self.pong_due = None
+            if self.protocol.state is OPEN and not self.transport.is_closing():
+                Protocol.send_frame(self.protocol, pong)
+                self.send_data()
 
     def connection_lost(self, exc: Exception | None) -> None:
         super().connection_lost(exc)
