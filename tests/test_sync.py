@@ -799,3 +799,38 @@ async def test_ctrl_c_waits_for_a_goal_cancelled_already_without_asking_again() 
     assert [(goal.asked, goal.waited) for goal in (running, cancelled, finished)] == [
         (1, 1), (0, 1), (0, 0)
     ]  # fmt: skip
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+def test_calls_handed_to_the_loop_as_close_ends_it_fail_at_once(
+    running: RunningServer, transport: str
+) -> None:
+    # The loop thread is held after its last sweep of tasks, before it closes the loop: the
+    # moment a call from another thread could be handed over and dropped with the loop.
+    client = srvwire.sync.connect(running.url, timeout=scaled(30), transport=transport)
+    assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
+    loop = client._loop.loop
+    held, go_on = threading.Event(), threading.Event()
+    ending = loop.shutdown_asyncgens
+
+    async def hold() -> None:
+        held.set()
+        go_on.wait(scaled(30))
+        await ending()
+
+    loop.shutdown_asyncgens = hold  # type: ignore[method-assign]
+    with concurrent.futures.ThreadPoolExecutor(THREADS * 2) as pool:
+        closing = pool.submit(client.close)
+        try:
+            assert held.wait(scaled(10))
+            calls = [pool.submit(client.call, ADD, {"a": i, "b": 1}) for i in range(THREADS * 20)]
+            # At once, while the loop thread is still held: not at the calls' 30 s deadline.
+            _, waiting = concurrent.futures.wait(calls, timeout=scaled(5))
+        finally:
+            go_on.set()
+        assert not waiting
+        for call in calls:
+            with pytest.raises(ConnectionLost, match="the client is closed"):
+                call.result()
+        closing.result(scaled(10))
+    assert not client._loop.running

@@ -101,11 +101,15 @@ class LoopThread:
     """An event loop running in a daemon thread, and blocking calls into it from other threads.
 
     The loop runs until :meth:`stop`; then, as :func:`asyncio.run` does, the tasks still there
-    are cancelled and finish, and the loop is closed.
+    are cancelled and finish, and the loop is closed. Once it has stopped, :meth:`run` hands it
+    nothing more (:class:`LoopEnded` at once): what was handed over before is a task by the
+    time of the last sweep, so every coroutine handed over ends, none is dropped with the loop.
     """
 
     def __init__(self, name: str = "srvwire event loop") -> None:
         self.loop = asyncio.new_event_loop()
+        self._handing = threading.Lock()  # held while handing over, and to end the hand-overs
+        self._ended = False  # under _handing: the loop has stopped; hand nothing more over
         self.thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.thread.start()
 
@@ -123,7 +127,11 @@ class LoopThread:
             loop.run_forever()
         finally:
             try:
-                # Again while cancelling makes more: a call handed over as the loop stopped.
+                with self._handing:
+                    self._ended = True
+                # What was handed over before becomes a task now, for the sweep to end it.
+                loop.run_until_complete(_nothing())
+                # Again while cancelling makes more.
                 while tasks := asyncio.all_tasks(loop):
                     for task in tasks:
                         task.cancel()
@@ -148,8 +156,11 @@ class LoopThread:
                 "for itself; await the async client there instead"
             )
         try:
-            future = asyncio.run_coroutine_threadsafe(coro, self.loop)
-        except RuntimeError:  # the loop is closed
+            with self._handing:
+                if self._ended:
+                    raise RuntimeError("the loop has stopped")
+                future = asyncio.run_coroutine_threadsafe(coro, self.loop)
+        except RuntimeError:  # the loop has stopped, or is closed
             coro.close()
             raise LoopEnded("the event loop has ended") from None
         except BaseException:  # interrupted (Ctrl-C) once handed over: find it to cancel it
@@ -179,6 +190,10 @@ class LoopThread:
             pass  # closed already
         if threading.current_thread() is not self.thread:
             self.thread.join(within)
+
+
+async def _nothing() -> None:
+    """A step of the loop, for the callbacks queued before it to run."""
 
 
 def _cancel_the_task_of(coro: Coroutine[Any, Any, Any]) -> None:
