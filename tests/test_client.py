@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import logging
 import math
@@ -23,6 +24,8 @@ from websockets.asyncio.server import Server as WsServer, ServerConnection, serv
 from websockets.exceptions import ConnectionClosed
 
 import srvwire.session
+import srvwire.transports.picows
+from conftest import Echo
 from srvwire.client import Client, ServiceInfo, connect
 from srvwire.errors import (
     Cancelled,
@@ -47,6 +50,7 @@ from srvwire.models import Service
 from srvwire.protocol import RawReply
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Transport
+from srvwire.transports.picows import PicowsConnection
 from support import record_calls, scaled
 
 ADD = "/add_two_ints"
@@ -1830,3 +1834,68 @@ async def test_a_proxy_given_to_a_server_as_its_handler_relays_on_the_event_loop
                 assert (await blocked).difference == 0
         finally:
             release.set()
+
+
+async def stop_reading(ws: ServerConnection, message: dict[str, Any]) -> None:
+    """Read nothing more: a server that stopped (its closing handshake never comes)."""
+    ws.transport.pause_reading()
+
+
+async def test_close_fails_pending_calls_before_waiting_for_an_unresponsive_peer(
+    peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    peer.reply = stop_reading
+    waiting = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(30)))
+    await peer.next(ADD)
+    # Calls stuck in their send, behind a buffer the peer does not take: fill it past the
+    # budget, with one call more once it is.
+    conn = client._link.conn  # type: ignore[union-attr]
+    big = {"text": "x" * 100_000}
+    stuck = []
+    while not stuck or not conn.congested:
+        stuck.append(
+            asyncio.create_task(client.call("/echo", big, timeout=scaled(30), srv_type=Echo))
+        )
+        await asyncio.sleep(0)  # one loop turn: the call's first step writes it
+    stuck.append(asyncio.create_task(client.call("/echo", big, timeout=scaled(30), srv_type=Echo)))
+    closing = asyncio.create_task(client.close())
+    (ws,) = peer.connections
+    try:
+        for call in (waiting, *stuck):
+            with pytest.raises(ConnectionLost, match="the client was closed") as lost:
+                await call
+            assert lost.value.service in (ADD, "/echo")
+        assert not closing.done()  # the closing handshake still waits for the peer
+    finally:
+        peer.reply = None
+        ws.transport.resume_reading()
+    await asyncio.wait_for(closing, scaled(10))
+    del lost
+    gc.collect()
+    assert "never retrieved" not in caplog.text
+
+
+async def test_close_gives_up_on_a_peer_that_never_reads_after_the_close_timeout(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The close timeout bounds the whole closing handshake, including the wait for a buffer
+    # full of calls the peer never takes to drain (a shorter one here, so the test is quick).
+    peer.reply = stop_reading
+    conn = client._link.conn  # type: ignore[union-attr]
+    if isinstance(conn, PicowsConnection):
+        monkeypatch.setattr(srvwire.transports.picows, "CLOSE_TIMEOUT", 0.2)
+    else:
+        conn._ws.close_timeout = 0.2  # type: ignore[attr-defined]
+    big = {"text": "x" * 100_000}
+    stuck = []
+    while not conn.congested:
+        stuck.append(asyncio.create_task(client.call("/echo", big, srv_type=Echo)))
+        await asyncio.sleep(0)  # one loop turn: the call's first step writes it
+    await asyncio.wait_for(client.close(), scaled(5))
+    assert not client.connected
+    for call in stuck:
+        with pytest.raises(ConnectionLost, match="the client was closed"):
+            await call
+    peer.reply = None
+    peer.connections[0].transport.resume_reading()  # to see the connection dropped
+

@@ -1034,7 +1034,14 @@ class WebSocketsConnection(Connection):
             # step, an eager task): that answer is this side's close, so wait for the end.
             await ws.wait_closed()
             return
-        await ws.close(code, reason)
+        # websockets bounds the wait for the peer's close frame, not the wait before, for its
+        # own to drain behind what a peer that does not read left queued: bound both together.
+        try:
+            async with asyncio.timeout(ws.close_timeout):  # in this task: its close goes first
+                await ws.close(code, reason)
+        except TimeoutError:
+            ws.transport.abort()
+            await ws.wait_closed()
 
     # Read from the close frames, as _closed does, so that closed() says what recv raised:
     # websockets' own close_code says 1006 where this side failed the connection with 1009.
