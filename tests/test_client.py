@@ -1899,3 +1899,21 @@ async def test_close_gives_up_on_a_peer_that_never_reads_after_the_close_timeout
     peer.reply = None
     peer.connections[0].transport.resume_reading()  # to see the connection dropped
 
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+async def test_a_peer_that_stops_answering_pings_fails_the_calls_after_the_ping_timeout(
+    peer: FakePeer, transport: str
+) -> None:
+    # No closing handshake is awaited with a peer known to be dead: the call fails after
+    # ping_interval + ping_timeout, not after the transport's 10 s close timeout too.
+    peer.reply = stop_reading
+    async with connect(
+        peer.url, transport=transport, ping_interval=0.1, ping_timeout=0.1
+    ) as client:
+        call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(30)))
+        with pytest.raises(ConnectionLost) as lost:
+            await asyncio.wait_for(call, scaled(5))
+        assert lost.value.data["close_code"] == 1011
+        assert "keepalive" in lost.value.message or "ping" in lost.value.message
+    peer.reply = None
+    peer.connections[0].transport.resume_reading()  # to see the connection dropped

@@ -406,6 +406,22 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # (see take_frames): set with a receiver, once the handshake settled the extensions.
         self.direct = False
 
+    @property
+    def close_timeout(self) -> float | None:
+        """websockets' wait for the peer's close frame once this side closed; none after a
+        keepalive ping went unanswered: a peer that does not answer pings does not answer a
+        close either, so the connection is dropped at once, not ``close_timeout`` later."""
+        keepalive = self.keepalive_task
+        if keepalive is not None and asyncio.current_task() is keepalive:  # the ping timed out
+            sent = self.protocol.close_sent
+            if sent is not None and sent.code == CloseCode.INTERNAL_ERROR:
+                return 0.0
+        return self.closing_within
+
+    @close_timeout.setter
+    def close_timeout(self, value: float | None) -> None:
+        self.closing_within = value
+
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
         self.recv_messages.resume = self.queue_drained
