@@ -834,3 +834,73 @@ def test_calls_handed_to_the_loop_as_close_ends_it_fail_at_once(
                 call.result()
         closing.result(scaled(10))
     assert not client._loop.running
+
+
+# A script whose blocking client waits for a goal whose handler goes on after its cancellation
+# (order 2), in a `with` block: Ctrl-C while result() waits, and a second one while the client
+# waits for the cancelled goal's outcome. It prints "waiting for the cancelled goals" each time
+# the client begins that wait.
+SECOND_CTRL_C_SCRIPT = """
+import signal, sys, threading
+import srvwire.sync
+from srvwire.actions import ClientGoal
+
+url = sys.argv[1]
+waiting, stopping = threading.Event(), threading.Event()
+result, cancel_and_wait = ClientGoal.result, srvwire.sync._cancel_and_wait
+
+async def result_noticed(self):
+    waiting.set()
+    return await result(self)
+
+async def cancel_and_wait_noticed(handles):
+    print("waiting for the cancelled goals", flush=True)
+    stopping.set()
+    await cancel_and_wait(handles)
+
+ClientGoal.result, srvwire.sync._cancel_and_wait = result_noticed, cancel_and_wait_noticed
+
+def press_ctrl_c_twice():
+    for event in (waiting, stopping):
+        event.wait()
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+threading.Thread(target=press_ctrl_c_twice, daemon=True).start()
+try:
+    with srvwire.sync.connect(url, timeout=600) as client:
+        goal = client.send_goal("/patient", {"order": 2})
+        print("accepted", flush=True)
+        goal.result()
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+"""
+
+
+def test_a_second_ctrl_c_ends_the_wait_for_a_cancelled_goal_and_the_exit_does_not_wait_again() -> (
+    None
+):
+    with serve_goal_server() as (url, served):
+        process = subprocess.Popen(
+            [sys.executable, "-c", SECOND_CTRL_C_SCRIPT, url],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=interruptible,
+        )
+        assert process.stdout is not None and process.stderr is not None
+        out = Lines(process.stdout)
+        try:
+            served.expect("started 2")
+            served.expect("cancel requested 2")  # asked; it goes on for its 60 s cancel_grace
+            code = process.wait(timeout=scaled(30))
+        finally:
+            process.kill()
+            process.wait()
+            printed = out.close()
+            err = process.stderr.read()
+            process.stderr.close()
+        assert code == 0, err
+        # The goal still running when the connection closed is failed, and said so.
+        assert err.endswith("the client was closed; failing 1 pending calls\n"), err
+        assert "Traceback" not in err
+        assert printed == "accepted\nwaiting for the cancelled goals\ninterrupted\n"

@@ -464,13 +464,21 @@ class Client:
 
         The wait ends at the last of their deadlines, or at a second ``KeyboardInterrupt``,
         which is raised; an error meanwhile (the connection lost) ends it quietly, as the
-        first interruption is what the caller goes on with.
+        first interruption is what the caller goes on with. Goals whose wait a second
+        interruption ended are not waited for again (by the ``with`` block's exit): closing
+        the connection stops their handlers.
         """
         if not handles or self._closed:
             return
         budget = max(handle.budget for handle in handles)
-        with contextlib.suppress(RPCError):
-            self._run(_cancel_and_wait(handles), budget)
+        try:
+            with contextlib.suppress(RPCError):
+                self._run(_cancel_and_wait(handles), budget)
+        except KeyboardInterrupt:
+            with self._goals_lock:
+                for handle in handles:
+                    self._goals.discard(handle)
+            raise
 
     # --- topics ---------------------------------------------------------------------------
 
