@@ -1917,3 +1917,28 @@ async def test_a_peer_that_stops_answering_pings_fails_the_calls_after_the_ping_
         assert "keepalive" in lost.value.message or "ping" in lost.value.message
     peer.reply = None
     peer.connections[0].transport.resume_reading()  # to see the connection dropped
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+async def test_reconnect_returns_after_open_timeout_from_a_server_that_never_answers(
+    transport: str,
+) -> None:
+    # The kernel accepts the TCP connection into the backlog; nothing ever answers the
+    # WebSocket handshake. The first dial gives up at open_timeout and the client goes on
+    # dialling in the background, as docs/errors.md says.
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        port = silent.getsockname()[1]
+        client = await asyncio.wait_for(
+            connect(
+                f"ws://127.0.0.1:{port}", reconnect=True, open_timeout=0.2, transport=transport
+            ),
+            scaled(5),
+        )
+        try:
+            assert not client.connected
+            with pytest.raises(ServiceUnavailable):
+                await client.wait_for_service(ADD, timeout=0.1)
+        finally:
+            await asyncio.wait_for(client.close(), scaled(5))

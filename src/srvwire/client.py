@@ -196,6 +196,8 @@ class Client:
     async def open(self) -> Client:
         """Open the connection; with ``reconnect=True`` a failed first dial is retried later.
 
+        The first dial is made here either way, so it returns within ``open_timeout``.
+
         Raise :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached
         (only with ``reconnect=False``). Opening twice is an error.
         """
