@@ -604,6 +604,8 @@ class ClientGoal(Generic[R]):
 
     def _end_with(self, error: RPCError) -> None:
         if self._outcome is None and self._error is None:
+            if error.service is None:  # the connection's end: named, as a call's is
+                error.service = self.method
             self._error = error
             self.status = "canceled" if isinstance(error, Cancelled) else "aborted"
 
