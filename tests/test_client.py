@@ -1942,3 +1942,28 @@ async def test_reconnect_returns_after_open_timeout_from_a_server_that_never_ans
                 await client.wait_for_service(ADD, timeout=0.1)
         finally:
             await asyncio.wait_for(client.close(), scaled(5))
+
+
+async def test_a_reply_frame_picows_refuses_names_the_clients_limit_and_logs_nothing(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # picows itself refuses a frame over FRAME_SLACK times max_message_size, as its header
+    # arrives: the error still names the client's setting, and asyncio logs nothing more.
+    server = Server(max_message_size=None)
+
+    async def huge(request: Any) -> Any:
+        return {"text": "x" * 1_000_000}
+
+    server.add_service("/huge", Echo, huge)
+    async with serve(server, "127.0.0.1", 0) as running:
+        client = await connect(running.url, transport="picows", max_message_size=100_000)
+        with pytest.raises(ConnectionLost) as lost:
+            await client.call("/huge", {"text": ""})
+        await client.close()
+    assert lost.value.data["close_code"] == 1009
+    assert lost.value.message.startswith(
+        "the connection closed with code 1009 (over the client's max_message_size ("
+    ), lost.value.message
+    del lost
+    gc.collect()
+    assert "never retrieved" not in caplog.text
