@@ -248,6 +248,24 @@ def test_a_stuck_loop_cannot_make_a_call_wait_forever(client: srvwire.sync.Clien
     assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
 
 
+def test_wait_for_service_on_a_stuck_loop_gives_up_as_its_timeout_says(
+    client: srvwire.sync.Client,
+) -> None:
+    release = threading.Event()
+    client._loop.loop.call_soon_threadsafe(release.wait)  # blocks the client's loop
+    try:
+        with pytest.raises(ServiceUnavailable) as unavailable:
+            client.wait_for_service("/not_there", timeout=0.1)
+        assert unavailable.value.message == (
+            "/not_there was not advertised within 0.1 s: the client's event loop did not "
+            "finish the wait"
+        )
+        assert unavailable.value.service == "/not_there"
+    finally:
+        release.set()
+    assert client.wait_for_service(ADD).name == ADD
+
+
 def test_ctrl_c_in_a_blocking_call_cancels_it_on_the_server(
     client: srvwire.sync.Client, handlers: Handlers
 ) -> None:

@@ -62,7 +62,7 @@ from srvwire import client as aio
 from srvwire.actions import ClientGoal, GoalResult
 from srvwire.calls import ServiceInfo, SrvType, check_timeout
 from srvwire.client import TopicInfo
-from srvwire.errors import ConnectionLost, DeadlineExceeded, RPCError
+from srvwire.errors import ConnectionLost, DeadlineExceeded, RPCError, ServiceUnavailable
 from srvwire.models import Action, Message, ServiceRequest, TypedService
 
 __all__ = [
@@ -425,7 +425,18 @@ class Client:
         :class:`~srvwire.errors.ServiceUnavailable` when ``timeout`` passes first.
         """
         budget = self._budget(timeout)
-        return self._run(self._client.wait_for_service(name, timeout=timeout), budget, name)
+        try:
+            return self._run(self._client.wait_for_service(name, timeout=timeout), budget, name)
+        except DeadlineExceeded as exc:
+            if not isinstance(exc.__cause__, LoopTimeout):
+                raise
+            # The loop thread did not answer in time: the wait's own outcome then.
+            raise ServiceUnavailable(
+                f"{name} was not advertised within {budget:g} s: the client's event loop did "
+                "not finish the wait",
+                {"timeout": budget},
+                service=name,
+            ) from exc.__cause__
 
     def list_services(self, *, timeout: float | None = None) -> list[ServiceInfo]:
         """Ask the server for every service it offers, sorted by name."""
