@@ -338,8 +338,10 @@ async def test_a_lost_connection_ends_the_goal_on_both_sides(
     await gate.started.wait()
     served = connection(running)
     await served.conn.close(1001, "going away")
-    with pytest.raises(ConnectionLost):
+    with pytest.raises(ConnectionLost) as lost:
         await handle.result()
+    assert lost.value.service == "/stubborn"  # named as a call's error names its service
+    assert str(lost.value).startswith("UNAVAILABLE (-32003) [/stubborn]: ")
     assert handle.status == "aborted"
     await gate.ended.wait()
     await asyncio.wait({served.reading})

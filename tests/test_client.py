@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import logging
 import math
@@ -23,6 +24,8 @@ from websockets.asyncio.server import Server as WsServer, ServerConnection, serv
 from websockets.exceptions import ConnectionClosed
 
 import srvwire.session
+import srvwire.transports.picows
+from conftest import Echo
 from srvwire.client import Client, ServiceInfo, connect
 from srvwire.errors import (
     Cancelled,
@@ -47,6 +50,7 @@ from srvwire.models import Service
 from srvwire.protocol import RawReply
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Transport
+from srvwire.transports.picows import PicowsConnection
 from support import record_calls, scaled
 
 ADD = "/add_two_ints"
@@ -1830,3 +1834,136 @@ async def test_a_proxy_given_to_a_server_as_its_handler_relays_on_the_event_loop
                 assert (await blocked).difference == 0
         finally:
             release.set()
+
+
+async def stop_reading(ws: ServerConnection, message: dict[str, Any]) -> None:
+    """Read nothing more: a server that stopped (its closing handshake never comes)."""
+    ws.transport.pause_reading()
+
+
+async def test_close_fails_pending_calls_before_waiting_for_an_unresponsive_peer(
+    peer: FakePeer, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    peer.reply = stop_reading
+    waiting = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(30)))
+    await peer.next(ADD)
+    # Calls stuck in their send, behind a buffer the peer does not take: fill it past the
+    # budget, with one call more once it is.
+    conn = client._link.conn  # type: ignore[union-attr]
+    big = {"text": "x" * 100_000}
+    stuck = []
+    while not stuck or not conn.congested:
+        stuck.append(
+            asyncio.create_task(client.call("/echo", big, timeout=scaled(30), srv_type=Echo))
+        )
+        await asyncio.sleep(0)  # one loop turn: the call's first step writes it
+    stuck.append(asyncio.create_task(client.call("/echo", big, timeout=scaled(30), srv_type=Echo)))
+    closing = asyncio.create_task(client.close())
+    (ws,) = peer.connections
+    try:
+        for call in (waiting, *stuck):
+            with pytest.raises(ConnectionLost, match="the client was closed") as lost:
+                await call
+            assert lost.value.service in (ADD, "/echo")
+        assert not closing.done()  # the closing handshake still waits for the peer
+    finally:
+        peer.reply = None
+        ws.transport.resume_reading()
+    await asyncio.wait_for(closing, scaled(10))
+    del lost
+    gc.collect()
+    assert "never retrieved" not in caplog.text
+
+
+async def test_close_gives_up_on_a_peer_that_never_reads_after_the_close_timeout(
+    peer: FakePeer, client: Client, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The close timeout bounds the whole closing handshake, including the wait for a buffer
+    # full of calls the peer never takes to drain (a shorter one here, so the test is quick).
+    peer.reply = stop_reading
+    conn = client._link.conn  # type: ignore[union-attr]
+    if isinstance(conn, PicowsConnection):
+        monkeypatch.setattr(srvwire.transports.picows, "CLOSE_TIMEOUT", 0.2)
+    else:
+        conn._ws.close_timeout = 0.2  # type: ignore[attr-defined]
+    big = {"text": "x" * 100_000}
+    stuck = []
+    while not conn.congested:
+        stuck.append(asyncio.create_task(client.call("/echo", big, srv_type=Echo)))
+        await asyncio.sleep(0)  # one loop turn: the call's first step writes it
+    await asyncio.wait_for(client.close(), scaled(5))
+    assert not client.connected
+    for call in stuck:
+        with pytest.raises(ConnectionLost, match="the client was closed"):
+            await call
+    peer.reply = None
+    peer.connections[0].transport.resume_reading()  # to see the connection dropped
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+async def test_a_peer_that_stops_answering_pings_fails_the_calls_after_the_ping_timeout(
+    peer: FakePeer, transport: str
+) -> None:
+    # No closing handshake is awaited with a peer known to be dead: the call fails after
+    # ping_interval + ping_timeout, not after the transport's 10 s close timeout too.
+    peer.reply = stop_reading
+    async with connect(
+        peer.url, transport=transport, ping_interval=0.1, ping_timeout=0.1
+    ) as client:
+        call = asyncio.create_task(client.call(ADD, {"a": 1, "b": 2}, timeout=scaled(30)))
+        with pytest.raises(ConnectionLost) as lost:
+            await asyncio.wait_for(call, scaled(5))
+        assert lost.value.data["close_code"] == 1011
+        assert "keepalive" in lost.value.message or "ping" in lost.value.message
+    peer.reply = None
+    peer.connections[0].transport.resume_reading()  # to see the connection dropped
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+async def test_reconnect_returns_after_open_timeout_from_a_server_that_never_answers(
+    transport: str,
+) -> None:
+    # The kernel accepts the TCP connection into the backlog; nothing ever answers the
+    # WebSocket handshake. The first dial gives up at open_timeout and the client goes on
+    # dialling in the background, as docs/errors.md says.
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        port = silent.getsockname()[1]
+        client = await asyncio.wait_for(
+            connect(
+                f"ws://127.0.0.1:{port}", reconnect=True, open_timeout=0.2, transport=transport
+            ),
+            scaled(5),
+        )
+        try:
+            assert not client.connected
+            with pytest.raises(ServiceUnavailable):
+                await client.wait_for_service(ADD, timeout=0.1)
+        finally:
+            await asyncio.wait_for(client.close(), scaled(5))
+
+
+async def test_a_reply_frame_picows_refuses_names_the_clients_limit_and_logs_nothing(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # picows itself refuses a frame over FRAME_SLACK times max_message_size, as its header
+    # arrives: the error still names the client's setting, and asyncio logs nothing more.
+    server = Server(max_message_size=None)
+
+    async def huge(request: Any) -> Any:
+        return {"text": "x" * 1_000_000}
+
+    server.add_service("/huge", Echo, huge)
+    async with serve(server, "127.0.0.1", 0) as running:
+        client = await connect(running.url, transport="picows", max_message_size=100_000)
+        with pytest.raises(ConnectionLost) as lost:
+            await client.call("/huge", {"text": ""})
+        await client.close()
+    assert lost.value.data["close_code"] == 1009
+    assert lost.value.message.startswith(
+        "the connection closed with code 1009 (over the client's max_message_size ("
+    ), lost.value.message
+    del lost
+    gc.collect()
+    assert "never retrieved" not in caplog.text

@@ -2535,3 +2535,70 @@ async def test_sigterm_ends_the_process_even_with_a_blocking_handler_stuck(
 def test_bad_server_options_are_refused_at_once(option: dict[str, Any], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         Server(**option)
+
+
+SWALLOW_SCRIPT = """\
+import asyncio, logging, sys
+sys.path.insert(0, {tests!r})
+from conftest import Echo
+from srvwire.server import Server
+logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(message)s")
+server = Server(grace_period=0.1)
+
+@server.service("/stubborn", Echo)
+async def stubborn(request):
+    print("entered", flush=True)
+    try:
+        await asyncio.Event().wait()
+    finally:
+        while True:  # its cleanup starts over at every cancellation: it never ends
+            try:
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                continue
+
+server.run("127.0.0.1", 0, ready=lambda running: print("ready", running.url, flush=True),
+           transport={transport!r})
+print("stopped", flush=True)
+"""
+
+
+@pytest.mark.parametrize("transport_name", ["websockets", "picows"])
+@pytest.mark.parametrize("client_leaves", [True, False], ids=["client-gone", "client-stays"])
+async def test_shutdown_ends_when_a_handler_never_ends_after_its_cancellation(
+    tmp_path: Any, transport_name: str, client_leaves: bool
+) -> None:
+    # The handler swallows every cancellation: Server.run still returns once the grace period
+    # and the second after cancelling are over, names the handler, and the process exits 0.
+    script = tmp_path / "swallow.py"
+    script.write_text(SWALLOW_SCRIPT.format(tests=str(ROOT / "tests"), transport=transport_name))
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, str(script), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+    )
+    try:
+        assert process.stderr is not None and process.stdout is not None
+        async with asyncio.timeout(scaled(20)):
+            line = (await process.stdout.readline()).decode()
+            assert line.startswith("ready ws://127.0.0.1:"), line
+            w = await open_wire(line.split()[1])
+            await w.send(request("/stubborn", {"text": ""}, id="s"))
+            assert await process.stdout.readline() == b"entered\n"
+            process.send_signal(signal.SIGTERM)
+            reply = await w.recv_reply()
+            assert error(reply) == ("s", -32003, "UNAVAILABLE")
+            if client_leaves:
+                await w.ws.close()
+            else:
+                assert await closed_code(w) == 1001
+            assert await process.wait() == 0
+            assert (await process.stdout.read()).decode() == "stopped\n"
+            log = (await process.stderr.read()).decode()
+            assert (
+                "leaving 1 handler running that did not end when cancelled (its call was "
+                "answered): /stubborn" in log
+            ), log
+            assert "Traceback" not in log and "destroyed" not in log, log
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()

@@ -248,6 +248,24 @@ def test_a_stuck_loop_cannot_make_a_call_wait_forever(client: srvwire.sync.Clien
     assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
 
 
+def test_wait_for_service_on_a_stuck_loop_gives_up_as_its_timeout_says(
+    client: srvwire.sync.Client,
+) -> None:
+    release = threading.Event()
+    client._loop.loop.call_soon_threadsafe(release.wait)  # blocks the client's loop
+    try:
+        with pytest.raises(ServiceUnavailable) as unavailable:
+            client.wait_for_service("/not_there", timeout=0.1)
+        assert unavailable.value.message == (
+            "/not_there was not advertised within 0.1 s: the client's event loop did not "
+            "finish the wait"
+        )
+        assert unavailable.value.service == "/not_there"
+    finally:
+        release.set()
+    assert client.wait_for_service(ADD).name == ADD
+
+
 def test_ctrl_c_in_a_blocking_call_cancels_it_on_the_server(
     client: srvwire.sync.Client, handlers: Handlers
 ) -> None:
@@ -799,3 +817,108 @@ async def test_ctrl_c_waits_for_a_goal_cancelled_already_without_asking_again() 
     assert [(goal.asked, goal.waited) for goal in (running, cancelled, finished)] == [
         (1, 1), (0, 1), (0, 0)
     ]  # fmt: skip
+
+
+@pytest.mark.parametrize("transport", ["websockets", "picows"])
+def test_calls_handed_to_the_loop_as_close_ends_it_fail_at_once(
+    running: RunningServer, transport: str
+) -> None:
+    # The loop thread is held after its last sweep of tasks, before it closes the loop: the
+    # moment a call from another thread could be handed over and dropped with the loop.
+    client = srvwire.sync.connect(running.url, timeout=scaled(30), transport=transport)
+    assert client.call(ADD, {"a": 1, "b": 2}).sum == 3
+    loop = client._loop.loop
+    held, go_on = threading.Event(), threading.Event()
+    ending = loop.shutdown_asyncgens
+
+    async def hold() -> None:
+        held.set()
+        go_on.wait(scaled(30))
+        await ending()
+
+    loop.shutdown_asyncgens = hold  # type: ignore[method-assign]
+    with concurrent.futures.ThreadPoolExecutor(THREADS * 2) as pool:
+        closing = pool.submit(client.close)
+        try:
+            assert held.wait(scaled(10))
+            calls = [pool.submit(client.call, ADD, {"a": i, "b": 1}) for i in range(THREADS * 20)]
+            # At once, while the loop thread is still held: not at the calls' 30 s deadline.
+            _, waiting = concurrent.futures.wait(calls, timeout=scaled(5))
+        finally:
+            go_on.set()
+        assert not waiting
+        for call in calls:
+            with pytest.raises(ConnectionLost, match="the client is closed"):
+                call.result()
+        closing.result(scaled(10))
+    assert not client._loop.running
+
+
+# A script whose blocking client waits for a goal whose handler goes on after its cancellation
+# (order 2), in a `with` block: Ctrl-C while result() waits, and a second one while the client
+# waits for the cancelled goal's outcome. It prints "waiting for the cancelled goals" each time
+# the client begins that wait.
+SECOND_CTRL_C_SCRIPT = """
+import signal, sys, threading
+import srvwire.sync
+from srvwire.actions import ClientGoal
+
+url = sys.argv[1]
+waiting, stopping = threading.Event(), threading.Event()
+result, cancel_and_wait = ClientGoal.result, srvwire.sync._cancel_and_wait
+
+async def result_noticed(self):
+    waiting.set()
+    return await result(self)
+
+async def cancel_and_wait_noticed(handles):
+    print("waiting for the cancelled goals", flush=True)
+    stopping.set()
+    await cancel_and_wait(handles)
+
+ClientGoal.result, srvwire.sync._cancel_and_wait = result_noticed, cancel_and_wait_noticed
+
+def press_ctrl_c_twice():
+    for event in (waiting, stopping):
+        event.wait()
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+threading.Thread(target=press_ctrl_c_twice, daemon=True).start()
+try:
+    with srvwire.sync.connect(url, timeout=600) as client:
+        goal = client.send_goal("/patient", {"order": 2})
+        print("accepted", flush=True)
+        goal.result()
+except KeyboardInterrupt:
+    print("interrupted", flush=True)
+"""
+
+
+def test_a_second_ctrl_c_ends_the_wait_for_a_cancelled_goal_and_the_exit_does_not_wait_again() -> (
+    None
+):
+    with serve_goal_server() as (url, served):
+        process = subprocess.Popen(
+            [sys.executable, "-c", SECOND_CTRL_C_SCRIPT, url],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=interruptible,
+        )
+        assert process.stdout is not None and process.stderr is not None
+        out = Lines(process.stdout)
+        try:
+            served.expect("started 2")
+            served.expect("cancel requested 2")  # asked; it goes on for its 60 s cancel_grace
+            code = process.wait(timeout=scaled(30))
+        finally:
+            process.kill()
+            process.wait()
+            printed = out.close()
+            err = process.stderr.read()
+            process.stderr.close()
+        assert code == 0, err
+        # The goal still running when the connection closed is failed, and said so.
+        assert err.endswith("the client was closed; failing 1 pending calls\n"), err
+        assert "Traceback" not in err
+        assert printed == "accepted\nwaiting for the cancelled goals\ninterrupted\n"

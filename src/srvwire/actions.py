@@ -604,6 +604,8 @@ class ClientGoal(Generic[R]):
 
     def _end_with(self, error: RPCError) -> None:
         if self._outcome is None and self._error is None:
+            if error.service is None:  # the connection's end: named, as a call's is
+                error.service = self.method
             self._error = error
             self.status = "canceled" if isinstance(error, Cancelled) else "aborted"
 
@@ -627,6 +629,10 @@ class ClientGoal(Generic[R]):
         Raise what the server answered instead of an outcome (``GoalRejected``,
         ``InternalError``, ``DeadlineExceeded``, ``ConnectionLost``, ...); a goal whose handler
         the server stopped after a cancellation ends ``canceled`` with the result's defaults.
+
+        Cancelling the task that awaits it ends only that wait, as a ``timeout`` on a blocking
+        ``result`` does: the goal goes on, on the server and in the client's ``in_flight``,
+        until its outcome or its deadline; await :meth:`cancel` to have the server stop it.
         """
         if self._outcome is not None:
             return self._outcome

@@ -196,6 +196,8 @@ class Client:
     async def open(self) -> Client:
         """Open the connection; with ``reconnect=True`` a failed first dial is retried later.
 
+        The first dial is made here either way, so it returns within ``open_timeout``.
+
         Raise :class:`~srvwire.errors.ServiceUnavailable` when the server cannot be reached
         (only with ``reconnect=False``). Opening twice is an error.
         """
@@ -216,7 +218,9 @@ class Client:
     async def close(self) -> None:
         """Close the connection; calls still pending fail with ``ConnectionLost``.
 
-        Idempotent. After it, every call fails with ``ConnectionLost``.
+        They fail first, then the closing handshake is awaited: at most the transport's close
+        timeout (10 s) for a peer that does not answer. Idempotent. After it, every call fails
+        with ``ConnectionLost``.
         """
         if self._closed:
             return
@@ -230,6 +234,9 @@ class Client:
             self._supervisor.cancel()
             await asyncio.gather(self._supervisor, return_exceptions=True)
         if link is not None:
+            # Fail what waits on it first: the closing handshake may wait for a peer that
+            # does not answer, up to the transport's close timeout.
+            link.lost(None, None)
             await link.conn.close()
             if link.reader is not None:
                 await asyncio.gather(link.reader, return_exceptions=True)

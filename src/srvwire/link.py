@@ -505,7 +505,7 @@ class Link:
             # bare timer (Expired is a TimeoutError), with no task of its own.
             sending = first_step(self.conn.send(data))
             if isinstance(sending, Pending):
-                await finish_within(sending, deadline - loop.time())
+                await self.send_unless_lost(sending, future, deadline - loop.time())
             if future.done():
                 # Answered (or failed) while the send waited: wait_for would return just this,
                 # after arming a timer and waiting a loop turn (Python 3.11's does not look).
@@ -527,6 +527,10 @@ class Link:
             self.give_up(method, id, future)
             raise
         except TransportClosed as exc:
+            lost = None if not future.done() or future.cancelled() else future.exception()
+            if isinstance(lost, ConnectionLost):  # failed already, with why: say that, once
+                lost.service = method
+                raise lost from exc
             closed = {"close_code": exc.code, "close_reason": exc.reason, "url": self.owner.url}
             raise ConnectionLost(str(exc), closed, service=method) from exc
         except ConnectionLost as exc:  # set on the future when the connection dropped
@@ -534,6 +538,35 @@ class Link:
             raise
         finally:
             session.pending.pop(id, None)  # answered or given up: forget it
+
+    async def send_unless_lost(
+        self, sending: Pending, future: asyncio.Future[Arrived], delay: float
+    ) -> None:
+        """Finish a send that waits on backpressure within ``delay`` seconds, or until the
+        call's ``future`` fails (the connection was lost, or the client closed it): then the
+        call raises that failure at once, not when the transport gives the send up."""
+        task = asyncio.current_task()
+        assert task is not None
+        cancelling = task.cancelling()
+        interrupted = False
+
+        def interrupt(answered: asyncio.Future[Arrived]) -> None:
+            nonlocal interrupted
+            if not answered.cancelled() and answered.exception() is not None:
+                interrupted = True
+                task.cancel()
+
+        future.add_done_callback(interrupt)
+        try:
+            await finish_within(sending, delay)
+        except asyncio.CancelledError:
+            if interrupted and task.uncancel() <= cancelling:
+                lost = future.exception()
+                assert lost is not None
+                raise lost from None
+            raise
+        finally:
+            future.remove_done_callback(interrupt)
 
     def too_large(self, method: str, size: int) -> ResourceExhausted:
         """The error of a request of ``size`` bytes, over ``max_message_size``, not sent."""

@@ -34,7 +34,7 @@ import logging
 import signal
 import ssl as _ssl
 import threading
-from collections.abc import Callable, Generator, Iterable, Mapping
+from collections.abc import Callable, Coroutine, Generator, Iterable, Mapping
 from concurrent.futures import Executor
 from types import TracebackType
 from typing import Any, TypeVar
@@ -75,6 +75,9 @@ M = TypeVar("M", bound=BaseModel)
 # Marks the log lines that say the server started or is stopping, for a caller that prints
 # them its own way (srvwire serve) to leave out: record.srvwire_lifecycle is True.
 _LIFECYCLE = {"srvwire_lifecycle": True}
+LEFT_TASKS_LINGER = 1.0
+"""Seconds :meth:`Server.run` gives the tasks still running after the server closed (handlers
+that did not end when cancelled) to end once cancelled again, before it returns anyway."""
 _LOOP_CHECK_INTERVAL = 1.0  # seconds between checks that a loop we wait on still runs
 ACCEPT_FAILURE_LOG_INTERVAL = 10.0
 """Seconds: at most one line in this time about connections that cannot be accepted because
@@ -108,6 +111,54 @@ def _running_loop() -> asyncio.AbstractEventLoop | None:
         return asyncio.get_running_loop()
     except RuntimeError:
         return None
+
+
+def _run_bounded(main: Coroutine[Any, Any, None]) -> None:
+    """Run ``main`` on a new event loop, as :func:`asyncio.run` does, but end in bounded time.
+
+    :func:`asyncio.run` cancels the tasks still there at the end and waits for all of them, so
+    one handler that swallows every cancellation (shutdown has already answered its call and
+    named it) would keep it from ever returning. Here they get :data:`LEFT_TASKS_LINGER`
+    seconds to end after that cancellation; those that go on are left with the closed loop,
+    without asyncio's "Task was destroyed but it is pending" about them.
+    """
+    loop = asyncio.new_event_loop()
+    left: set[asyncio.Task[Any]] = set()
+
+    def quiet_about_left(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        if context.get("task") in left:
+            return
+        if previous is not None:
+            previous(loop, context)
+        else:
+            loop.default_exception_handler(context)
+
+    previous = None
+    try:
+        loop.run_until_complete(main)
+    finally:
+        try:
+            remaining = asyncio.all_tasks(loop)
+            for task in remaining:
+                task.cancel()
+            if remaining:
+                loop.run_until_complete(asyncio.wait(remaining, timeout=LEFT_TASKS_LINGER))
+            left.update(task for task in remaining if not task.done())
+            for task in remaining - left:
+                if not task.cancelled() and task.exception() is not None:
+                    loop.call_exception_handler(
+                        {
+                            "message": "unhandled exception during the server's shutdown",
+                            "exception": task.exception(),
+                            "task": task,
+                        }
+                    )
+            previous = loop.get_exception_handler()
+            loop.set_exception_handler(quiet_about_left)
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.run_until_complete(loop.shutdown_default_executor())
+        finally:
+            loop.close()
 
 
 class Server:
@@ -565,7 +616,7 @@ class Server:
         Configure logging (``logging.basicConfig(...)``) and nothing is added.
         """
         with contextlib.suppress(KeyboardInterrupt), _show_log_unless_configured():
-            asyncio.run(
+            _run_bounded(
                 self.serve_forever(
                     host, port, ready=ready, stopping=stopping, transport=transport, ssl=ssl
                 )
@@ -709,6 +760,9 @@ class RunningServer:
         self.transport = transport
         self.closing = False
         self._connections: set[ServedConnection] = set()
+        # Handlers answered as they were cancelled, still running after their connection ended:
+        # their services, for shutdown to name.
+        self._running_on: dict[asyncio.Task[Any], str] = {}
         self._listener: Listener | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._close_task: asyncio.Task[None] | None = None
@@ -866,8 +920,11 @@ class RunningServer:
                 await asyncio.wait(pending | answering, timeout=1.0)
         running_on = sorted(
             name
-            for conn in self._connections
-            for task, name in conn.runner.running_on.items()
+            for running in (
+                self._running_on,
+                *(conn.runner.running_on for conn in self._connections),
+            )
+            for task, name in running.items()
             if not task.done()
         )
         if running_on:
@@ -950,3 +1007,7 @@ class RunningServer:
         finally:
             self._connections.discard(conn)
             conn.cancel_all(None)
+            for task, name in conn.runner.running_on.items():
+                if task not in self._running_on:
+                    self._running_on[task] = name
+                    task.add_done_callback(self._running_on.pop)

@@ -62,7 +62,7 @@ from srvwire import client as aio
 from srvwire.actions import ClientGoal, GoalResult
 from srvwire.calls import ServiceInfo, SrvType, check_timeout
 from srvwire.client import TopicInfo
-from srvwire.errors import ConnectionLost, DeadlineExceeded, RPCError
+from srvwire.errors import ConnectionLost, DeadlineExceeded, RPCError, ServiceUnavailable
 from srvwire.models import Action, Message, ServiceRequest, TypedService
 
 __all__ = [
@@ -101,11 +101,15 @@ class LoopThread:
     """An event loop running in a daemon thread, and blocking calls into it from other threads.
 
     The loop runs until :meth:`stop`; then, as :func:`asyncio.run` does, the tasks still there
-    are cancelled and finish, and the loop is closed.
+    are cancelled and finish, and the loop is closed. Once it has stopped, :meth:`run` hands it
+    nothing more (:class:`LoopEnded` at once): what was handed over before is a task by the
+    time of the last sweep, so every coroutine handed over ends, none is dropped with the loop.
     """
 
     def __init__(self, name: str = "srvwire event loop") -> None:
         self.loop = asyncio.new_event_loop()
+        self._handing = threading.Lock()  # held while handing over, and to end the hand-overs
+        self._ended = False  # under _handing: the loop has stopped; hand nothing more over
         self.thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.thread.start()
 
@@ -123,7 +127,11 @@ class LoopThread:
             loop.run_forever()
         finally:
             try:
-                # Again while cancelling makes more: a call handed over as the loop stopped.
+                with self._handing:
+                    self._ended = True
+                # What was handed over before becomes a task now, for the sweep to end it.
+                loop.run_until_complete(_nothing())
+                # Again while cancelling makes more.
                 while tasks := asyncio.all_tasks(loop):
                     for task in tasks:
                         task.cancel()
@@ -148,8 +156,11 @@ class LoopThread:
                 "for itself; await the async client there instead"
             )
         try:
-            future = asyncio.run_coroutine_threadsafe(coro, self.loop)
-        except RuntimeError:  # the loop is closed
+            with self._handing:
+                if self._ended:
+                    raise RuntimeError("the loop has stopped")
+                future = asyncio.run_coroutine_threadsafe(coro, self.loop)
+        except RuntimeError:  # the loop has stopped, or is closed
             coro.close()
             raise LoopEnded("the event loop has ended") from None
         except BaseException:  # interrupted (Ctrl-C) once handed over: find it to cancel it
@@ -179,6 +190,10 @@ class LoopThread:
             pass  # closed already
         if threading.current_thread() is not self.thread:
             self.thread.join(within)
+
+
+async def _nothing() -> None:
+    """A step of the loop, for the callbacks queued before it to run."""
 
 
 def _cancel_the_task_of(coro: Coroutine[Any, Any, Any]) -> None:
@@ -410,7 +425,18 @@ class Client:
         :class:`~srvwire.errors.ServiceUnavailable` when ``timeout`` passes first.
         """
         budget = self._budget(timeout)
-        return self._run(self._client.wait_for_service(name, timeout=timeout), budget, name)
+        try:
+            return self._run(self._client.wait_for_service(name, timeout=timeout), budget, name)
+        except DeadlineExceeded as exc:
+            if not isinstance(exc.__cause__, LoopTimeout):
+                raise
+            # The loop thread did not answer in time: the wait's own outcome then.
+            raise ServiceUnavailable(
+                f"{name} was not advertised within {budget:g} s: the client's event loop did "
+                "not finish the wait",
+                {"timeout": budget},
+                service=name,
+            ) from exc.__cause__
 
     def list_services(self, *, timeout: float | None = None) -> list[ServiceInfo]:
         """Ask the server for every service it offers, sorted by name."""
@@ -449,13 +475,21 @@ class Client:
 
         The wait ends at the last of their deadlines, or at a second ``KeyboardInterrupt``,
         which is raised; an error meanwhile (the connection lost) ends it quietly, as the
-        first interruption is what the caller goes on with.
+        first interruption is what the caller goes on with. Goals whose wait a second
+        interruption ended are not waited for again (by the ``with`` block's exit): closing
+        the connection stops their handlers.
         """
         if not handles or self._closed:
             return
         budget = max(handle.budget for handle in handles)
-        with contextlib.suppress(RPCError):
-            self._run(_cancel_and_wait(handles), budget)
+        try:
+            with contextlib.suppress(RPCError):
+                self._run(_cancel_and_wait(handles), budget)
+        except KeyboardInterrupt:
+            with self._goals_lock:
+                for handle in handles:
+                    self._goals.discard(handle)
+            raise
 
     # --- topics ---------------------------------------------------------------------------
 

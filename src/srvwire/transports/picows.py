@@ -13,8 +13,10 @@ leaves to its user:
   max_message_size (message of 2000 bytes, limit 1000 bytes)``), so that the peer's error says
   what to raise. Messages received before either are still
   delivered. The bytes held for one frame are bounded too: ``picows`` refuses a frame over
-  :data:`FRAME_SLACK` times the limit as soon as its header arrives (1009, with its own
-  reason); a message that arrived in the same read just before that frame is then lost with
+  :data:`FRAME_SLACK` times the limit as soon as its header arrives (1009, its own reason in
+  the peer's close, and ``over the client's (or server's) max_message_size (...)`` around it
+  here); a
+  message that arrived in the same read just before that frame is then lost with
   the connection.
 * **Flow control both ways.** ``send`` puts the message in the connection's buffer and waits
   only while ``picows`` says the socket's buffer is past its high-water mark
@@ -425,7 +427,19 @@ class PicowsConnection(WSListener, Connection):
             handshake = transport.close_handshake
             sent = None if handshake is None else handshake.sent
             if sent is not None:
-                self._sent = (_code(sent.code), sent.reason or "")
+                code, reason = _code(sent.code), sent.reason or ""
+                if code == 1009 and not handshake.recv_then_sent:  # a frame over its limit
+                    side = "client" if transport.is_client_side else "server"
+                    named = f"over the {side}'s max_message_size ({reason})"
+                    if self._received == (code, reason):  # the peer's echo of it
+                        self._received = (code, named)
+                    reason = named
+                self._sent = (code, reason)
+                if transport.is_client_side:
+                    # picows keeps the error for wait_disconnected(), which is not awaited
+                    # otherwise: take it, so asyncio does not log it as never retrieved.
+                    waiting = self._loop.create_task(transport.wait_disconnected())
+                    waiting.add_done_callback(_taken)
         final = self._received if self._received is not None else self._sent
         if self._timed_out:
             assert self._write_timeout is not None
@@ -793,6 +807,12 @@ def _check_options(options: Options) -> None:
             "the picows transport has no compression: pass compression=None, "
             "or use the websockets transport"
         )
+
+
+def _taken(task: asyncio.Task[None]) -> None:
+    """Retrieve what ``task`` raised: how its connection ended is known already."""
+    if not task.cancelled():
+        task.exception()
 
 
 def _frame_limit(options: Options) -> int:

@@ -409,6 +409,22 @@ class _Watched(WebSocket, asyncio.BufferedProtocol):
         # (see take_frames): set with a receiver, once the handshake settled the extensions.
         self.direct = False
 
+    @property
+    def close_timeout(self) -> float | None:
+        """websockets' wait for the peer's close frame once this side closed; none after a
+        keepalive ping went unanswered: a peer that does not answer pings does not answer a
+        close either, so the connection is dropped at once, not ``close_timeout`` later."""
+        keepalive = self.keepalive_task
+        if keepalive is not None and asyncio.current_task() is keepalive:  # the ping timed out
+            sent = self.protocol.close_sent
+            if sent is not None and sent.code == CloseCode.INTERNAL_ERROR:
+                return 0.0
+        return self.closing_within
+
+    @close_timeout.setter
+    def close_timeout(self, value: float | None) -> None:
+        self.closing_within = value
+
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
         self.recv_messages.resume = self.queue_drained
@@ -1069,7 +1085,14 @@ class WebSocketsConnection(Connection):
             # step, an eager task): that answer is this side's close, so wait for the end.
             await ws.wait_closed()
             return
-        await ws.close(code, reason)
+        # websockets bounds the wait for the peer's close frame, not the wait before, for its
+        # own to drain behind what a peer that does not read left queued: bound both together.
+        try:
+            async with asyncio.timeout(ws.close_timeout):  # in this task: its close goes first
+                await ws.close(code, reason)
+        except TimeoutError:
+            ws.transport.abort()
+            await ws.wait_closed()
 
     # Read from the close frames, as _closed does, so that closed() says what recv raised:
     # websockets' own close_code says 1006 where this side failed the connection with 1009.
