@@ -163,6 +163,7 @@ __all__ = [
     "unencodable_strings",
     "validate_python",
     "validation_errors",
+    "values_past",
     "zero_value",
 ]
 
@@ -246,6 +247,28 @@ def largest_default(
     sizes = [(default_size(field.type, nested, counted), field) for field in part.fields]
     size, field = max(sizes, key=lambda pair: pair[0])
     return sum(size for size, _ in sizes), size, field
+
+
+def values_past(
+    limit: int | None,
+    part: MessageSpec,
+    nested: Callable[[str], MessageSpec],
+    counted: dict[str, int],
+) -> str | None:
+    """None when an instance of ``part`` made without its fields holds at most ``limit`` values
+    (None: no limit); else what it holds, as every refusal of such a type says it:
+    ``4000000 values, 4000000 of them in the field 'samples' (float64[4000000])``.
+
+    Each value takes at least a byte of JSON, so a message of ``limit`` bytes cannot hold more
+    values: such a type can be sent only with its largest fields left out, and leaving them out
+    makes the reader create them all.
+    """
+    if limit is None or not part.fields:
+        return None
+    total, size, field = largest_default(part, nested, counted)
+    if total <= limit:
+        return None
+    return f"{total} values, {size} of them in the field {field.name!r} ({field.type})"
 
 
 def _is_bytes(type_: TypeSpec) -> bool:
