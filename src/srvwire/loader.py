@@ -56,7 +56,6 @@ from __future__ import annotations
 import difflib
 import functools
 import os
-import re
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -73,6 +72,7 @@ from srvwire.idl import (
 )
 from srvwire.models import Action, Message, Service, build_action, build_message, build_service
 from srvwire.parser import parse_file
+from srvwire.scanner import split_lines
 from srvwire.typeregistry import TypeRegistry, process_types
 
 __all__ = [
@@ -97,7 +97,6 @@ _KIND_WORDS = {
     InterfaceKind.ACTION: "action",
 }
 _KINDS_BY_NAME = {kind.value: kind for kind in InterfaceKind}
-_LINE_BREAK = re.compile(r"\r\n|\r|\n")
 _SHAPES = "expected 'package/kind/Name' (kind: msg, srv or action) or 'package/Name'"
 _SHARED_LOADERS = 16  # how many search paths the module-level functions remember
 T = TypeVar("T")
@@ -518,7 +517,7 @@ def _column_of(path: Path, line: int) -> int:
         text = path.read_text(encoding="utf-8").removeprefix("\ufeff")
     except (OSError, UnicodeDecodeError):
         return 1
-    lines = _LINE_BREAK.split(text)
+    lines = split_lines(text)
     if not 1 <= line <= len(lines):
         return 1
     declaration = lines[line - 1]

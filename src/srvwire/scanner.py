@@ -8,8 +8,11 @@ takes, what a type token names) is the parser's business.
 
 Invariants
 ----------
-* The text is cut into lines at ``\\r\\n``, ``\\r`` and ``\\n`` only, after dropping one leading
-  byte-order mark. No line ever holds a line break, so every message is one line.
+* The text is cut into lines where ROS 2's parser cuts it (:meth:`str.splitlines`): at
+  ``\\r\\n``, ``\\r``, ``\\n``, ``\\v``, ``\\f``, ``\\x1c``-``\\x1e``, ``\\x85``, ``\\u2028`` and
+  ``\\u2029``, after dropping one leading byte-order mark. So a form feed in a comment ends the
+  comment, and a line number counts the lines ROS 2 counts. No line ever holds a line break, so
+  every message is one line.
 * Positions are 0-based indexes into the line; they become 1-based columns only when an error
   is raised, and a column counts characters (a tab is one column).
 * ``ws`` is a space or a tab and nothing else. Any other character (a no-break space, a form
@@ -21,7 +24,6 @@ Invariants
 
 from __future__ import annotations
 
-import codecs
 import math
 import re
 from dataclasses import dataclass
@@ -53,7 +55,7 @@ __all__ = [
     "split_lines",
 ]
 
-LINE_BREAK: Final = re.compile(r"\r\n|\r|\n")
+LINE_BREAK: Final = re.compile(r"\r\n|[\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029]")  # splitlines()'s
 WS: Final = " \t"
 QUOTES: Final = "\"'"
 
@@ -102,13 +104,9 @@ def decode(data: bytes, path: str) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        breaks = list(re.finditer(rb"\r\n|\r|\n", data[: exc.start]))
-        line_start = (
-            breaks[-1].end() if breaks else len(codecs.BOM_UTF8) * data.startswith(codecs.BOM_UTF8)
-        )
-        column = len(data[line_start : exc.start].decode("utf-8", "replace")) + 1
+        lines = split_lines(data[: exc.start].decode("utf-8"))  # valid up to the bad byte
         message = f"the file is not valid UTF-8: byte 0x{data[exc.start]:02x} cannot be decoded"
-        raise file_error(message, path, len(breaks) + 1, column) from exc
+        raise file_error(message, path, len(lines), len(lines[-1]) + 1) from exc
 
 
 def split_lines(text: str) -> list[str]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import difflib
-import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -36,12 +35,12 @@ from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
 from srvwire.loader import InterfaceLoader
 from srvwire.models import values_past
 from srvwire.parser import parse_action, parse_file, parse_message, parse_service, split_comment
+from srvwire.scanner import split_lines
 from srvwire.transports.base import Options
 from srvwire.typeregistry import TypeRegistry
 
 INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
 
-_LINE_BREAK = re.compile(r"\r\n|\r|\n")
 _KIND_HEADINGS = (
     (InterfaceKind.MSG, "Messages:"),
     (InterfaceKind.SRV, "Services:"),
@@ -278,7 +277,7 @@ def _definition_lines(
         for field in part.fields
         if not field.type.is_primitive
     }
-    lines = _LINE_BREAK.split(text)
+    lines = split_lines(text)
     if lines and not lines[-1]:
         lines.pop()
     depth = len(outer)
