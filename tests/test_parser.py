@@ -197,6 +197,30 @@ def test_a_bad_byte_is_placed_by_the_lines_splitlines_cuts(tmp_path: Path) -> No
     assert (excinfo.value.line, excinfo.value.column) == (3, 8)
 
 
+def test_a_tab_reads_as_a_space_as_in_ros_2() -> None:
+    # rosidl_adapter replaces every tab with a space before it parses, so a tab in a string
+    # default or constant is a space to a ROS 2 node; it is to srvwire too.
+    text = (
+        'string s "a\tb"\nstring t a\tb\nstring[] u ["a\tb", c\td]\n'
+        'string S="a\tb"\nstring T=a\tb\n# one\ttab\nint32\tx\t# and\tanother\n'
+    )
+    spec = parse_message(text, "pkg", "Msg")
+    assert [(field.name, field.default) for field in spec.fields] == [
+        ("s", "a b"),
+        ("t", "a b"),
+        ("u", ("a b", "c d")),
+        ("x", None),
+    ]
+    assert [(constant.name, constant.value) for constant in spec.constants] == [
+        ("S", "a b"),
+        ("T", "a b"),
+    ]
+    assert spec.fields[-1].doc == "one tab\nand another"
+    assert spec.text == text  # the text is kept as written
+    with pytest.raises(InterfaceSyntaxError, match=r"^<string>:1:9: 'b' is not a valid int32"):
+        parse_message("int32\tx\tb\n", "pkg", "Msg")  # a tab is still one column
+
+
 # --- the public API's promises ------------------------------------------------------------------
 
 
@@ -404,7 +428,8 @@ def values_of(type_: TypeSpec) -> st.SearchStrategy[Scalar]:
         return st.floats(-FLOAT32_MAX, FLOAT32_MAX)
     if name == "float64":
         return st.floats(allow_nan=False, allow_infinity=False)
-    characters = st.characters(exclude_characters=LINE_BREAKS, exclude_categories=["Cs"])
+    # No line break, and no tab, which reads as a space.
+    characters = st.characters(exclude_characters=LINE_BREAKS + "\t", exclude_categories=["Cs"])
     return st.text(characters, max_size=type_.string_bound or 12).filter(
         lambda s: not s.endswith("\\")
     )

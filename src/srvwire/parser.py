@@ -99,7 +99,7 @@ from srvwire.scanner import (
     quoted_string,
     show,
     size,
-    split_lines,
+    source_lines,
 )
 
 __all__ = ["parse_action", "parse_file", "parse_message", "parse_service", "split_comment"]
@@ -127,7 +127,7 @@ SUFFIXES: Final = {".msg": "message", ".srv": "service", ".action": "action"}
 def parse_message(text: str, package: str, name: str, *, path: str | None = None) -> MessageSpec:
     """Parse the text of a ``.msg`` file into a :class:`MessageSpec` named ``package/name``."""
     _check_names(package, name, "message", path)
-    lines = split_lines(text)
+    lines = source_lines(text)
     ((first, part),) = _parts(lines, 1, path)
     return replace(_message(part, first, package, name, path), text=text)
 
@@ -135,7 +135,7 @@ def parse_message(text: str, package: str, name: str, *, path: str | None = None
 def parse_service(text: str, package: str, name: str, *, path: str | None = None) -> ServiceSpec:
     """Parse the text of a ``.srv`` file: a request and a response split by one ``---`` line."""
     _check_names(package, name, "service", path)
-    lines = split_lines(text)
+    lines = source_lines(text)
     (first_a, request), (first_b, response) = _parts(lines, 2, path)
     return ServiceSpec(
         package,
@@ -150,7 +150,7 @@ def parse_service(text: str, package: str, name: str, *, path: str | None = None
 def parse_action(text: str, package: str, name: str, *, path: str | None = None) -> ActionSpec:
     """Parse the text of a ``.action`` file: goal, result and feedback split by ``---`` lines."""
     _check_names(package, name, "action", path)
-    lines = split_lines(text)
+    lines = source_lines(text)
     (first_a, goal), (first_b, result), (first_c, feedback) = _parts(lines, 3, path)
     return ActionSpec(
         package,

@@ -15,6 +15,8 @@ Invariants
   every message is one line.
 * Positions are 0-based indexes into the line; they become 1-based columns only when an error
   is raised, and a column counts characters (a tab is one column).
+* The parser reads :func:`source_lines`, where every tab is a space, as ROS 2 replaces every tab
+  before it parses: a tab in a quoted string, a default or a comment reads as a space.
 * ``ws`` is a space or a tab and nothing else. Any other character (a no-break space, a form
   feed) belongs to the token it touches, and the token's error shows it escaped (:func:`show`).
 * Every problem is an :class:`~srvwire.errors.InterfaceSyntaxError` made by
@@ -52,6 +54,7 @@ __all__ = [
     "quoted_string",
     "show",
     "size",
+    "source_lines",
     "split_lines",
 ]
 
@@ -112,6 +115,11 @@ def decode(data: bytes, path: str) -> str:
 def split_lines(text: str) -> list[str]:
     """Cut ``text`` into lines, dropping one leading byte-order mark."""
     return LINE_BREAK.split(text.removeprefix("\ufeff"))
+
+
+def source_lines(text: str) -> list[str]:
+    """The lines the parser reads: :func:`split_lines`, each tab made a space first."""
+    return split_lines(text.replace("\t", " "))
 
 
 @dataclass
