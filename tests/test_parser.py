@@ -197,6 +197,20 @@ def test_a_bad_byte_is_placed_by_the_lines_splitlines_cuts(tmp_path: Path) -> No
     assert (excinfo.value.line, excinfo.value.column) == (3, 8)
 
 
+def test_float32s_maximum_as_commonly_written_is_a_float32_constant_and_default() -> None:
+    # rosidl accepts these; each rounds to the largest float32. From 2**128 - 2**103 on, a value
+    # rounds to infinity, and srvwire refuses it.
+    for written in ("3.4028235e38", "3.40282347e+38", "-3.4028235e38"):
+        spec = parse_message(f"float32 X={written}\nfloat32 x {written}\n", "pkg", "Msg")
+        assert spec.constants[0].value == spec.fields[0].default == float(written)
+    for beyond in ("3.4028235677973366e38", "-3.40282356779733661637539395458142568448e38"):
+        with pytest.raises(InterfaceSyntaxError) as excinfo:
+            parse_message(f"float32 X={beyond}\n", "pkg", "Msg")
+        assert str(excinfo.value) == f"<string>:1:11: constant {beyond} is out of range for float32"
+        with pytest.raises(InterfaceSyntaxError, match=r"^<string>:1:11: default .* out of range"):
+            parse_message(f"float32 x {beyond}\n", "pkg", "Msg")
+
+
 def test_a_tab_reads_as_a_space_as_in_ros_2() -> None:
     # rosidl_adapter replaces every tab with a space before it parses, so a tab in a string
     # default or constant is a space to a ROS 2 node; it is to srvwire too.

@@ -225,6 +225,18 @@ async def test_basic_types_round_trip_at_their_extremes(ros_wire: Wire) -> None:
     assert (await ros_wire.call(request("basictypes", low)))["result"] == low
 
 
+async def test_float32s_maximum_as_other_languages_write_it_is_a_float32(ros_wire: Wire) -> None:
+    # Rust, Go and Java write the largest float32 as 3.4028235e38, C's %.9g as 3.40282347e+38:
+    # both round to it. What rounds beyond it (from 2**128 - 2**103 on) is refused.
+    for written in (3.4028235e38, 3.40282347e38, -3.4028235e38):
+        reply = await ros_wire.call(request("basictypes", {"float32_value": written}))
+        assert reply["result"]["float32_value"] == written
+    for beyond in (3.4028235677973366e38, -3.4028235677973366e38, 3.5e38):
+        reply = await ros_wire.call(request("basictypes", {"float32_value": beyond}, id=2))
+        assert error(reply) == (2, -32602, "INVALID_PARAMS")
+        assert [e["type"] for e in reply["error"]["data"]["errors"]] == ["float32_range"]
+
+
 async def test_arrays_round_trip(ros_wire: Wire) -> None:
     small = {k: v for k, v in EXTREMES.items() if k != "string_value"}
     params = {

@@ -94,6 +94,7 @@ from srvwire.idl import (
     TypeSpec,
 )
 from srvwire.primitives import (
+    FLOAT32_BOUND,
     FLOAT32_MAX,
     INF_NAN_MODES,
     PRIMITIVE_ALIASES,
@@ -119,6 +120,7 @@ from srvwire.primitives import (
 from srvwire.protocol import Id, ReadRequest, timeout_seconds
 
 __all__ = [
+    "FLOAT32_BOUND",
     "FLOAT32_MAX",
     "INF_NAN_MODES",
     "MAX_LISTED_ERRORS",

@@ -73,7 +73,7 @@ INTEGER: Final = re.compile(
 )
 BASES: Final = {"dec": 10, "hex": 16, "oct": 8, "bin": 2}  # INTEGER's digit groups
 FLOAT: Final = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-FLOAT32_MAX: Final = 3.4028234663852886e38
+FLOAT32_BOUND: Final = 2.0**128 - 2.0**103  # what rounds to a finite float32 lies within it
 MAX_SIZE: Final = 2**32 - 1  # array sizes and string bounds are 32-bit unsigned in OMG IDL
 
 SNAKE_RULE: Final = (
@@ -263,7 +263,8 @@ def integer_literal(
 
 
 def float_literal(cur: Cursor, token: str, pos: int, what: str, type_name: str) -> float:
-    """The float ``token`` spells: finite, and for ``float32`` within its range."""
+    """The float ``token`` spells: finite, and for ``float32`` one that rounds to a finite
+    ``float32`` (a magnitude below ``FLOAT32_BOUND``)."""
     if token.lower().lstrip("+-") in ("inf", "infinity", "nan"):
         raise cur.error(
             f"{show(token)} is not allowed for {type_name}: defaults and constants must be finite",
@@ -275,6 +276,6 @@ def float_literal(cur: Cursor, token: str, pos: int, what: str, type_name: str) 
             pos,
         )
     value = float(token)
-    if not math.isfinite(value) or (type_name == "float32" and abs(value) > FLOAT32_MAX):
+    if not math.isfinite(value) or (type_name == "float32" and abs(value) >= FLOAT32_BOUND):
         raise cur.error(f"{what} {token} is out of range for {type_name}", pos)
     return value
