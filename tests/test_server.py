@@ -294,6 +294,36 @@ async def test_bad_values_name_their_fields(
     assert (await ros_wire.call(request("empty", id=6)))["result"] == {}
 
 
+MOVE = build("uint32 from\nuint32 to\n---\nuint32 got\n", "Move")
+
+
+async def test_a_renamed_field_goes_by_its_interface_name_only_on_the_wire(
+    transport: Transport,
+) -> None:
+    # Python calls the field from_ (a keyword cannot be a name); JSON, the file's from. A peer
+    # sending from_ names a field the type does not have, in one pass and in the full parse.
+    server = Server()
+    server.add_service("/move", MOVE, lambda request: {"got": request.from_})
+    assert MOVE.Request(from_=3).from_ == 3  # Python code keeps its name
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
+        assert (await wire.call(request("/move", {"from": 7})))["result"] == {"got": 7}
+        for params in ({"from_": 7}, {"from": 1, "from_": 2}):
+            for batch in (False, True):  # a batch is read by the full parse, not in one pass
+                message = request("/move", params, id=3)
+                reply = await wire.call([message] if batch else message)
+                reply = reply[0] if batch else reply
+                assert error(reply) == (3, -32602, "INVALID_PARAMS")
+                assert reply["error"]["data"]["errors"] == [
+                    {
+                        "path": "from_",
+                        "message": "Extra inputs are not permitted",
+                        "type": "extra_forbidden",
+                    }
+                ]
+        await wire.ws.close()
+
+
 # --- handlers that fail, hang, refuse ------------------------------------------------------------
 
 

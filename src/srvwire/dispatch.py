@@ -89,7 +89,7 @@ from srvwire.models import (
     reply_writer,
     summarize_errors,
     unencodable_strings,
-    validate_python,
+    validate_wire,
     validation_errors,
     values_past,
 )
@@ -372,7 +372,7 @@ class ServiceEntry:
                 )
             params = dict(zip(self.field_names, params, strict=False))
         try:
-            return validate_python(self.request_model, params)
+            return validate_wire(self.request_model, params)
         except ValidationError as exc:
             data = error_data(exc)
             raise InvalidParams(
