@@ -382,6 +382,13 @@ def _declaration(cur: Cursor, package: str) -> tuple[FieldSpec | ConstantSpec, i
         hint = ""
         if "[" in name:
             bare, suffix = name[: name.index("[")], name[name.index("[") :]
+            if not bare:  # int32 [3] a: a space between the type and its suffix
+                bare = cur.take_until(WS + "#=") or "name"
+                raise cur.error(
+                    f"{show(name)} is an array suffix, not a field name: it goes on the type, "
+                    f"with no space before it: '{type_token}{suffix} {bare}'",
+                    name_pos,
+                )
             hint = f"; the array suffix goes on the type: '{type_token}{suffix} {bare}'"
         raise cur.error(f"{show(name)} is an invalid field name: {SNAKE_RULE}{hint}", name_pos)
     default: Value | None = None
