@@ -237,6 +237,26 @@ async def test_float32s_maximum_as_other_languages_write_it_is_a_float32(ros_wir
         assert [e["type"] for e in reply["error"]["data"]["errors"]] == ["float32_range"]
 
 
+async def test_a_number_too_large_for_a_double_is_infinity_however_written(
+    ros_wire: Wire,
+) -> None:
+    # One rule, as JavaScript's JSON.parse has: 1e400 and a 400-digit integer alike. Alone, a
+    # call is read in one pass; in a batch, by the full parse: the same either way.
+    digits = "1" + "0" * 400
+    for literal, written in (
+        (digits, "Infinity"),
+        ("1e400", "Infinity"),
+        ("-" + digits, "-Infinity"),
+    ):
+        params = f'{{"float64_value":{literal}}}'
+        text = f'{{"jsonrpc":"2.0","id":4,"method":"basictypes","params":{params}}}'
+        for message in (text, f"[{text}]"):
+            await ros_wire.ws.send(message)
+            reply = await ros_wire.recv()
+            reply = reply[0] if isinstance(reply, list) else reply
+            assert reply["result"]["float64_value"] == written, (literal, message[0])
+
+
 async def test_arrays_round_trip(ros_wire: Wire) -> None:
     small = {k: v for k, v in EXTREMES.items() if k != "string_value"}
     params = {

@@ -72,6 +72,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
+import pydantic_core
 from pydantic import ConfigDict, Field
 from pydantic_core import (
     PydanticSerializationError,
@@ -754,9 +755,28 @@ def validate_python(model: type[M], data: Any) -> M:
 
 
 def validate_wire(model: type[M], data: Any) -> M:
-    """:func:`validate_python` for data a peer sent: each field by its JSON name only, its name
-    in the interface file, never by its Python name (``from_``), which Python code may use."""
-    validated: M = wire_validator(model).validate_python(data)
+    """:func:`validate_python` for data a peer sent, parsed from JSON, read as its JSON text
+    would be read in one pass (``wire_validator(model).validate_json``).
+
+    Each field goes by its JSON name only, its name in the interface file, never by its Python
+    name (``from_``), which Python code may use. A number too large for a double reads as
+    infinity in a float field whether it was written ``1e400`` or as an integer of 309 digits
+    or more, which parsing made an ``int`` (refused by a float field in Python mode as
+    ``float_type``): then, and only then, the data is validated again as JSON text.
+    """
+    validator = wire_validator(model)
+    try:
+        validated: M = validator.validate_python(data)
+    except pydantic.ValidationError as exc:
+        if not any(
+            error["type"] == "float_type" and type(error["input"]) is int for error in exc.errors()
+        ):
+            raise
+        try:
+            text = pydantic_core.to_json(data, inf_nan_mode="constants")
+        except Exception:  # nothing JSON can hold (a lone surrogate): the first error stands
+            raise exc from None
+        validated = validator.validate_json(text)
     return validated
 
 
@@ -919,17 +939,17 @@ class ModelDecoder(Generic[M]):
 
     What :meth:`srvwire.protocol.RawReply.decode` needs; both raise pydantic's
     ``ValidationError`` (a ``ValueError``) when the result does not fit. They are the compiled
-    validator's own methods (:func:`wire_validator`'s, which reads each field by its JSON name
-    only), so a call costs no Python frame of its own.
+    validator's own method (:func:`wire_validator`'s, which reads each field by its JSON name
+    only), so a call costs no Python frame of its own; ``from_data`` is :func:`validate_wire`.
     """
 
     __slots__ = ("_whole", "from_data", "from_json", "model")
 
     def __init__(self, model: type[M]) -> None:
         self.model = model
-        validator = wire_validator(model)  # a peer names each field by its JSON name only
-        self.from_json: Callable[[str], M] = validator.validate_json
-        self.from_data: Callable[[Any], M] = validator.validate_python
+        # A peer names each field by its JSON name only; parsed data reads as its text would.
+        self.from_json: Callable[[str], M] = wire_validator(model).validate_json
+        self.from_data: Callable[[Any], M] = functools.partial(validate_wire, model)
         self._whole: Callable[[str], dict[str, Any]] | None = None
 
     def from_reply(self, message: str, id: int) -> M:
@@ -976,11 +996,6 @@ def _reply_validator(model: type[M]) -> Callable[[str], dict[str, Any]]:
 
 # --- a request read in one pass ----------------------------------------------------------------
 
-_LONG_INTEGER = re.compile(r"[0-9]{309}")
-_LONG_BYTES = re.compile(rb"[0-9]{309}")
-"""A run of digits as long as the smallest integer a double cannot hold (about 1.8e308): only
-such a literal reads differently as JSON text (infinity) and as a parsed Python int (refused)."""
-
 
 class CallReader:
     """Reads a request to one of some services from its JSON text in one pass of pydantic-core.
@@ -998,18 +1013,16 @@ class CallReader:
     does.
 
     Only classes srvwire builds (:class:`Message`, no validators of their own) are read so:
-    JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``),
-    but for one case, an integer literal too large for a double in a float field, which the
-    full parse refuses and JSON mode reads as infinity; a request with a float field and such a
-    run of digits anywhere in its text is left to the full parse.
+    JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``;
+    an integer literal too large for a double in a float field, which Python mode refuses, the
+    full parse reads again as JSON: see :func:`validate_wire`).
     """
 
-    __slots__ = ("floats", "validate")
+    __slots__ = ("validate",)
 
     def __init__(self, requests: Mapping[str, type[pydantic.BaseModel]]) -> None:
         choices: dict[str, Any] = {}
         definitions: dict[str, Any] = {}
-        self.floats: set[type[pydantic.BaseModel]] = set()
         id_schema = core_schema.union_schema(
             [core_schema.int_schema(strict=True), core_schema.str_schema(strict=True)]
         )
@@ -1017,8 +1030,6 @@ class CallReader:
             params = _params_schema(model, definitions)
             if params is None:
                 continue
-            if _has_float(model.__pydantic_core_schema__):
-                self.floats.add(model)
             envelope = core_schema.typed_dict_schema(
                 {
                     "jsonrpc": core_schema.typed_dict_field(core_schema.literal_schema(["2.0"])),
@@ -1062,9 +1073,6 @@ class CallReader:
                 if timeout is None:
                     return None
             request.__pydantic_fields_set__.discard(_META)
-        if self.floats and type(request) in self.floats:
-            if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
-                return None
         return envelope["id"], envelope["method"], request, timeout
 
 
@@ -1135,14 +1143,3 @@ def _model_classes(schema: Any) -> list[Any]:
         for item in schema:
             found += _model_classes(item)
     return found
-
-
-def _has_float(schema: Any) -> bool:
-    """Whether a core schema has a float anywhere, its definitions included."""
-    if isinstance(schema, dict):
-        if schema.get("type") == "float":
-            return True
-        return any(_has_float(value) for value in schema.values())
-    if isinstance(schema, list | tuple):
-        return any(_has_float(item) for item in schema)
-    return False
