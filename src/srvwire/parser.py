@@ -366,6 +366,13 @@ def _declaration(cur: Cursor, package: str) -> tuple[FieldSpec | ConstantSpec, i
     """Read ``type name`` and what follows; return the spec and the position of its name."""
     type_pos = cur.pos
     type_token = cur.take_type_token()
+    if type_token.startswith("@"):  # newer rosidl reads annotation lines such as @optional
+        name = show(type_token.split("(")[0])
+        raise cur.error(
+            f"{name} is an annotation, and srvwire does not support annotations: remove it "
+            "(a field left out of a message takes its default)",
+            type_pos,
+        )
     type_ = _type(cur, type_token, type_pos, package)
     cur.skip_ws()
     name_pos = cur.pos
