@@ -570,6 +570,22 @@ def test_generated_modules_are_ruff_clean_and_formatted(tmp_path: Path) -> None:
     assert (formatted.returncode, formatted.stderr) == (0, ""), formatted.stdout
 
 
+def test_a_generated_class_and_a_built_one_do_not_mix_but_their_dicts_do(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # docs/types.md, "Generated modules": two classes of one type; a dict of its fields goes
+    # into either.
+    module = generated([POINT, POSE], tmp_path, monkeypatch, "geo_mixed")
+    built = built_classes([POINT, POSE])
+    point = module.Point(x=1.0)
+    with pytest.raises(pydantic.ValidationError) as caught:
+        built["Pose"](position=point)
+    assert [error["type"] for error in caught.value.errors()] == ["model_type"]
+    assert "instance of Point" in str(caught.value)
+    assert built["Pose"](position=point.model_dump()).position.x == 1.0
+    assert module.Pose(position=built["Point"](y=2.0).model_dump()).position.y == 2.0
+
+
 def test_all_is_ordered_as_ruffs_ruf022_orders_it(tmp_path: Path) -> None:
     # RUF022 sorts __all__ case-sensitively within each kind (isort sorts imports ignoring
     # case): IMUStatus before Imu ('M' < 'm'), DoThing before Do_Request ('T' < '_').
