@@ -851,3 +851,13 @@ def test_the_defaults_benchmark_measures_each_operation_in_each_tree() -> None:
     assert list(outcome["results"]) == ["corpus", "add", "covariance", "uuid"]
     for figures in outcome["results"].values():
         assert list(figures) == [src, f"{src}/"] and all(value > 0 for value in figures.values())
+
+
+def test_the_bare_requests_benchmark_measures_both_kinds_of_request() -> None:
+    # A smoke run: each kind's requests are all held (or the script would wait) and answered.
+    result = run_benchmark(
+        ROOT / "benchmarks" / "bare_requests.py", "--calls", "2", "--size", "4000"
+    )
+    rows = [line.split() for line in result.stdout.splitlines()]
+    assert [row[0] for row in rows] == ["bare", "full"]
+    assert int(rows[0][2]) < 100 < int(rows[1][2]) <= 4000

@@ -46,7 +46,8 @@ from srvwire.errors import (
 )
 from srvwire.link import MAX_READY, Answer, Link
 from srvwire.loader import load_service
-from srvwire.models import Service
+from srvwire.models import Service, build_service
+from srvwire.parser import parse_service
 from srvwire.protocol import RawReply
 from srvwire.server import RunningServer, Server, serve
 from srvwire.transports.base import Transport
@@ -1131,6 +1132,43 @@ async def test_a_raw_reply_that_does_not_match_the_type_is_an_internal_error(
         ]
     }
     assert client.connected
+
+
+async def test_a_reply_naming_a_renamed_field_by_its_python_name_is_refused() -> None:
+    # The JSON name of a field is its name in the file (from); from_ is Python's only.
+    move = build_service(parse_service("uint32 to\n---\nuint32 from\n", "srvwire_tests", "Go"))
+    peer = FakePeer([{"name": "/go", "type": "srvwire_tests/srv/Go"}])
+    results: list[str] = []
+
+    async def answer_twice(ws: ServerConnection, message: dict[str, Any]) -> None:
+        # Written as srvwire writes it (read in one pass), or otherwise (parsed first).
+        text = results.pop(0)
+        if text.startswith(" "):
+            await ws.send(f'{{"result": {text}, "jsonrpc": "2.0", "id": {message["id"]}}}')
+        else:
+            await ws.send(compact(message["id"], text))
+
+    peer.reply = answer_twice
+    await peer.start()
+    try:
+        async with connect(peer.url, timeout=scaled(5)) as client:
+            results.append('{"from":7}')
+            assert (await client.call("/go", move.Request(), srv_type=move)).from_ == 7
+            for text in ('{"from_":7}', ' {"from_": 7}'):
+                results.append(text)
+                with pytest.raises(InternalError) as caught:
+                    await client.call("/go", move.Request(), srv_type=move)
+                assert caught.value.data == {
+                    "errors": [
+                        {
+                            "path": "from_",
+                            "message": "Extra inputs are not permitted",
+                            "type": "extra_forbidden",
+                        }
+                    ]
+                }
+    finally:
+        await peer.stop()
 
 
 async def test_non_finite_floats_and_integers_beyond_a_double_decode_as_infinity() -> None:

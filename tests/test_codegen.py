@@ -40,7 +40,7 @@ from srvwire.models import (
     build_service,
     validation_errors,
 )
-from srvwire.parser import parse_file, parse_service
+from srvwire.parser import parse_file, parse_message, parse_service
 from support import ROOT, import_each_first, ros_test_interfaces, write_package
 
 Spec = MessageSpec | ServiceSpec | ActionSpec
@@ -568,6 +568,43 @@ def test_generated_modules_are_ruff_clean_and_formatted(tmp_path: Path) -> None:
     assert (default_rules.returncode, default_rules.stderr) == (0, ""), default_rules.stdout
     formatted = ruff(tmp_path, "format", "--check", "--line-length", "100")
     assert (formatted.returncode, formatted.stderr) == (0, ""), formatted.stdout
+
+
+def test_a_generated_class_and_a_built_one_do_not_mix_but_their_dicts_do(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # docs/types.md, "Generated modules": two classes of one type; a dict of its fields goes
+    # into either.
+    module = generated([POINT, POSE], tmp_path, monkeypatch, "geo_mixed")
+    built = built_classes([POINT, POSE])
+    point = module.Point(x=1.0)
+    with pytest.raises(pydantic.ValidationError) as caught:
+        built["Pose"](position=point)
+    assert [error["type"] for error in caught.value.errors()] == ["model_type"]
+    assert "instance of Point" in str(caught.value)
+    assert built["Pose"](position=point.model_dump()).position.x == 1.0
+    assert module.Pose(position=built["Point"](y=2.0).model_dump()).position.y == 2.0
+
+
+def test_all_is_ordered_as_ruffs_ruf022_orders_it(tmp_path: Path) -> None:
+    # RUF022 sorts __all__ case-sensitively within each kind (isort sorts imports ignoring
+    # case): IMUStatus before Imu ('M' < 'm'), DoThing before Do_Request ('T' < '_').
+    specs = [
+        parse_message("float64 x\n", "robot", "Imu"),
+        parse_message("float64 x\n", "robot", "IMUStatus"),
+        parse_message("int32 x\n", "robot", "DoThing"),
+        parse_message("int32 x\n", "robot", "Int16"),
+        parse_message("int32 x\n", "robot", "Int8"),
+        parse_service("int32 a\n---\nint32 b\n", "robot", "Do"),
+    ]
+    write_module(tmp_path / "robot.py", specs)
+    source = (tmp_path / "robot.py").read_text(encoding="utf-8")
+    assert (
+        '__all__ = ["Do", "DoThing", "Do_Request", "Do_Response", "IMUStatus", "Imu", "Int8", '
+        '"Int16"]\n'
+    ) in source
+    strict = ruff(tmp_path, "check", "--select", "E,F,W,I,B,UP,ASYNC,RUF", "--line-length", "100")
+    assert (strict.returncode, strict.stderr) == (0, ""), strict.stdout
 
 
 def test_mypy_strict_sees_the_real_field_types(tmp_path: Path) -> None:

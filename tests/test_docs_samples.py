@@ -143,6 +143,10 @@ COMMANDS: dict[str, str] = {
         "the resident memory of idle connections after a large message, seconds long: "
         "tests/test_picows_memory.py runs it"
     ),
+    r"python benchmarks/bare_requests\.py .*": (
+        "a measurement of RSS with requests held, which needs a quiet machine: "
+        "tests/test_benchmarks.py runs it small"
+    ),
     r"python benchmarks/worst_message\.py .*": (
         "a benchmark of the worst 1 MiB messages, a minute long: tests/test_server.py checks "
         "that their replies stay small"

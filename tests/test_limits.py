@@ -22,8 +22,12 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from websockets.asyncio.client import connect as ws_connect
 
 import srvwire
+from srvwire.errors import RegistrationError
+from srvwire.models import build_action, build_message, build_service
+from srvwire.parser import parse_action, parse_message, parse_service
 from srvwire.transports.websockets import READ_SIZE
 from support import ROOT, scaled
 
@@ -278,3 +282,99 @@ async def test_pings_from_a_client_that_resets_write_no_warning_per_pong(
         await asyncio.wait([handler])
     warnings = [r for r in caplog.records if "socket.send() raised" in r.getMessage()]
     assert warnings == []
+
+
+# --- a type too large to make bare ------------------------------------------------------------
+
+# A request that leaves a fixed array out makes the server create every value of it: one
+# pointer per value, once per call in flight. The server refuses a type whose bare instance
+# holds more values than a message of max_message_size bytes could carry (every value takes a
+# byte of JSON at least), as a client refuses such a type when a server describes it.
+LIMIT = 1000
+REFUSED = (
+    "cannot serve /big: srvwire_tests/srv/Big_Request holds 1001 values, 1001 of them in the "
+    "field 'samples' (float64[1001]) when made without its fields, more than "
+    "max_message_size=1000 can carry, and the server makes one for each request that leaves "
+    "them out: a message of a few bytes would make it hold them all. Raise the server's "
+    "max_message_size (None lifts this check with the limit), or declare the fixed array "
+    "bounded (T[<=N]) or unbounded (T[])"
+)
+
+
+def sized(count: int, name: str = "Big") -> type[srvwire.Service]:
+    return build_service(parse_service(f"float64[{count}] samples\n---\nbool ok\n", PKG, name))
+
+
+PKG = "srvwire_tests"
+
+
+async def test_a_request_with_more_fixed_values_than_a_message_can_carry_is_refused() -> None:
+    server = srvwire.Server(max_message_size=LIMIT)
+    with pytest.raises(RegistrationError) as excinfo:
+        server.add_service("/big", sized(LIMIT + 1), lambda request: {"ok": True})
+    assert str(excinfo.value) == REFUSED
+    assert len(server.registry) == 0
+    # At the limit it is served, and a call that leaves the array out gets it made bare.
+    server.add_service("/fits", sized(LIMIT, "Fits"), lambda r: {"ok": len(r.samples) == LIMIT})
+    # Nested: 10 rows of 100 is the limit; one more value in the request is past it.
+    row = build_message(parse_message("float64[100] cells\n", PKG, "Row"))
+    rows = f"{PKG}/Row[10] rows\n---\nbool ok\n"
+    nested = build_service(parse_service(rows, PKG, "Rows"), lambda _: row)
+    server.add_service("/rows", nested, lambda request: {"ok": len(request.rows) == 10})
+    more = build_service(parse_service("bool flag\n" + rows, PKG, "More"), lambda _: row)
+    with pytest.raises(RegistrationError, match=r"holds 1001 values, 1000 of them in the field "):
+        server.add_service("/more", more, lambda request: {})
+    # None lifts the check with the limit.
+    srvwire.Server(max_message_size=None).add_service("/big", sized(LIMIT + 1), lambda r: {})
+    async with srvwire.serve(server, "127.0.0.1", 0) as running:
+        async with ws_connect(running.url) as ws:
+            for id_, method in enumerate(("/fits", "/rows")):
+                await ws.send(json.dumps({"jsonrpc": "2.0", "id": id_, "method": method}))
+                reply = {"method": "$/services"}
+                while "method" in reply:  # the server's notifications come first
+                    reply = json.loads(await asyncio.wait_for(ws.recv(), scaled(5)))
+                assert reply == {"jsonrpc": "2.0", "id": id_, "result": {"ok": True}}
+
+
+async def test_a_response_made_bare_for_the_handler_counts_too() -> None:
+    # A handler that takes (request, response) is given a response made bare for each call.
+    server = srvwire.Server(max_message_size=LIMIT)
+    big = build_service(parse_service(f"bool ok\n---\nint8[{LIMIT + 1}] data\n", PKG, "Out"))
+    with pytest.raises(RegistrationError) as excinfo:
+        server.add_service("/out", big, lambda request, response: response)
+    assert str(excinfo.value).startswith(
+        "cannot serve /out: srvwire_tests/srv/Out_Response holds 1001 values"
+    )
+    assert "makes one for each call, to give the handler" in str(excinfo.value)
+    assert str(excinfo.value).endswith(
+        ", or let the handler take the request only and return the response"
+    )
+    server.add_service("/out", big, lambda request: {})  # it builds what it returns
+
+
+async def test_a_topic_clients_publish_on_and_an_action_goal_count_too() -> None:
+    server = srvwire.Server(max_message_size=LIMIT)
+    scan = build_message(parse_message(f"float32[{LIMIT + 1}] ranges\n", PKG, "Scan"))
+    server.topic("/scan", scan)  # the server only publishes it: it makes none of its own
+    with pytest.raises(RegistrationError) as excinfo:
+        server.subscription("/scan", scan)(lambda msg: None)
+    assert str(excinfo.value).startswith(
+        "cannot take messages on the topic /scan: srvwire_tests/msg/Scan holds 1001 values"
+    )
+    assert "for each message a client publishes that leaves them out" in str(excinfo.value)
+    action = build_action(parse_action(f"int32[{LIMIT + 1}] seen\n---\n---\n", PKG, "Walk"))
+    with pytest.raises(
+        RegistrationError,
+        match=r"^cannot serve /walk: srvwire_tests/action/Walk_Goal holds 1001 values",
+    ):
+        server.add_action("/walk", action, lambda goal, handle: None)
+
+
+async def test_a_server_checks_the_limit_it_starts_with() -> None:
+    # srvwire serve --max-message-size sets the limit after the services are registered.
+    server = srvwire.Server(max_message_size=None)
+    server.add_service("/big", sized(LIMIT + 1), lambda request: {})
+    server.max_message_size = LIMIT
+    with pytest.raises(RegistrationError) as excinfo:
+        await srvwire.serve(server, "127.0.0.1", 0)
+    assert str(excinfo.value) == REFUSED

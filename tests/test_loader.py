@@ -13,6 +13,7 @@ import pytest
 
 import srvwire.loader as loader_module
 from srvwire import parser
+from srvwire.cli import main
 from srvwire.errors import (
     InterfaceConflictError,
     InterfaceError,
@@ -197,6 +198,40 @@ def test_earlier_folders_overlay_later_ones_package_by_package(root: Path, tmp_p
         "demo/srv/Move",
         "demo/srv/Thing",
     ]
+
+
+def test_only_names_that_can_load_are_listed(
+    root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A file or folder whose name the interface language refuses can never load, whatever it
+    # holds: it is not listed. A valid name whose text is wrong is: loading it says what.
+    write(root, "demo/msg/lower.msg", "int32 a\n")
+    write(root, "demo/srv/Broken.srv", "int32 a\n")
+    write(root, "Bad-Name/msg/X.msg", "int32 a\n")
+    write(root, "bad_/msg/Z.msg", "int32 a\n")
+    loader = InterfaceLoader([root], use_default_path=False, types=TypeRegistry())
+    assert list(loader.packages()) == ["demo"]
+    assert (
+        loader.types()
+        == loader.types("demo")
+        == [
+            "demo/action/Go",
+            "demo/msg/Pose2D",
+            "demo/msg/Thing",
+            "demo/srv/Broken",
+            "demo/srv/Move",
+            "demo/srv/Thing",
+        ]
+    )
+    assert loader.types("bad_") == []
+    with pytest.raises(InterfaceSyntaxError, match="'Bad-Name' is an invalid package name"):
+        loader.load("Bad-Name/msg/X")
+    with pytest.raises(InterfaceSyntaxError, match="'lower' is an invalid message name"):
+        loader.load("demo/msg/lower")
+    assert main(["interface", "list", "--path", str(root)]) == 0
+    listed = capsys.readouterr().out.split()
+    assert "demo/srv/Broken" in listed
+    assert not {"demo/msg/lower", "Bad-Name/msg/X", "bad_/msg/Z"} & set(listed)
 
 
 def test_types_lists_full_names_sorted(loader: InterfaceLoader, root: Path) -> None:
@@ -410,7 +445,7 @@ def test_a_parse_error_names_the_file(loader: InterfaceLoader, root: Path) -> No
 def test_a_file_name_that_is_not_a_type_name(root: Path) -> None:
     path = write(root, "demo/msg/lower_case.msg", "int32 a\n")
     loader = InterfaceLoader([root], use_default_path=False)
-    assert "demo/msg/lower_case" in loader.types("demo")
+    assert "demo/msg/lower_case" not in loader.types("demo")  # it can never load
     with pytest.raises(InterfaceSyntaxError) as excinfo:
         loader.load_message("demo/lower_case")
     assert excinfo.value.path == str(path)
@@ -420,7 +455,7 @@ def test_a_file_name_that_is_not_a_type_name(root: Path) -> None:
 def test_a_folder_name_that_is_not_a_package_name(root: Path) -> None:
     path = write(root, "Demo-Pkg/msg/Thing.msg", "int32 a\n")
     loader = InterfaceLoader([root], use_default_path=False)
-    assert "Demo-Pkg" in loader.packages()
+    assert "Demo-Pkg" not in loader.packages()  # its types can never load
     with pytest.raises(InterfaceSyntaxError) as excinfo:
         loader.load_message("Demo-Pkg/Thing")
     assert excinfo.value.path == str(path)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import math
+import struct
 import typing
 import warnings
 from typing import Any
@@ -26,6 +27,7 @@ from srvwire.idl import (
     TypeSpec,
 )
 from srvwire.models import (
+    FLOAT32_BOUND,
     FLOAT32_MAX,
     MAX_LISTED_ERRORS,
     PRIMITIVE_ALIASES,
@@ -171,16 +173,27 @@ def test_assignment_is_validated() -> None:
 # --- floats --------------------------------------------------------------------------------------
 
 
-def test_float32_range_is_the_largest_finite_float32() -> None:
+def test_float32_range_is_what_rounds_to_a_finite_float32() -> None:
     cls = one(t("float32"))
     assert cls(v=FLOAT32_MAX).v == FLOAT32_MAX
     assert cls(v=-FLOAT32_MAX).v == -FLOAT32_MAX
-    above = math.nextafter(FLOAT32_MAX, math.inf)
-    assert error_types(cls, {"v": above}) == ["float32_range"]
-    assert error_types(cls, {"v": -above}) == ["float32_range"]
+    # The bound is halfway from the largest float32 to 2**128: below it a value rounds to the
+    # largest float32 (3.4028235e38, as most languages write it, does), from it on to infinity.
+    assert struct.unpack("f", struct.pack("f", 3.4028235e38))[0] == FLOAT32_MAX
+    below = math.nextafter(FLOAT32_BOUND, 0)
+    assert struct.unpack("f", struct.pack("f", below))[0] == FLOAT32_MAX
+    assert struct.unpack("f", struct.pack("f", FLOAT32_BOUND))[0] == math.inf
+    for value in (3.4028235e38, 3.40282347e38, below):
+        assert cls(v=value).v == value
+        assert cls(v=-value).v == -value
+    assert error_types(cls, {"v": FLOAT32_BOUND}) == ["float32_range"]
+    assert error_types(cls, {"v": -FLOAT32_BOUND}) == ["float32_range"]
     assert error_types(cls, {"v": 1e39}) == ["float32_range"]
     schema = cls.model_json_schema()["properties"]["v"]
-    assert (schema["minimum"], schema["maximum"]) == (-FLOAT32_MAX, FLOAT32_MAX)
+    assert (schema["exclusiveMinimum"], schema["exclusiveMaximum"]) == (
+        -FLOAT32_BOUND,
+        FLOAT32_BOUND,
+    )
 
 
 @pytest.mark.parametrize("name", ["float32", "float64"])

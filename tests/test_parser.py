@@ -164,6 +164,77 @@ def test_line_endings_do_not_change_the_result(source: Path) -> None:
     assert results[1:] == results[:1] * 3
 
 
+# --- line breaks, as ROS 2 cuts lines (str.splitlines) ------------------------------------------
+
+# What rosidl_adapter reads from "# Section one<BREAK>int32 hidden\nint32 x\n", for each character
+# str.splitlines breaks at besides \r and \n: two fields, the first on line 2.
+SPLITLINES_ONLY = "\v\f\x1c\x1d\x1e\x85\u2028\u2029"
+
+
+@pytest.mark.parametrize("brk", SPLITLINES_ONLY, ids=repr)
+def test_a_line_break_of_splitlines_in_a_comment_ends_the_comment(brk: str) -> None:
+    spec = parse_message(f"# Section one{brk}int32 hidden\nint32 x\n", "pkg", "Msg")
+    assert [(field.name, field.line) for field in spec.fields] == [("hidden", 2), ("x", 3)]
+    # rosidl refuses what follows such a break in a trailing comment; so does srvwire, and the
+    # error counts the lines as rosidl does.
+    with pytest.raises(InterfaceSyntaxError) as excinfo:
+        parse_message(f"int32 a{brk}int32 b # c{brk}d\n", "pkg", "Msg", path="Msg.msg")
+    assert str(excinfo.value) == (
+        "Msg.msg:3:1: unknown type 'd': expected a primitive type such as 'int32' or a message "
+        "type such as 'Point' or 'geometry_msgs/Point'"
+    )
+    # Inside a quoted string the break ends the line, and the string with it, as in rosidl.
+    with pytest.raises(InterfaceSyntaxError, match=r"^<string>:1:10: unterminated string"):
+        parse_message(f'string s "x{brk}y"\n', "pkg", "Msg")
+
+
+def test_a_bad_byte_is_placed_by_the_lines_splitlines_cuts(tmp_path: Path) -> None:
+    source = tmp_path / "pkg" / "msg" / "Bad.msg"
+    source.parent.mkdir(parents=True)
+    source.write_bytes("# a\fint32 a\u2028int32 b".encode() + b"\xff\n")
+    with pytest.raises(InterfaceSyntaxError) as excinfo:
+        parse_file(source)
+    assert (excinfo.value.line, excinfo.value.column) == (3, 8)
+
+
+def test_float32s_maximum_as_commonly_written_is_a_float32_constant_and_default() -> None:
+    # rosidl accepts these; each rounds to the largest float32. From 2**128 - 2**103 on, a value
+    # rounds to infinity, and srvwire refuses it.
+    for written in ("3.4028235e38", "3.40282347e+38", "-3.4028235e38"):
+        spec = parse_message(f"float32 X={written}\nfloat32 x {written}\n", "pkg", "Msg")
+        assert spec.constants[0].value == spec.fields[0].default == float(written)
+    for beyond in ("3.4028235677973366e38", "-3.40282356779733661637539395458142568448e38"):
+        with pytest.raises(InterfaceSyntaxError) as excinfo:
+            parse_message(f"float32 X={beyond}\n", "pkg", "Msg")
+        assert str(excinfo.value) == f"<string>:1:11: constant {beyond} is out of range for float32"
+        with pytest.raises(InterfaceSyntaxError, match=r"^<string>:1:11: default .* out of range"):
+            parse_message(f"float32 x {beyond}\n", "pkg", "Msg")
+
+
+def test_a_tab_reads_as_a_space_as_in_ros_2() -> None:
+    # rosidl_adapter replaces every tab with a space before it parses, so a tab in a string
+    # default or constant is a space to a ROS 2 node; it is to srvwire too.
+    text = (
+        'string s "a\tb"\nstring t a\tb\nstring[] u ["a\tb", c\td]\n'
+        'string S="a\tb"\nstring T=a\tb\n# one\ttab\nint32\tx\t# and\tanother\n'
+    )
+    spec = parse_message(text, "pkg", "Msg")
+    assert [(field.name, field.default) for field in spec.fields] == [
+        ("s", "a b"),
+        ("t", "a b"),
+        ("u", ("a b", "c d")),
+        ("x", None),
+    ]
+    assert [(constant.name, constant.value) for constant in spec.constants] == [
+        ("S", "a b"),
+        ("T", "a b"),
+    ]
+    assert spec.fields[-1].doc == "one tab\nand another"
+    assert spec.text == text  # the text is kept as written
+    with pytest.raises(InterfaceSyntaxError, match=r"^<string>:1:9: 'b' is not a valid int32"):
+        parse_message("int32\tx\tb\n", "pkg", "Msg")  # a tab is still one column
+
+
 # --- the public API's promises ------------------------------------------------------------------
 
 
@@ -341,7 +412,8 @@ def test_random_text_raises_nothing_but_syntax_errors(text: str, suffix: str) ->
     except InterfaceSyntaxError as error:
         rendered = str(error)
         assert "\n" not in rendered and "\r" not in rendered
-        lines = re.split(r"\r\n|\r|\n", text.removeprefix("\ufeff"))
+        lines = (text.removeprefix("\ufeff") + "\0").splitlines()  # as ROS 2 cuts them
+        lines[-1] = lines[-1][:-1]
         assert 1 <= error.line <= len(lines)
         assert 1 <= error.column <= len(lines[error.line - 1]) + 1
 
@@ -356,6 +428,7 @@ DOC_LINES = st.text(
     st.characters(exclude_categories=("Cc", "Cs", "Zl", "Zp")), min_size=1, max_size=20
 ).filter(lambda s: s == s.strip() and s != "")
 FLOAT32_MAX = 3.4028234663852886e38
+LINE_BREAKS = "\r\n\v\f\x1c\x1d\x1e\x85\u2028\u2029"  # where str.splitlines cuts
 
 
 def values_of(type_: TypeSpec) -> st.SearchStrategy[Scalar]:
@@ -369,7 +442,8 @@ def values_of(type_: TypeSpec) -> st.SearchStrategy[Scalar]:
         return st.floats(-FLOAT32_MAX, FLOAT32_MAX)
     if name == "float64":
         return st.floats(allow_nan=False, allow_infinity=False)
-    characters = st.characters(exclude_characters="\r\n", exclude_categories=["Cs"])
+    # No line break, and no tab, which reads as a space.
+    characters = st.characters(exclude_characters=LINE_BREAKS + "\t", exclude_categories=["Cs"])
     return st.text(characters, max_size=type_.string_bound or 12).filter(
         lambda s: not s.endswith("\\")
     )

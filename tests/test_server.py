@@ -225,6 +225,38 @@ async def test_basic_types_round_trip_at_their_extremes(ros_wire: Wire) -> None:
     assert (await ros_wire.call(request("basictypes", low)))["result"] == low
 
 
+async def test_float32s_maximum_as_other_languages_write_it_is_a_float32(ros_wire: Wire) -> None:
+    # Rust, Go and Java write the largest float32 as 3.4028235e38, C's %.9g as 3.40282347e+38:
+    # both round to it. What rounds beyond it (from 2**128 - 2**103 on) is refused.
+    for written in (3.4028235e38, 3.40282347e38, -3.4028235e38):
+        reply = await ros_wire.call(request("basictypes", {"float32_value": written}))
+        assert reply["result"]["float32_value"] == written
+    for beyond in (3.4028235677973366e38, -3.4028235677973366e38, 3.5e38):
+        reply = await ros_wire.call(request("basictypes", {"float32_value": beyond}, id=2))
+        assert error(reply) == (2, -32602, "INVALID_PARAMS")
+        assert [e["type"] for e in reply["error"]["data"]["errors"]] == ["float32_range"]
+
+
+async def test_a_number_too_large_for_a_double_is_infinity_however_written(
+    ros_wire: Wire,
+) -> None:
+    # One rule, as JavaScript's JSON.parse has: 1e400 and a 400-digit integer alike. Alone, a
+    # call is read in one pass; in a batch, by the full parse: the same either way.
+    digits = "1" + "0" * 400
+    for literal, written in (
+        (digits, "Infinity"),
+        ("1e400", "Infinity"),
+        ("-" + digits, "-Infinity"),
+    ):
+        params = f'{{"float64_value":{literal}}}'
+        text = f'{{"jsonrpc":"2.0","id":4,"method":"basictypes","params":{params}}}'
+        for message in (text, f"[{text}]"):
+            await ros_wire.ws.send(message)
+            reply = await ros_wire.recv()
+            reply = reply[0] if isinstance(reply, list) else reply
+            assert reply["result"]["float64_value"] == written, (literal, message[0])
+
+
 async def test_arrays_round_trip(ros_wire: Wire) -> None:
     small = {k: v for k, v in EXTREMES.items() if k != "string_value"}
     params = {
@@ -280,6 +312,36 @@ async def test_bad_values_name_their_fields(
     assert error(reply) == (5, -32602, "INVALID_PARAMS")
     assert sorted(e["path"] for e in reply["error"]["data"]["errors"]) == paths
     assert (await ros_wire.call(request("empty", id=6)))["result"] == {}
+
+
+MOVE = build("uint32 from\nuint32 to\n---\nuint32 got\n", "Move")
+
+
+async def test_a_renamed_field_goes_by_its_interface_name_only_on_the_wire(
+    transport: Transport,
+) -> None:
+    # Python calls the field from_ (a keyword cannot be a name); JSON, the file's from. A peer
+    # sending from_ names a field the type does not have, in one pass and in the full parse.
+    server = Server()
+    server.add_service("/move", MOVE, lambda request: {"got": request.from_})
+    assert MOVE.Request(from_=3).from_ == 3  # Python code keeps its name
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        wire = await open_wire(running)
+        assert (await wire.call(request("/move", {"from": 7})))["result"] == {"got": 7}
+        for params in ({"from_": 7}, {"from": 1, "from_": 2}):
+            for batch in (False, True):  # a batch is read by the full parse, not in one pass
+                message = request("/move", params, id=3)
+                reply = await wire.call([message] if batch else message)
+                reply = reply[0] if batch else reply
+                assert error(reply) == (3, -32602, "INVALID_PARAMS")
+                assert reply["error"]["data"]["errors"] == [
+                    {
+                        "path": "from_",
+                        "message": "Extra inputs are not permitted",
+                        "type": "extra_forbidden",
+                    }
+                ]
+        await wire.ws.close()
 
 
 # --- handlers that fail, hang, refuse ------------------------------------------------------------

@@ -73,6 +73,7 @@ from srvwire.models import (
     error_data,
     summarize_errors,
     validate_python,
+    validate_wire,
 )
 from srvwire.threads import ConcurrencyLimit, SlotJob
 
@@ -617,7 +618,7 @@ class ClientGoal(Generic[R]):
         while True:
             if self._seq > seen:
                 seen = self._seq
-                yield validate_python(model, self._feedback)
+                yield validate_wire(model, self._feedback)
                 continue
             if self.reply.done():
                 return

@@ -38,11 +38,11 @@ from srvwire.models import (
     dump_json,
     error_data,
     json_writer,
-    largest_default,
     listed_errors,
     summarize_errors,
     unencodable_strings,
     validate_python,
+    values_past,
 )
 from srvwire.parser import parse_action, parse_message, parse_service
 from srvwire.protocol import describe_value, encode_json, timeout_seconds
@@ -497,17 +497,12 @@ class _RemoteMessages:
     def refuse_too_many_values(self, parts: tuple[MessageSpec, ...], limit: int | None) -> None:
         """Raise InterfaceError naming the part of ``parts``, and its largest field, whose
         instance made bare would hold more than ``limit`` values (None: no limit)."""
-        if limit is None:
-            return
         for part in parts:
-            if not part.fields:
-                continue
-            total, size, field = largest_default(part, self.spec_of, self._values)
-            if total > limit:
+            held = values_past(limit, part, self.spec_of, self._values)
+            if held is not None:
                 raise InterfaceError(
                     f"the {self.source} describes {part.package}/{part.name}, which holds "
-                    f"{total} values, {size} of them in the field {field.name!r} "
-                    f"({field.type}), more than max_message_size={limit} can carry; refused, "
+                    f"{held}, more than max_message_size={limit} can carry; refused, "
                     "so that a reply that leaves them out cannot make this client hold them"
                 )
 

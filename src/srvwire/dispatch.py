@@ -77,6 +77,7 @@ from srvwire.errors import (
     RPCError,
     ServiceNotFound,
 )
+from srvwire.idl import MessageSpec
 from srvwire.models import (
     INF_NAN_MODES,
     CallReader,
@@ -88,8 +89,9 @@ from srvwire.models import (
     reply_writer,
     summarize_errors,
     unencodable_strings,
-    validate_python,
+    validate_wire,
     validation_errors,
+    values_past,
 )
 from srvwire.protocol import Id, ReadRequest, canonical_name, encode_json, write_response
 from srvwire.threads import ConcurrencyLimit, SlotJob
@@ -106,6 +108,8 @@ __all__ = [
     "dispatch",
     "handler_error",
     "normalize_name",
+    "refuse_large_defaults",
+    "refuse_large_service",
     "run_handler",
     "service_not_found",
     "write_result",
@@ -368,7 +372,7 @@ class ServiceEntry:
                 )
             params = dict(zip(self.field_names, params, strict=False))
         try:
-            return validate_python(self.request_model, params)
+            return validate_wire(self.request_model, params)
         except ValidationError as exc:
             data = error_data(exc)
             raise InvalidParams(
@@ -463,6 +467,55 @@ def nested_messages_of(*models: type[BaseModel]) -> list[type[Message]]:
                     found[name] = nested
                     todo.append(nested)
     return [found[name] for name in sorted(found)]
+
+
+def refuse_large_defaults(
+    what: str, model: type[BaseModel], made: str, limit: int | None, *, remedy: str = ""
+) -> None:
+    """Raise RegistrationError when an instance of ``model`` made without its fields holds
+    more values than ``limit`` (the server's ``max_message_size``) can carry.
+
+    The server makes such an instance ``made`` (for each request that leaves them out, ...):
+    a peer's message of a few bytes would make it hold them all, once per call in flight. A
+    model with no spec (a class written by hand), or nesting one, is not counted.
+    """
+    spec = getattr(model, "spec", None)
+    if limit is None or not isinstance(spec, MessageSpec):
+        return
+    specs = {
+        cls.type_name: cls.spec
+        for cls in nested_messages_of(model)
+        if isinstance(getattr(cls, "spec", None), MessageSpec)
+    }
+    try:
+        held = values_past(limit, spec, specs.__getitem__, {})
+    except KeyError:  # it nests a class with no spec, whose values are not known
+        return
+    if held is not None:
+        raise RegistrationError(
+            f"{what}: {getattr(model, 'type_name', model.__name__)} holds {held} when made "
+            f"without its fields, more than max_message_size={limit} can carry, and the server "
+            f"makes one {made}: a message of a few bytes would make it hold them all. Raise "
+            "the server's max_message_size (None lifts this check with the limit), or declare "
+            f"the fixed array bounded (T[<=N]) or unbounded (T[]){remedy}"
+        )
+
+
+def refuse_large_service(
+    name: str,
+    request_model: type[BaseModel],
+    response_model: type[BaseModel],
+    takes_response: bool,
+    limit: int | None,
+) -> None:
+    """:func:`refuse_large_defaults` for the service ``name``: its request, and its response
+    when the handler takes one (made bare for each call)."""
+    what = f"cannot serve {name}"
+    refuse_large_defaults(what, request_model, "for each request that leaves them out", limit)
+    if takes_response:
+        remedy = ", or let the handler take the request only and return the response"
+        made = "for each call, to give the handler"
+        refuse_large_defaults(what, response_model, made, limit, remedy=remedy)
 
 
 def _message_classes(annotation: Any) -> Iterator[type[Message]]:
@@ -583,12 +636,15 @@ class ServiceRegistry:
         scopes: Iterable[str] = (),
         *,
         max_concurrency: int | None = None,
+        max_values: int | None = None,
     ) -> ServiceEntry:
         """Register ``handler`` for ``srv_type`` under ``name``, callable by identities that
         hold every one of ``scopes``; raise RegistrationError.
 
         ``max_concurrency`` bounds how many calls of this service run their handler at once
-        (see :func:`dispatch`).
+        (see :func:`dispatch`). ``max_values`` (the server's ``max_message_size``) refuses a
+        request, or a response the handler is given, too large to make bare per call (see
+        :func:`refuse_large_defaults`).
         """
         canonical = normalize_name(name)
         if isinstance(scopes, str):
@@ -628,6 +684,7 @@ class ServiceRegistry:
                 f"not {srv_type!r}"
             )
         is_async, takes_response, context_param = _introspect(canonical, handler)
+        refuse_large_service(canonical, request_model, response_model, takes_response, max_values)
         _adopt(srv_type, self.types, canonical)
         entry = ServiceEntry(
             name=canonical,

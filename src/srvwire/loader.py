@@ -56,7 +56,6 @@ from __future__ import annotations
 import difflib
 import functools
 import os
-import re
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -73,6 +72,7 @@ from srvwire.idl import (
 )
 from srvwire.models import Action, Message, Service, build_action, build_message, build_service
 from srvwire.parser import parse_file
+from srvwire.scanner import PACKAGE_NAME, TYPE_NAME, split_lines
 from srvwire.typeregistry import TypeRegistry, process_types
 
 __all__ = [
@@ -97,7 +97,6 @@ _KIND_WORDS = {
     InterfaceKind.ACTION: "action",
 }
 _KINDS_BY_NAME = {kind.value: kind for kind in InterfaceKind}
-_LINE_BREAK = re.compile(r"\r\n|\r|\n")
 _SHAPES = "expected 'package/kind/Name' (kind: msg, srv or action) or 'package/Name'"
 _SHARED_LOADERS = 16  # how many search paths the module-level functions remember
 T = TypeVar("T")
@@ -192,20 +191,28 @@ class InterfaceLoader:
         """Map each package name to its folder, sorted by name.
 
         A package is a folder holding ``msg/``, ``srv/`` or ``action/``. When several
-        search-path folders hold a package of the same name, the earliest wins (overlay).
+        search-path folders hold a package of the same name, the earliest wins (overlay). A
+        folder whose name is not a valid package name (``Bad-Name``) is left out, as its types
+        can never load (loading one says why; ``srvwire interface check`` reports each).
         """
         with self._lock:
-            return dict(self._package_map())
+            return {name: folder for name, folder in self._package_map().items() if _valid(name)}
 
     def types(self, package: str | None = None) -> list[str]:
-        """List the full names (``pkg/srv/Name``) of every type, or of one package's, sorted."""
+        """List the full names (``pkg/srv/Name``) of every type, or of one package's, sorted.
+
+        Only names that can load: a file whose name is not a valid type name (``lower.msg``),
+        or in a package whose name is not valid, is left out, as :meth:`packages` leaves such
+        a package out. A file with a valid name is listed even if its text has an error, which
+        loading it reports.
+        """
         with self._lock:
             if package is None:
                 folders = self._package_map().values()
                 names = [name for folder in folders for name in self._index(folder)]
             else:
                 names = list(self._index(self._package_folder(package, package)))
-            return sorted(names)
+            return sorted(name for name in names if _valid(*name.split("/")[::2]))
 
     def resolve_name(self, name: str, kind: InterfaceKind | None = None) -> str:
         """Return the full name (``pkg/kind/Name``) for ``name``, checking that the type exists.
@@ -518,11 +525,16 @@ def _column_of(path: Path, line: int) -> int:
         text = path.read_text(encoding="utf-8").removeprefix("\ufeff")
     except (OSError, UnicodeDecodeError):
         return 1
-    lines = _LINE_BREAK.split(text)
+    lines = split_lines(text)
     if not 1 <= line <= len(lines):
         return 1
     declaration = lines[line - 1]
     return len(declaration) - len(declaration.lstrip(" \t")) + 1
+
+
+def _valid(package: str, type_name: str = "Name") -> bool:
+    """Whether a type ``package/kind/type_name`` can load by its names (see the parser's)."""
+    return bool(PACKAGE_NAME.fullmatch(package) and TYPE_NAME.fullmatch(type_name))
 
 
 @functools.lru_cache(maxsize=_SHARED_LOADERS)

@@ -72,6 +72,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Annotated, Any, ClassVar, Generic, TypeAlias, TypeVar, cast
 
 import pydantic
+import pydantic_core
 from pydantic import ConfigDict, Field
 from pydantic_core import (
     PydanticSerializationError,
@@ -94,6 +95,7 @@ from srvwire.idl import (
     TypeSpec,
 )
 from srvwire.primitives import (
+    FLOAT32_BOUND,
     FLOAT32_MAX,
     INF_NAN_MODES,
     PRIMITIVE_ALIASES,
@@ -119,6 +121,7 @@ from srvwire.primitives import (
 from srvwire.protocol import Id, ReadRequest, timeout_seconds
 
 __all__ = [
+    "FLOAT32_BOUND",
     "FLOAT32_MAX",
     "INF_NAN_MODES",
     "MAX_LISTED_ERRORS",
@@ -162,7 +165,10 @@ __all__ = [
     "summarize_errors",
     "unencodable_strings",
     "validate_python",
+    "validate_wire",
     "validation_errors",
+    "values_past",
+    "wire_validator",
     "zero_value",
 ]
 
@@ -246,6 +252,28 @@ def largest_default(
     sizes = [(default_size(field.type, nested, counted), field) for field in part.fields]
     size, field = max(sizes, key=lambda pair: pair[0])
     return sum(size for size, _ in sizes), size, field
+
+
+def values_past(
+    limit: int | None,
+    part: MessageSpec,
+    nested: Callable[[str], MessageSpec],
+    counted: dict[str, int],
+) -> str | None:
+    """None when an instance of ``part`` made without its fields holds at most ``limit`` values
+    (None: no limit); else what it holds, as every refusal of such a type says it:
+    ``4000000 values, 4000000 of them in the field 'samples' (float64[4000000])``.
+
+    Each value takes at least a byte of JSON, so a message of ``limit`` bytes cannot hold more
+    values: such a type can be sent only with its largest fields left out, and leaving them out
+    makes the reader create them all.
+    """
+    if limit is None or not part.fields:
+        return None
+    total, size, field = largest_default(part, nested, counted)
+    if total <= limit:
+        return None
+    return f"{total} values, {size} of them in the field {field.name!r} ({field.type})"
 
 
 def _is_bytes(type_: TypeSpec) -> bool:
@@ -726,6 +754,57 @@ def validate_python(model: type[M], data: Any) -> M:
     return validated
 
 
+def validate_wire(model: type[M], data: Any) -> M:
+    """:func:`validate_python` for data a peer sent, parsed from JSON, read as its JSON text
+    would be read in one pass (``wire_validator(model).validate_json``).
+
+    Each field goes by its JSON name only, its name in the interface file, never by its Python
+    name (``from_``), which Python code may use. A number too large for a double reads as
+    infinity in a float field whether it was written ``1e400`` or as an integer of 309 digits
+    or more, which parsing made an ``int`` (refused by a float field in Python mode as
+    ``float_type``): then, and only then, the data is validated again as JSON text.
+    """
+    validator = wire_validator(model)
+    try:
+        validated: M = validator.validate_python(data)
+    except pydantic.ValidationError as exc:
+        if not any(
+            error["type"] == "float_type" and type(error["input"]) is int for error in exc.errors()
+        ):
+            raise
+        try:
+            text = pydantic_core.to_json(data, inf_nan_mode="constants")
+        except Exception:  # nothing JSON can hold (a lone surrogate): the first error stands
+            raise exc from None
+        validated = validator.validate_json(text)
+    return validated
+
+
+def wire_validator(model: type[pydantic.BaseModel]) -> SchemaValidator:
+    """``model``'s validator for what a peer sends (see :func:`validate_wire`), built once per
+    class: its own, with every model in it reading fields by their JSON names only. A schema
+    of its own rather than ``by_name=False`` at each call, which costs a third of a small
+    message's validation."""
+    built = model.__dict__.get("_srvwire_wire_validator")
+    if built is None:
+        schema = _by_json_names(model.__pydantic_core_schema__)
+        built = SchemaValidator(schema, _use_prebuilt=False)
+        type.__setattr__(model, "_srvwire_wire_validator", built)
+    return cast("SchemaValidator", built)
+
+
+def _by_json_names(schema: Any) -> Any:
+    """A copy of a core schema in which every model reads its fields by their JSON names only."""
+    if isinstance(schema, list):
+        return [_by_json_names(item) for item in schema]
+    if not isinstance(schema, dict):
+        return schema
+    copied = {key: _by_json_names(value) for key, value in schema.items()}
+    if schema.get("type") == "model" and isinstance(schema.get("config"), dict):
+        copied["config"] = {**schema["config"], "validate_by_name": False}
+    return copied
+
+
 def dump_json(value: pydantic.BaseModel, *, strict: bool = False) -> bytes:
     """``value.model_dump_json(by_alias=True)`` as UTF-8 bytes, by the instance's own class.
 
@@ -860,16 +939,17 @@ class ModelDecoder(Generic[M]):
 
     What :meth:`srvwire.protocol.RawReply.decode` needs; both raise pydantic's
     ``ValidationError`` (a ``ValueError``) when the result does not fit. They are the compiled
-    validator's own methods, so a call costs no Python frame of its own.
+    validator's own method (:func:`wire_validator`'s, which reads each field by its JSON name
+    only), so a call costs no Python frame of its own; ``from_data`` is :func:`validate_wire`.
     """
 
     __slots__ = ("_whole", "from_data", "from_json", "model")
 
     def __init__(self, model: type[M]) -> None:
         self.model = model
-        validator = model.__pydantic_validator__
-        self.from_json: Callable[[str], M] = validator.validate_json
-        self.from_data: Callable[[Any], M] = validator.validate_python
+        # A peer names each field by its JSON name only; parsed data reads as its text would.
+        self.from_json: Callable[[str], M] = wire_validator(model).validate_json
+        self.from_data: Callable[[Any], M] = functools.partial(validate_wire, model)
         self._whole: Callable[[str], dict[str, Any]] | None = None
 
     def from_reply(self, message: str, id: int) -> M:
@@ -909,17 +989,12 @@ def _reply_validator(model: type[M]) -> Callable[[str], dict[str, Any]]:
     if definitions:
         envelope = core_schema.definitions_schema(envelope, definitions)
     validate: Callable[[str], dict[str, Any]] = SchemaValidator(
-        envelope, _use_prebuilt=False
+        _by_json_names(envelope), _use_prebuilt=False
     ).validate_json
     return validate
 
 
 # --- a request read in one pass ----------------------------------------------------------------
-
-_LONG_INTEGER = re.compile(r"[0-9]{309}")
-_LONG_BYTES = re.compile(rb"[0-9]{309}")
-"""A run of digits as long as the smallest integer a double cannot hold (about 1.8e308): only
-such a literal reads differently as JSON text (infinity) and as a parsed Python int (refused)."""
 
 
 class CallReader:
@@ -938,18 +1013,16 @@ class CallReader:
     does.
 
     Only classes srvwire builds (:class:`Message`, no validators of their own) are read so:
-    JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``),
-    but for one case, an integer literal too large for a double in a float field, which the
-    full parse refuses and JSON mode reads as infinity; a request with a float field and such a
-    run of digits anywhere in its text is left to the full parse.
+    JSON-mode and Python-mode validation are known to agree on them (``tests/test_decode.py``;
+    an integer literal too large for a double in a float field, which Python mode refuses, the
+    full parse reads again as JSON: see :func:`validate_wire`).
     """
 
-    __slots__ = ("floats", "validate")
+    __slots__ = ("validate",)
 
     def __init__(self, requests: Mapping[str, type[pydantic.BaseModel]]) -> None:
         choices: dict[str, Any] = {}
         definitions: dict[str, Any] = {}
-        self.floats: set[type[pydantic.BaseModel]] = set()
         id_schema = core_schema.union_schema(
             [core_schema.int_schema(strict=True), core_schema.str_schema(strict=True)]
         )
@@ -957,8 +1030,6 @@ class CallReader:
             params = _params_schema(model, definitions)
             if params is None:
                 continue
-            if _has_float(model.__pydantic_core_schema__):
-                self.floats.add(model)
             envelope = core_schema.typed_dict_schema(
                 {
                     "jsonrpc": core_schema.typed_dict_field(core_schema.literal_schema(["2.0"])),
@@ -975,8 +1046,11 @@ class CallReader:
             schema: Any = core_schema.tagged_union_schema(choices, discriminator="method")
             if definitions:
                 schema = core_schema.definitions_schema(schema, list(definitions.values()))
-            # Not the classes' own validators: their params refuse _meta.
-            self.validate = SchemaValidator(schema, _use_prebuilt=False).validate_json
+            # Not the classes' own validators: their params refuse _meta. Fields by their JSON
+            # names only, as validate_wire reads them.
+            self.validate = SchemaValidator(
+                _by_json_names(schema), _use_prebuilt=False
+            ).validate_json
 
     def read(self, data: str | bytes) -> ReadRequest | None:
         """Return the request read in one pass, its params validated; else None."""
@@ -999,9 +1073,6 @@ class CallReader:
                 if timeout is None:
                     return None
             request.__pydantic_fields_set__.discard(_META)
-        if self.floats and type(request) in self.floats:
-            if _LONG_INTEGER.search(data) if isinstance(data, str) else _LONG_BYTES.search(data):
-                return None
         return envelope["id"], envelope["method"], request, timeout
 
 
@@ -1072,14 +1143,3 @@ def _model_classes(schema: Any) -> list[Any]:
         for item in schema:
             found += _model_classes(item)
     return found
-
-
-def _has_float(schema: Any) -> bool:
-    """Whether a core schema has a float anywhere, its definitions included."""
-    if isinstance(schema, dict):
-        if schema.get("type") == "float":
-            return True
-        return any(_has_float(value) for value in schema.values())
-    if isinstance(schema, list | tuple):
-        return any(_has_float(item) for item in schema)
-    return False

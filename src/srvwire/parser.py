@@ -99,7 +99,7 @@ from srvwire.scanner import (
     quoted_string,
     show,
     size,
-    split_lines,
+    source_lines,
 )
 
 __all__ = ["parse_action", "parse_file", "parse_message", "parse_service", "split_comment"]
@@ -127,7 +127,7 @@ SUFFIXES: Final = {".msg": "message", ".srv": "service", ".action": "action"}
 def parse_message(text: str, package: str, name: str, *, path: str | None = None) -> MessageSpec:
     """Parse the text of a ``.msg`` file into a :class:`MessageSpec` named ``package/name``."""
     _check_names(package, name, "message", path)
-    lines = split_lines(text)
+    lines = source_lines(text)
     ((first, part),) = _parts(lines, 1, path)
     return replace(_message(part, first, package, name, path), text=text)
 
@@ -135,7 +135,7 @@ def parse_message(text: str, package: str, name: str, *, path: str | None = None
 def parse_service(text: str, package: str, name: str, *, path: str | None = None) -> ServiceSpec:
     """Parse the text of a ``.srv`` file: a request and a response split by one ``---`` line."""
     _check_names(package, name, "service", path)
-    lines = split_lines(text)
+    lines = source_lines(text)
     (first_a, request), (first_b, response) = _parts(lines, 2, path)
     return ServiceSpec(
         package,
@@ -150,7 +150,7 @@ def parse_service(text: str, package: str, name: str, *, path: str | None = None
 def parse_action(text: str, package: str, name: str, *, path: str | None = None) -> ActionSpec:
     """Parse the text of a ``.action`` file: goal, result and feedback split by ``---`` lines."""
     _check_names(package, name, "action", path)
-    lines = split_lines(text)
+    lines = source_lines(text)
     (first_a, goal), (first_b, result), (first_c, feedback) = _parts(lines, 3, path)
     return ActionSpec(
         package,
@@ -366,6 +366,13 @@ def _declaration(cur: Cursor, package: str) -> tuple[FieldSpec | ConstantSpec, i
     """Read ``type name`` and what follows; return the spec and the position of its name."""
     type_pos = cur.pos
     type_token = cur.take_type_token()
+    if type_token.startswith("@"):  # newer rosidl reads annotation lines such as @optional
+        name = show(type_token.split("(")[0])
+        raise cur.error(
+            f"{name} is an annotation, and srvwire does not support annotations: remove it "
+            "(a field left out of a message takes its default)",
+            type_pos,
+        )
     type_ = _type(cur, type_token, type_pos, package)
     cur.skip_ws()
     name_pos = cur.pos
@@ -382,6 +389,13 @@ def _declaration(cur: Cursor, package: str) -> tuple[FieldSpec | ConstantSpec, i
         hint = ""
         if "[" in name:
             bare, suffix = name[: name.index("[")], name[name.index("[") :]
+            if not bare:  # int32 [3] a: a space between the type and its suffix
+                bare = cur.take_until(WS + "#=") or "name"
+                raise cur.error(
+                    f"{show(name)} is an array suffix, not a field name: it goes on the type, "
+                    f"with no space before it: '{type_token}{suffix} {bare}'",
+                    name_pos,
+                )
             hint = f"; the array suffix goes on the type: '{type_token}{suffix} {bare}'"
         raise cur.error(f"{show(name)} is an invalid field name: {SNAKE_RULE}{hint}", name_pos)
     default: Value | None = None

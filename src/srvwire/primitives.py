@@ -32,6 +32,7 @@ from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema, PydanticCustomError, SchemaValidator, core_schema
 
 __all__ = [
+    "FLOAT32_BOUND",
     "FLOAT32_MAX",
     "INF_NAN_MODES",
     "PRIMITIVE_ALIASES",
@@ -56,16 +57,22 @@ __all__ = [
 ]
 
 FLOAT32_MAX = 3.4028234663852886e38
-"""The largest finite ``float32``; a finite ``float32`` value must lie within ``±FLOAT32_MAX``."""
+"""The largest finite ``float32``."""
+FLOAT32_BOUND = 2.0**128 - 2.0**103
+"""3.4028235677973366e38, halfway from :data:`FLOAT32_MAX` to ``2**128``: a finite value of a
+smaller magnitude rounds to a finite ``float32`` (``3.4028235e38``, as most languages write the
+largest one, rounds to it), and one at the bound or beyond rounds to infinity. A finite
+``float32`` value must lie strictly within ``±FLOAT32_BOUND``."""
 
 
 def _check_float32(value: float) -> float:
-    # abs() of nan is nan, and nan > x is False, so nan and the two infinities pass.
-    if abs(value) > FLOAT32_MAX and value not in (float("inf"), float("-inf")):
+    # abs() of nan is nan, and nan >= x is False, so nan and the two infinities pass.
+    if abs(value) >= FLOAT32_BOUND and value not in (float("inf"), float("-inf")):
         raise PydanticCustomError(
             "float32_range",
-            "Input should be a float32: within ±{limit}, or inf, or nan",
-            {"limit": FLOAT32_MAX},
+            "Input should be a float32: of a magnitude below {limit} (what rounds to a finite "
+            "float32), or inf, or nan",
+            {"limit": FLOAT32_BOUND},
         )
     return value
 
@@ -82,7 +89,7 @@ class _Float32Range:
         self, schema: CoreSchema, handler: GetJsonSchemaHandler
     ) -> JsonSchemaValue:
         json_schema = handler(schema)
-        json_schema.update(minimum=-FLOAT32_MAX, maximum=FLOAT32_MAX)
+        json_schema.update(exclusiveMinimum=-FLOAT32_BOUND, exclusiveMaximum=FLOAT32_BOUND)
         return json_schema
 
     def __repr__(self) -> str:

@@ -18,7 +18,13 @@ from pydantic import BaseModel, ValidationError
 
 from srvwire.dispatch import _standalone_schema, nested_messages_of
 from srvwire.errors import InvalidParams, RegistrationError
-from srvwire.models import error_data, json_writer, summarize_errors, validate_python
+from srvwire.models import (
+    error_data,
+    json_writer,
+    summarize_errors,
+    validate_python,
+    validate_wire,
+)
 from srvwire.topics import QoS, Topic
 from srvwire.typeregistry import fingerprint, full_definition
 
@@ -86,15 +92,18 @@ class TopicEntry:
     def type_name(self) -> str:
         return str(getattr(self.msg_type, "type_name", self.msg_type.__name__))
 
-    def validate(self, message: Any) -> BaseModel:
-        """Build the message from ``message``, or raise InvalidParams with the field paths."""
+    def validate(self, message: Any, *, wire: bool = False) -> BaseModel:
+        """Build the message from ``message``, or raise InvalidParams with the field paths.
+
+        ``wire``: a peer sent it, and names each field by its JSON name only (see
+        :func:`~srvwire.models.validate_wire`)."""
         if type(message) is self.msg_type:
             validated: BaseModel = message
             return validated
         if isinstance(message, BaseModel):
             message = message.model_dump(by_alias=True)
         try:
-            return validate_python(self.msg_type, message)
+            return (validate_wire if wire else validate_python)(self.msg_type, message)
         except ValidationError as exc:
             data = error_data(exc)
             for error in data["errors"]:

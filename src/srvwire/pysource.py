@@ -12,7 +12,8 @@ The writer builds each statement from a few expression shapes (:class:`Text`, :c
   unprintable characters are escaped, and floats drop ``e+``. A non-finite float is written
   without a name a field could shadow (``1e999``).
 * **Imports any isort setting keeps.** :func:`import_line` splits a long import one name a line
-  with a trailing comma, and :func:`isort_key` orders names as isort does.
+  with a trailing comma, and :func:`isort_key` orders names as isort does; :func:`all_key`
+  orders ``__all__`` as ruff's RUF022 does (case matters there).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ __all__ = [
     "Expr",
     "Keyword",
     "Text",
+    "all_key",
     "as_docstring",
     "expression",
     "import_line",
@@ -241,14 +243,32 @@ def as_docstring(text: str, indent: str) -> str | None:
 
 
 def isort_key(name: str) -> tuple[int, tuple[int | str, ...], str]:
-    """Order names as isort (and ruff's RUF022, for ``__all__``) does.
+    """Order imported names as isort (and ruff's ``I`` rules, by default) does.
 
     ``CONSTANTS`` first, then ``Classes``, then the rest; within each, ignoring case, with
     numbers compared by value (``Int8`` before ``Int16``).
     """
-    kind = 0 if len(name) > 1 and name.isupper() else 1 if name[:1].isupper() else 2
-    runs = re.split(r"(\d+)", name.lower())
-    return (kind, tuple(int(run) if run.isdigit() else run for run in runs), name)
+    return (_name_kind(name), _natural(name.lower()), name)
+
+
+def all_key(name: str) -> tuple[int, tuple[int | str, ...]]:
+    """Order the names of ``__all__`` as ruff's RUF022 does.
+
+    As :func:`isort_key`, but within each kind case matters, as it does in a natural sort:
+    character by character, so ``IMUStatus`` comes before ``Imu`` and ``DoThing`` before
+    ``Do_Request``.
+    """
+    return (_name_kind(name), _natural(name))
+
+
+def _name_kind(name: str) -> int:
+    """0 for ``CONSTANTS``, 1 for ``Classes``, 2 for the rest."""
+    return 0 if len(name) > 1 and name.isupper() else 1 if name[:1].isupper() else 2
+
+
+def _natural(name: str) -> tuple[int | str, ...]:
+    """``name`` in runs of digits (their values) and of the rest, for a natural sort."""
+    return tuple(int(run) if run.isdigit() else run for run in re.split(r"(\d+)", name))
 
 
 def import_line(module: str, names: list[str]) -> str:

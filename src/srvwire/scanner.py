@@ -8,10 +8,15 @@ takes, what a type token names) is the parser's business.
 
 Invariants
 ----------
-* The text is cut into lines at ``\\r\\n``, ``\\r`` and ``\\n`` only, after dropping one leading
-  byte-order mark. No line ever holds a line break, so every message is one line.
+* The text is cut into lines where ROS 2's parser cuts it (:meth:`str.splitlines`): at
+  ``\\r\\n``, ``\\r``, ``\\n``, ``\\v``, ``\\f``, ``\\x1c``-``\\x1e``, ``\\x85``, ``\\u2028`` and
+  ``\\u2029``, after dropping one leading byte-order mark. So a form feed in a comment ends the
+  comment, and a line number counts the lines ROS 2 counts. No line ever holds a line break, so
+  every message is one line.
 * Positions are 0-based indexes into the line; they become 1-based columns only when an error
   is raised, and a column counts characters (a tab is one column).
+* The parser reads :func:`source_lines`, where every tab is a space, as ROS 2 replaces every tab
+  before it parses: a tab in a quoted string, a default or a comment reads as a space.
 * ``ws`` is a space or a tab and nothing else. Any other character (a no-break space, a form
   feed) belongs to the token it touches, and the token's error shows it escaped (:func:`show`).
 * Every problem is an :class:`~srvwire.errors.InterfaceSyntaxError` made by
@@ -21,7 +26,6 @@ Invariants
 
 from __future__ import annotations
 
-import codecs
 import math
 import re
 from dataclasses import dataclass
@@ -50,10 +54,11 @@ __all__ = [
     "quoted_string",
     "show",
     "size",
+    "source_lines",
     "split_lines",
 ]
 
-LINE_BREAK: Final = re.compile(r"\r\n|\r|\n")
+LINE_BREAK: Final = re.compile(r"\r\n|[\n\r\v\f\x1c\x1d\x1e\x85\u2028\u2029]")  # splitlines()'s
 WS: Final = " \t"
 QUOTES: Final = "\"'"
 
@@ -68,7 +73,7 @@ INTEGER: Final = re.compile(
 )
 BASES: Final = {"dec": 10, "hex": 16, "oct": 8, "bin": 2}  # INTEGER's digit groups
 FLOAT: Final = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-FLOAT32_MAX: Final = 3.4028234663852886e38
+FLOAT32_BOUND: Final = 2.0**128 - 2.0**103  # what rounds to a finite float32 lies within it
 MAX_SIZE: Final = 2**32 - 1  # array sizes and string bounds are 32-bit unsigned in OMG IDL
 
 SNAKE_RULE: Final = (
@@ -102,18 +107,19 @@ def decode(data: bytes, path: str) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        breaks = list(re.finditer(rb"\r\n|\r|\n", data[: exc.start]))
-        line_start = (
-            breaks[-1].end() if breaks else len(codecs.BOM_UTF8) * data.startswith(codecs.BOM_UTF8)
-        )
-        column = len(data[line_start : exc.start].decode("utf-8", "replace")) + 1
+        lines = split_lines(data[: exc.start].decode("utf-8"))  # valid up to the bad byte
         message = f"the file is not valid UTF-8: byte 0x{data[exc.start]:02x} cannot be decoded"
-        raise file_error(message, path, len(breaks) + 1, column) from exc
+        raise file_error(message, path, len(lines), len(lines[-1]) + 1) from exc
 
 
 def split_lines(text: str) -> list[str]:
     """Cut ``text`` into lines, dropping one leading byte-order mark."""
     return LINE_BREAK.split(text.removeprefix("\ufeff"))
+
+
+def source_lines(text: str) -> list[str]:
+    """The lines the parser reads: :func:`split_lines`, each tab made a space first."""
+    return split_lines(text.replace("\t", " "))
 
 
 @dataclass
@@ -257,7 +263,8 @@ def integer_literal(
 
 
 def float_literal(cur: Cursor, token: str, pos: int, what: str, type_name: str) -> float:
-    """The float ``token`` spells: finite, and for ``float32`` within its range."""
+    """The float ``token`` spells: finite, and for ``float32`` one that rounds to a finite
+    ``float32`` (a magnitude below ``FLOAT32_BOUND``)."""
     if token.lower().lstrip("+-") in ("inf", "infinity", "nan"):
         raise cur.error(
             f"{show(token)} is not allowed for {type_name}: defaults and constants must be finite",
@@ -269,6 +276,6 @@ def float_literal(cur: Cursor, token: str, pos: int, what: str, type_name: str) 
             pos,
         )
     value = float(token)
-    if not math.isfinite(value) or (type_name == "float32" and abs(value) > FLOAT32_MAX):
+    if not math.isfinite(value) or (type_name == "float32" and abs(value) >= FLOAT32_BOUND):
         raise cur.error(f"{what} {token} is out of range for {type_name}", pos)
     return value

@@ -43,7 +43,13 @@ from pydantic import BaseModel
 
 from srvwire.actions import DEFAULT_CANCEL_GRACE, Accept, GoalRunner, goal_service
 from srvwire.auth import Authenticator
-from srvwire.dispatch import Handler, ServiceRegistry, normalize_name
+from srvwire.dispatch import (
+    Handler,
+    ServiceRegistry,
+    normalize_name,
+    refuse_large_defaults,
+    refuse_large_service,
+)
 from srvwire.errors import RegistrationError, ServiceUnavailable
 from srvwire.handshake import EdgePolicy, describe_reach, is_loopback
 from srvwire.inline import Pending, finish, first_step
@@ -309,13 +315,22 @@ class Server:
         slot until it returns, even after its caller left, so a slow service cannot take more
         threads than that. Raise
         :class:`~srvwire.errors.RegistrationError` for a bad name, a name already taken,
-        a type that is not a service type, a handler that cannot be called as one, or a
-        ``max_concurrency`` below 1. Safe to
+        a type that is not a service type, a handler that cannot be called as one, a
+        ``max_concurrency`` below 1, or a request (or a response the handler takes) that,
+        made without its fields, holds more values than ``max_message_size`` can carry
+        (docs/limits.md; checked again when the server starts). Safe to
         call from any thread: while the server listens, the change is made on its event loop.
         """
 
         def add() -> None:
-            self.registry.add(name, srv_type, handler, scopes, max_concurrency=max_concurrency)
+            self.registry.add(
+                name,
+                srv_type,
+                handler,
+                scopes,
+                max_concurrency=max_concurrency,
+                max_values=self.max_message_size,
+            )
             self._services_changed()
 
         self._change_services(add)
@@ -475,7 +490,8 @@ class Server:
         loop as the message arrives (keep it quick), ``async def`` in a task of its own. A
         message that does not fit the type is answered ``INVALID_PARAMS`` (when the client
         asked for an answer) and the handler never sees it. What clients publish is also
-        delivered to the topic's subscribers.
+        delivered to the topic's subscribers. A message type too large to make bare is refused
+        as a service's request is (see :meth:`add_service`).
         """
 
         def register(handler: T) -> T:
@@ -525,6 +541,8 @@ class Server:
                 f"the scopes of {canonical} must be a collection of names, not the string "
                 f"{scopes!r}"
             )
+        if accepts:
+            self._refuse_large_messages(canonical, msg_type)
         board = self.registry.topics
         topic = board.get(canonical)
         if topic is not None:
@@ -553,6 +571,32 @@ class Server:
         self.registry.topics_changed()
         self._services_changed()
         return topic
+
+    def _refuse_large_defaults(self) -> None:
+        """Check every service and every topic clients publish on against the
+        ``max_message_size`` the server starts with, which may have changed since they were
+        registered (``srvwire serve --max-message-size``); see :meth:`add_service`."""
+        for entry in self.registry:
+            refuse_large_service(
+                entry.name,
+                entry.request_model,
+                entry.response_model,
+                entry.takes_response,
+                self.max_message_size,
+            )
+        for topic in self.registry.topics:
+            if topic.accepts:
+                self._refuse_large_messages(topic.name, topic.entry.msg_type)
+
+    def _refuse_large_messages(self, topic: str, msg_type: type[BaseModel]) -> None:
+        """Refuse to take messages of ``msg_type`` on ``topic`` when one made bare holds more
+        values than ``max_message_size`` can carry (see :func:`refuse_large_defaults`)."""
+        refuse_large_defaults(
+            f"cannot take messages on the topic {topic}",
+            msg_type,
+            "for each message a client publishes that leaves them out",
+            self.max_message_size,
+        )
 
     def _change_services(self, change: Callable[[], None]) -> None:
         """Run ``change`` on the thread of the loop the server listens on; wait, and re-raise.
@@ -777,6 +821,7 @@ class RunningServer:
     async def _start(self, host: Hosts, port: int, ssl: _ssl.SSLContext | None = None) -> None:
         self._loop = asyncio.get_running_loop()
         server = self.server
+        server._refuse_large_defaults()
         self.policy = EdgePolicy(
             host,
             origins=server.origins,

@@ -1490,7 +1490,7 @@ class ServedConnection:
         topic = event.topic
         entry = topic.entry  # a srvwire.pubsub.TopicEntry
         try:
-            message = entry.validate(event.message)
+            message = entry.validate(event.message, wire=True)
         except RPCError as exc:
             if event.id is not None:
                 await self.send(self.session.refuse(event.id, exc))

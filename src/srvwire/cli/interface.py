@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import difflib
-import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -34,14 +33,14 @@ from srvwire.client import DEFAULT_TIMEOUT
 from srvwire.errors import InterfaceError, InterfaceSyntaxError
 from srvwire.idl import ActionSpec, InterfaceKind, MessageSpec, ServiceSpec
 from srvwire.loader import InterfaceLoader
-from srvwire.models import largest_default
+from srvwire.models import values_past
 from srvwire.parser import parse_action, parse_file, parse_message, parse_service, split_comment
+from srvwire.scanner import split_lines
 from srvwire.transports.base import Options
 from srvwire.typeregistry import TypeRegistry
 
 INTERFACE_SUFFIXES = (".msg", ".srv", ".action")
 
-_LINE_BREAK = re.compile(r"\r\n|\r|\n")
 _KIND_HEADINGS = (
     (InterfaceKind.MSG, "Messages:"),
     (InterfaceKind.SRV, "Services:"),
@@ -278,7 +277,7 @@ def _definition_lines(
         for field in part.fields
         if not field.type.is_primitive
     }
-    lines = _LINE_BREAK.split(text)
+    lines = split_lines(text)
     if lines and not lines[-1]:
         lines.pop()
     depth = len(outer)
@@ -337,14 +336,11 @@ def _refuse_a_template_too_large_to_send(
     part = _parts_of(spec)[0]  # the message, the request or the goal
     limit = Options().max_message_size  # what srvwire call's client has
     assert limit is not None
-    if not part.fields:
-        return
-    total, size, field = largest_default(part, loader.message_spec, {})
-    if total > limit:
+    held = values_past(limit, part, loader.message_spec, {})
+    if held is not None:
         raise CommandError(
             f"the template of {part.package}/{part.name} would hold "
-            f"{total} values, {size} of them in the field "
-            f"{field.name!r} ({field.type}), more than the {limit} bytes of a message "
+            f"{held}, more than the {limit} bytes of a message "
             "srvwire call sends by default (srvwire call --max-message-size raises its limit): "
             "write the values of such a type yourself"
         )
