@@ -84,8 +84,8 @@ COMMANDS: dict[str, str] = {
         "a sampling profile of a benchmark script: py-spy comes with the bench extra (make "
         "bench), not with the tests' environment; tests/test_push.py runs the script itself"
     ),
-    r"\.venv/bin/python benchmarks/floor_picows_server\.py( --cork)?": (
-        "the typed floor's picows server, serving until its stdin closes: "
+    r"\.venv/bin/python benchmarks/(floor_)?picows_server\.py( --cork)?": (
+        "the typed floor's or raw picows' server, serving until its stdin closes: "
         "tests/test_benchmarks.py runs it through the harness, and in-process"
     ),
     r"echo go \| PYTHONHASHSEED=\d+ valgrind --tool=(callgrind|cachegrind) .* "
