@@ -26,7 +26,6 @@ lone call goes through picows' ``send``, which frames and masks it in C.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 from contextlib import AsyncExitStack
 from typing import Any
@@ -38,7 +37,7 @@ from srvwire.link import Answer
 
 from common import CALL_TIMEOUT, MAX_MESSAGE
 from floor_client import PARAMS_PREFIX, serialize_request, validate_response
-from picows_client import HoldingCaller
+from picows_client import HoldingCaller, asked
 from typed import make_request, values_of
 from workloads import Adapter, Call, main
 
@@ -84,18 +83,6 @@ def adapter(deadline: bool, cork: bool = False) -> Adapter:
         return caller.call
 
     return Adapter(open_connection, make_request, values_of)
-
-
-def asked() -> argparse.Namespace:
-    """The options that shape the adapter: ``no_deadline`` and ``cork``.
-
-    Read before :func:`workloads.main` parses the whole command line, since the adapter is made
-    first; ``common.add_process_options`` declares the options, so that parse accepts them too.
-    """
-    parser = argparse.ArgumentParser(add_help=False)
-    parser.add_argument("--no-deadline", action="store_true")
-    parser.add_argument("--cork", action="store_true")
-    return parser.parse_known_args()[0]
 
 
 def deadline_asked() -> bool:

@@ -212,7 +212,8 @@ def values_of(reply: Any) -> int:
 
 
 def asked() -> argparse.Namespace:
-    """The options that shape the adapter: ``cork`` and ``deadline``.
+    """The options that shape a picows client's adapter: ``cork``, and ``deadline`` (raw picows
+    waits bare unless told) or ``no_deadline`` (the typed floor keeps its deadline unless told).
 
     Read before :func:`workloads.main` parses the whole command line, since the adapter is made
     first; ``common.add_process_options`` declares the options, so that parse accepts them too.
@@ -220,6 +221,7 @@ def asked() -> argparse.Namespace:
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--cork", action="store_true")
     parser.add_argument("--deadline", action="store_true")
+    parser.add_argument("--no-deadline", action="store_true")
     return parser.parse_known_args()[0]
 
 

@@ -583,6 +583,33 @@ async def test_the_typed_floor_on_picows_finishes_a_waiting_handler_and_deadline
         await server.wait_closed()
 
 
+def count_writes(
+    floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
+) -> tuple[list[int], list[int]]:
+    """Count each write the holding caller and responder make (raw picows' with ``--cork``, and
+    the typed floor's, which build on them): the client's and the server's, each as the
+    messages it holds (a lone message sent through picows' own send counts as one)."""
+    client_writes: list[int] = []
+    server_writes: list[int] = []
+    caller = floors["picows_client"].HoldingCaller
+    responder = floors["picows_server"].HoldingResponder
+    caller_flush, responder_flush = caller.flush, responder.flush
+
+    def counted_caller_flush(self: Any) -> None:
+        if self._held:
+            client_writes.append(len(self._held))
+        caller_flush(self)
+
+    def counted_responder_flush(self: Any, transport: Any) -> None:
+        if self._held:
+            server_writes.append(len(self._held) // 2)  # a header and a reply each
+        responder_flush(self, transport)
+
+    monkeypatch.setattr(caller, "flush", counted_caller_flush)
+    monkeypatch.setattr(responder, "flush", counted_responder_flush)
+    return client_writes, server_writes
+
+
 async def test_the_corked_typed_floor_on_picows_writes_a_turns_calls_and_a_reads_replies_at_once(
     floors: dict[str, ModuleType], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -600,24 +627,7 @@ async def test_the_corked_typed_floor_on_picows_writes_a_turns_calls_and_a_reads
         floor.SERVICES, "/get_robot_state",
         floor.Service(robot_state.validate, echoed, robot_state.serialize),
     )  # fmt: skip
-    # Each write either end makes, as the frames it holds (a lone message sent through picows'
-    # own send counts as one).
-    client_writes: list[int] = []
-    server_writes: list[int] = []
-    caller_flush, responder_flush = client.TypedCaller.flush, picows_server.TypedResponder.flush
-
-    def counted_caller_flush(self: Any) -> None:
-        if self._held:
-            client_writes.append(len(self._held))
-        caller_flush(self)
-
-    def counted_responder_flush(self: Any, transport: Any) -> None:
-        if self._held:
-            server_writes.append(len(self._held) // 2)  # a header and a reply each
-        responder_flush(self, transport)
-
-    monkeypatch.setattr(client.TypedCaller, "flush", counted_caller_flush)
-    monkeypatch.setattr(picows_server.TypedResponder, "flush", counted_responder_flush)
+    client_writes, server_writes = count_writes(floors, monkeypatch)
     accept = functools.partial(picows_server.accept, cork=True)
     server = await ws_create_server(accept, "127.0.0.1", 0)
     url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}"
@@ -689,23 +699,7 @@ async def test_raw_picows_corked_writes_a_turns_calls_and_a_reads_replies_at_onc
         raw_server.HANDLERS, "/get_robot_state",
         lambda params: {**raw_server.get_robot_state(params), "message": params["target_frame"]},
     )  # fmt: skip
-    client_writes: list[int] = []
-    server_writes: list[int] = []
-    caller_flush = raw_client.HoldingCaller.flush
-    responder_flush = raw_server.HoldingResponder.flush
-
-    def counted_caller_flush(self: Any) -> None:
-        if self._held:
-            client_writes.append(len(self._held))
-        caller_flush(self)
-
-    def counted_responder_flush(self: Any, transport: Any) -> None:
-        if self._held:
-            server_writes.append(len(self._held) // 2)  # a header and a reply each
-        responder_flush(self, transport)
-
-    monkeypatch.setattr(raw_client.HoldingCaller, "flush", counted_caller_flush)
-    monkeypatch.setattr(raw_server.HoldingResponder, "flush", counted_responder_flush)
+    client_writes, server_writes = count_writes(floors, monkeypatch)
     # Each wait under asyncio.wait_for, with the client's deadline: counted.
     deadlines: list[float] = []
     wait_for = asyncio.wait_for
