@@ -128,6 +128,18 @@ def interruptible() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def start_interruptible(*args: str) -> subprocess.Popen[str]:
+    """Start ``python *args`` with its output and errors piped as text, Ctrl-C reaching it as
+    from a terminal (:func:`interruptible`)."""
+    return subprocess.Popen(
+        [sys.executable, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=interruptible,
+    )
+
+
 GOAL_SERVER = ROOT / "tests" / "servers" / "goal_server.py"
 
 

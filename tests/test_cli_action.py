@@ -16,7 +16,7 @@ import pytest
 from srvwire import GoalHandle, GoalRejected, load_action, load_service
 from srvwire.cli import ExitCode, main
 from srvwire.server import Server
-from support import Lines, interruptible, scaled, serve_goal_server
+from support import Lines, interruptible, scaled, serve_goal_server, start_interruptible
 from test_cli import start_in_thread
 
 Fibonacci = load_action("example_interfaces/action/Fibonacci")
@@ -211,13 +211,9 @@ class SendGoal:
     terminal; its stdout is read as it comes."""
 
     def __init__(self, url: str, order: int) -> None:
-        command = [sys.executable, "-m", "srvwire", "action", "send_goal", "/patient"]
-        self.process = subprocess.Popen(
-            [*command, f"{{order: {order}}}", "--url", url, "--timeout", "600"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            preexec_fn=interruptible,
+        command = ["-m", "srvwire", "action", "send_goal", "/patient"]
+        self.process = start_interruptible(
+            *command, f"{{order: {order}}}", "--url", url, "--timeout", "600"
         )
         assert self.process.stdout is not None
         self.out = Lines(self.process.stdout)

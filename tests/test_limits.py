@@ -28,6 +28,8 @@ import srvwire
 from srvwire.errors import RegistrationError
 from srvwire.models import build_action, build_message, build_service
 from srvwire.parser import parse_action, parse_message, parse_service
+from srvwire.server import RunningServer
+from srvwire.serving import ServedConnection
 from srvwire.transports.websockets import READ_SIZE
 from support import ROOT, scaled
 
@@ -136,6 +138,21 @@ async def open_stuck_connection(port: int, messages: list[bytes]) -> socket.sock
     return sock
 
 
+async def open_served_stuck_connection(
+    running: RunningServer,
+) -> tuple[socket.socket, ServedConnection]:
+    """Open a stuck connection (:func:`open_stuck_connection`) to the running server in this
+    process, wait until the server serves it (it sends ``$/services`` then), and return the
+    socket and the server's connection."""
+    sock = await open_stuck_connection(running.port, [])
+    loop = asyncio.get_running_loop()
+    opening = b""
+    while b"$/services" not in opening:
+        opening += await asyncio.wait_for(loop.sock_recv(sock, 4096), scaled(10))
+    (served,) = running._connections
+    return sock, served
+
+
 @pytest.mark.parametrize("batches", [False, True], ids=["calls", "one-call batches"])
 async def test_a_client_that_never_reads_holds_no_more_than_the_bound(
     large_reply_server: ServerProcess, batches: bool
@@ -238,12 +255,8 @@ async def test_pings_from_a_client_that_never_reads_queue_no_more_than_the_budge
     budget = 64 * KIB
     server = srvwire.Server(max_queued_bytes=budget)
     async with srvwire.serve(server, "127.0.0.1", 0, transport=transport) as running:
-        sock = await open_stuck_connection(running.port, [])
+        sock, served = await open_served_stuck_connection(running)
         loop = asyncio.get_running_loop()
-        opening = b""
-        while b"$/services" not in opening:  # sent once the connection is served
-            opening += await asyncio.wait_for(loop.sock_recv(sock, 4096), scaled(10))
-        (served,) = running._connections
         ws = served.conn._ws  # type: ignore[attr-defined]
         sending = getattr(ws, "underlying_transport", None) or ws.transport
         sending.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 8 * KIB)
@@ -269,12 +282,8 @@ async def test_pings_from_a_client_that_resets_write_no_warning_per_pong(
     # that failed; the server writes no pong to one that is closing.
     caplog.set_level(logging.WARNING, logger="asyncio")
     async with srvwire.serve(srvwire.Server(), "127.0.0.1", 0, transport=transport) as running:
-        sock = await open_stuck_connection(running.port, [])
+        sock, served = await open_served_stuck_connection(running)
         loop = asyncio.get_running_loop()
-        opening = b""
-        while b"$/services" not in opening:  # sent once the connection is served
-            opening += await asyncio.wait_for(loop.sock_recv(sock, 4096), scaled(10))
-        (served,) = running._connections
         handler = served.serving
         assert handler is not None
         await loop.sock_sendall(sock, b"".join(masked_ping(b"p" * 125) for _ in range(20_000)))

@@ -37,7 +37,7 @@ from srvwire.errors import (
 from srvwire.loader import load_service
 from srvwire.server import RunningServer, Server, serve
 from srvwire.sync import LoopThread
-from support import Lines, interruptible, scaled, serve_goal_server
+from support import Lines, scaled, serve_goal_server, start_interruptible
 
 AddTwoInts = load_service("example_interfaces/srv/AddTwoInts")
 Trigger = load_service("std_srvs/srv/Trigger")
@@ -773,13 +773,7 @@ finally:
 @pytest.mark.parametrize("where", ["result", "feedback", "with"])
 def test_ctrl_c_asks_the_server_to_cancel_a_goal_before_the_connection_closes(where: str) -> None:
     with serve_goal_server() as (url, served):
-        process = subprocess.Popen(
-            [sys.executable, "-c", GOAL_SCRIPT, url, where],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            preexec_fn=interruptible,
-        )
+        process = start_interruptible("-c", GOAL_SCRIPT, url, where)
         assert process.stdout is not None and process.stderr is not None
         out = Lines(process.stdout)
         try:
@@ -898,13 +892,7 @@ def test_a_second_ctrl_c_ends_the_wait_for_a_cancelled_goal_and_the_exit_does_no
     None
 ):
     with serve_goal_server() as (url, served):
-        process = subprocess.Popen(
-            [sys.executable, "-c", SECOND_CTRL_C_SCRIPT, url],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            preexec_fn=interruptible,
-        )
+        process = start_interruptible("-c", SECOND_CTRL_C_SCRIPT, url)
         assert process.stdout is not None and process.stderr is not None
         out = Lines(process.stdout)
         try:
