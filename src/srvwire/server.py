@@ -129,6 +129,7 @@ def _run_bounded(main: Coroutine[Any, Any, None]) -> None:
     without asyncio's "Task was destroyed but it is pending" about them.
     """
     loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)  # as asyncio.run does, for code that asks for "the" loop
     left: set[asyncio.Task[Any]] = set()
 
     def quiet_about_left(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
@@ -164,6 +165,7 @@ def _run_bounded(main: Coroutine[Any, Any, None]) -> None:
             loop.run_until_complete(loop.shutdown_asyncgens())
             loop.run_until_complete(loop.shutdown_default_executor())
         finally:
+            asyncio.set_event_loop(None)
             loop.close()
 
 
