@@ -249,6 +249,59 @@ async def test_topics_obey_scopes() -> None:
                 assert (await sub.receive()).position == [1.0]
 
 
+async def test_a_later_declaration_sets_the_scopes_and_qos_an_earlier_one_left_out(
+    transport: Transport,
+) -> None:
+    auth = TokenAuth({"op": Identity("operator", {"admin"}), "guest": "guest"})
+    server = Server(auth=auth)
+
+    @server.subscription("/cmd", String)  # declares /cmd with the defaults
+    def on_cmd(msg: Any) -> None:
+        pass
+
+    qos = {"depth": 1, "reliability": "reliable", "durability": "transient_local"}
+    pub = server.topic("/cmd", String, scopes={"admin"}, qos=qos)
+    assert pub.qos.to_json() == qos
+    assert server.topic("/cmd", String).qos.to_json() == qos  # leaving them out keeps them
+    pub.publish(String(data="first"))
+    pub.publish(String(data="latest"))
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, token="guest") as guest:
+            assert dict(guest.topics) == {}
+            with pytest.raises(PermissionDenied, match="/cmd needs the scope admin"):
+                await guest.subscribe("/cmd", String).start()
+        async with connect(running.url, transport=transport, token="op") as operator:
+            await operator.wait_for_topic("/cmd")
+            async with operator.subscribe("/cmd") as sub:
+                assert sub.granted["durability"] == "transient_local"
+                assert (await sub.receive()).data == "latest"  # the history of depth 1
+            server.topic("/plain", String)
+            await operator.wait_for_topic("/plain")
+            async with operator.subscribe("/plain"):
+                with pytest.raises(RegistrationError, match="once clients subscribe"):
+                    server.topic("/plain", String, scopes={"admin"})
+
+
+def test_declaring_a_topic_twice_with_other_scopes_or_qos_is_refused() -> None:
+    server = Server()
+    server.topic("/cmd", String, scopes={"admin"}, qos={"depth": 1})
+    with pytest.raises(RegistrationError) as caught:
+        server.topic("/cmd", String, scopes={"guest"})
+    assert "/cmd is declared with the scopes ['admin'], not ['guest']" in str(caught.value)
+    with pytest.raises(RegistrationError) as caught:
+        server.topic("/cmd", String, qos={"depth": 2})
+    assert "/cmd is declared with the QoS {'depth': 1," in str(caught.value)
+    assert "not {'depth': 2," in str(caught.value)
+    with pytest.raises(RegistrationError, match="declared with the scopes"):
+        server.subscription("/cmd", String, scopes={"other"})(lambda msg: None)
+    same = server.topic("/cmd", String, scopes={"admin"}, qos={"depth": 1})
+    assert (same.qos.depth, server.registry.topics.get("/cmd").scopes) == (  # type: ignore[union-attr]
+        1,
+        frozenset({"admin"}),
+    )
+    server.subscription("/cmd", String)(lambda msg: None)  # leaves them out: keeps them
+
+
 # --- the end of a subscription -------------------------------------------------------------------
 
 

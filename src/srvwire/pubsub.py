@@ -76,6 +76,10 @@ class TopicEntry:
     _description: dict[str, Any] = field(default_factory=dict, repr=False)
     fingerprint: str | None = None
     """Of the message type's full definition, for ``$/topics``; None for a class with no spec."""
+    qos_given: bool = False
+    """Whether a declaration gave the QoS (else it is the default, which a later one may set)."""
+    scopes_given: bool = False
+    """Whether a declaration gave scopes (else none, which a later one may set)."""
 
     @classmethod
     def of(cls, name: str, msg_type: type[BaseModel]) -> TopicEntry:

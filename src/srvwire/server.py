@@ -471,9 +471,11 @@ class Server:
 
         ``qos`` is a :class:`~srvwire.topics.QoS` or a mapping of its settings (default: keep
         the last 10, reliable, volatile); with ``scopes`` only a connection holding them all
-        may subscribe (or see it). Declaring a topic ``@subscription`` declared already
-        returns its publisher (the type must be the same). Call it on the server's loop (or
-        before serving); connected clients get ``$/topics``.
+        may subscribe (or see it). Declaring a topic declared already (by ``@subscription``
+        or another ``topic``) returns its publisher: the type must be the same, and ``qos``
+        and ``scopes``, when given, set those no declaration gave before or must equal those
+        given (else RegistrationError). Call it on the server's loop (or before serving);
+        connected clients get ``$/topics``.
         """
         topic = self._declare_topic(name, msg_type, qos, scopes)
         return Publisher(topic)
@@ -553,26 +555,79 @@ class Server:
                     f"the topic {canonical} is declared with {topic.entry.type_name}, not "
                     f"{getattr(msg_type, 'type_name', msg_type)}"
                 )
+            changed = self._redeclare(topic, qos, frozenset(scopes))
             if accepts and not topic.accepts:
-                topic.accepts = True
+                topic.accepts = changed = True
+            if changed:
                 self.registry.topics_changed()
                 self._services_changed()
             return topic
         try:
+            entry = TopicEntry.of(canonical, msg_type)
             topic = board.add(
-                Topic(
-                    canonical,
-                    TopicEntry.of(canonical, msg_type),
-                    qos_of(qos),
-                    scopes=frozenset(scopes),
-                    accepts=accepts,
-                )
+                Topic(canonical, entry, qos_of(qos), scopes=frozenset(scopes), accepts=accepts)
             )
         except (TypeError, ValueError) as exc:
             raise RegistrationError(f"cannot declare the topic {canonical}: {exc}") from None
+        entry.qos_given = qos is not None
+        entry.scopes_given = bool(topic.scopes)
         self.registry.topics_changed()
         self._services_changed()
         return topic
+
+    def _redeclare(
+        self,
+        topic: Topic[TopicEntry],
+        qos: QoS | Mapping[str, Any] | None,
+        scopes: frozenset[str],
+    ) -> bool:
+        """Apply a second declaration's ``qos`` and ``scopes`` to ``topic``; return whether
+        they changed it.
+
+        A declaration that leaves them out takes the declared ones. One that gives them
+        sets them when no declaration gave them before (``@subscription`` with its defaults,
+        then ``topic(..., scopes=...)``), and must otherwise give the same: a different
+        value raises RegistrationError rather than leave an access rule or a history
+        silently unapplied. They cannot change once a client has subscribed.
+        """
+        entry, name = topic.entry, topic.name
+        new_qos = None
+        if qos is not None:
+            try:
+                new_qos = qos_of(qos)
+            except (TypeError, ValueError) as exc:
+                raise RegistrationError(f"cannot declare the topic {name}: {exc}") from None
+            if new_qos == topic.qos:
+                new_qos = None
+            elif entry.qos_given:
+                raise RegistrationError(
+                    f"the topic {name} is declared with the QoS {topic.qos.to_json()}, not "
+                    f"{new_qos.to_json()}: give every declaration of it the same QoS, or "
+                    "give it once"
+                )
+        new_scopes = None
+        if scopes and scopes != topic.scopes:
+            if entry.scopes_given:
+                raise RegistrationError(
+                    f"the topic {name} is declared with the scopes {sorted(topic.scopes)}, "
+                    f"not {sorted(scopes)}: give every declaration of it the same scopes, "
+                    "or give them once"
+                )
+            new_scopes = scopes
+        if new_qos is None and new_scopes is None:
+            return False
+        if topic.subscriptions:
+            raise RegistrationError(
+                f"cannot change the QoS or scopes of the topic {name} once clients subscribe "
+                "to it: declare them before serving"
+            )
+        if new_qos is not None:
+            topic.set_qos(new_qos)
+            entry.qos_given = True
+        if new_scopes is not None:
+            topic.scopes = new_scopes
+            entry.scopes_given = True
+        return True
 
     def _refuse_large_defaults(self) -> None:
         """Check every service and every topic clients publish on against the

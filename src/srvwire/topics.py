@@ -192,6 +192,14 @@ class Topic(Generic[T]):
         )
         self.subscriptions: set[Subscription] = set()
 
+    def set_qos(self, qos: QoS) -> None:
+        """Change the topic's QoS (before anyone subscribes): the history keeps the newest
+        messages it may still hold."""
+        self.qos = qos
+        self.history = deque(
+            self.history, maxlen=qos.depth if qos.durability == "transient_local" else 0
+        )
+
     def publish(self, data: bytes) -> int:
         """Publish the message ``data`` (its JSON, written once) to every subscription; return
         how many subscriptions it reached (a reliable one it ended is not counted)."""
