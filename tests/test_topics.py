@@ -30,6 +30,7 @@ from srvwire import (
     load_message,
     load_service,
     serve,
+    serving,
 )
 from srvwire.errors import RegistrationError
 from srvwire.server import RunningServer
@@ -162,6 +163,65 @@ async def test_an_acknowledged_publish_with_bad_data_is_answered_with_field_path
     assert await recv_topic(wire) == {"jsonrpc": "2.0", "id": 7, "result": None}
     assert [m.name for m in seen] == [["elbow"]]
     await wire.ws.close()
+
+
+async def test_publishing_on_a_topic_announced_publish_false_raises_before_sending(
+    transport: Transport, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(serving, "DROP_LOG_INTERVAL", 0)  # a line for each message dropped
+    caplog.set_level(logging.INFO, "srvwire.server")
+    auth = TokenAuth({"guest": "guest"})
+    server = Server(auth=auth)
+    server.add_service("/subtract", Subtract, subtract)
+    server.topic("/status", String)  # the server publishes it; clients only subscribe
+    server.subscription("/cmd", String, scopes={"admin"})(lambda msg: None)
+    async with serve(server, "127.0.0.1", 0, transport=transport) as running:
+        async with connect(running.url, transport=transport, token="guest") as guest:
+            info = await guest.wait_for_topic("/status")
+            assert info.publish is False
+            for ack in (False, True):
+                with pytest.raises(PermissionDenied) as caught:
+                    await guest.publish("/status", {"data": "hi"}, ack=ack)
+                assert caught.value.message == (
+                    "the server does not take messages on /status; only subscribe to it"
+                )
+            # A topic the connection may not see is not refused here: the server logs it.
+            await guest.publish("/cmd", {"data": "go"}, msg_type=String)
+            # A call after it is answered after the message was handled.
+            await guest.call("/subtract", {"minuend": 2, "subtrahend": 1})
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped ")]
+    host = "memory" if transport.name == "memory" else "127.0.0.1"
+    assert len(lines) == 1, lines  # nothing was sent on /status
+    assert lines[0].startswith(f"dropped a message on /cmd from ('{host}', ")
+    assert lines[0].endswith(
+        ": permission denied: /cmd needs the scope admin, which this connection's identity "
+        "does not hold"
+    )
+
+
+async def test_the_server_logs_a_message_published_where_it_takes_none(
+    robot: Server,
+    running: RunningServer,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(serving, "DROP_LOG_INTERVAL", 1e9)  # the whole test is one interval
+    caplog.set_level(logging.INFO, "srvwire.server")
+    robot.topic("/status", String)
+    wire = await open_wire(running)
+    for topic in ("/status", "/nowhere", "/status"):
+        params = {"topic": topic, "message": {"data": "hi"}}
+        await wire.send({"jsonrpc": "2.0", "method": "$/publish", "params": params})
+    call = {"jsonrpc": "2.0", "id": 1, "method": "/subtract", "params": {"minuend": 1}}
+    await wire.send(call)
+    assert (await recv_topic(wire))["id"] == 1  # nothing answered the messages
+    await wire.ws.close()
+    await running.close()  # the count of the others is said when the connection ends
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped ")]
+    first, more = lines
+    assert first.startswith("dropped a message on /status from (")
+    assert first.endswith(": the server does not take messages on /status; only subscribe to it")
+    assert more.startswith("dropped 2 more notifications from (")
 
 
 async def test_notify_sends_a_call_nobody_answers(robot: Server, running: RunningServer) -> None:

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from srvwire.errors import InvalidParams
-from srvwire.session import ServerSession
+from srvwire.session import RefusedMessage, ServerSession
 from srvwire.topics import Gaps, Outbox, QoS, Topic, TopicBoard
 
 
@@ -421,7 +421,12 @@ def test_the_session_hands_topic_requests_to_the_board() -> None:
         "Invalid Request: $/subscribe is read only on its own, with an id"
     )
     publish = {"jsonrpc": "2.0", "method": "$/publish", "params": {"topic": "/chatter"}}
-    assert session.receive(json.dumps(publish)) == []  # a notification: never answered
+    # A notification: never answered, only logged.
+    assert session.receive(json.dumps(publish)) == [
+        RefusedMessage(
+            "/chatter", "invalid params: $/publish needs params {'topic': name, 'message': {...}}"
+        )
+    ]
     refused = json.loads(session.receive(json.dumps({**publish, "id": 9}))[0])
     assert refused["error"]["data"]["status"] == "INVALID_PARAMS"
     publish["params"]["message"] = {}

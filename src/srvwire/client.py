@@ -81,6 +81,7 @@ from srvwire.errors import (
     DeadlineExceeded,
     InterfaceNotFoundError,
     InternalError,
+    PermissionDenied,
     ResourceExhausted,
     RPCError,
     ServiceNotFound,
@@ -918,7 +919,9 @@ class Client:
         paths, before anything is sent) and sent as a notification, which returns once it is
         written. With ``ack=True`` it is a request: it returns once the server took the
         message, and raises what the server refused it with (``InvalidParams``,
-        ``PermissionDenied``, ``ServiceNotFound``).
+        ``PermissionDenied``, ``ServiceNotFound``). A topic the server announced it takes no
+        messages on (``$/topics``' ``publish: false``) raises ``PermissionDenied`` here, before
+        sending, with or without ``ack``.
         """
         topic = canonical_name(name)
         budget = self.timeout if timeout is None else check_timeout(timeout)
@@ -926,6 +929,11 @@ class Client:
         link = self._link
         if link is None:
             raise self._not_connected(topic)
+        if self._topics.get(topic, {}).get("publish") is False:
+            raise PermissionDenied(
+                f"the server does not take messages on {topic}; only subscribe to it",
+                service=topic,
+            )
         # What _topic_type does, without its coroutine level on every message published.
         cls = await self._find_topic_type(link, topic, msg_type, deadline, budget)
         if self._differs(topic, cls):

@@ -103,6 +103,7 @@ from srvwire.session import (
     Dropped,
     NotificationCall,
     Publish,
+    RefusedMessage,
     ServerSession,
     SubscriptionDeadline,
 )
@@ -799,9 +800,9 @@ class AccessLoggedSession(ServerSession[ServiceEntry]):
         self.refused = error
         return super()._refuse(id, error)
 
-    def _publish(self, params: Any, id: Id) -> Publish | bytes:
+    def _publish(self, params: Any, id: Id) -> Publish | RPCError:
         publish = super()._publish(params, id)
-        if isinstance(publish, bytes):  # refused at once: with an id, _admit writes its line
+        if not isinstance(publish, Publish):  # refused at once: with an id, _admit writes its line
             return publish
         now = time.perf_counter()
         if id is not None:
@@ -1479,9 +1480,18 @@ class ServedConnection:
                     subscription,
                     event.timeout,
                 )
+            elif kind is RefusedMessage:
+                self.log_drop(
+                    logging.INFO, "dropped a message on %s from %s: %s", event.topic, event.reason
+                )
             else:
                 assert kind is Dropped
-                self.dropped(event)
+                self.log_drop(
+                    logging.WARNING if event.busy else logging.INFO,
+                    "dropped a notification to %s from %s: %s",
+                    event.entry.name,
+                    event.reason,
+                )
 
     async def publish(self, event: Publish) -> None:
         """A message a client published: validate it, hand it to the server's handlers (an
@@ -1518,10 +1528,11 @@ class ServedConnection:
         except Exception:
             self.log.exception("the handler of %s failed", name)
 
-    def dropped(self, event: Dropped[ServiceEntry]) -> None:
-        """Log a dropped notification, or count it if a line about drops was written less than
-        :data:`DROP_LOG_INTERVAL` ago; the count is said when that interval ends."""
-        level = logging.WARNING if event.busy else logging.INFO
+    def log_drop(self, level: int, line: str, name: str, reason: str) -> None:
+        """Log a dropped notification or published message (``line`` takes its service or
+        topic ``name``, the peer and the ``reason``), or count it if a line about drops was
+        written less than :data:`DROP_LOG_INTERVAL` ago; the count is said when that interval
+        ends."""
         now = self.loop.time()
         if now - self.drops_logged < DROP_LOG_INTERVAL:
             self.drops += 1
@@ -1531,13 +1542,7 @@ class ServedConnection:
                 self.drops_timer = self.loop.call_later(wait, self.log_drops)
             return
         self.drops_logged = now
-        self.log.log(
-            level,
-            "dropped a notification to %s from %s: %s",
-            event.entry.name,
-            self.peer,
-            event.reason,
-        )
+        self.log.log(level, line, name, self.peer, reason)
 
     def log_drops(self) -> None:
         """Say how many notifications were dropped without a line of their own, at the level

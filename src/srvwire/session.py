@@ -109,6 +109,7 @@ __all__ = [
     "NotificationCall",
     "Outbox",
     "Publish",
+    "RefusedMessage",
     "ServerSession",
     "Services",
     "ServicesChanged",
@@ -187,6 +188,15 @@ class Publish:
     topic: Any
     id: Id
     message: Any
+
+
+@dataclass(frozen=True, slots=True)
+class RefusedMessage:
+    """A message a client published as a notification on ``topic`` that was refused (a topic
+    unknown, hidden by scopes or not taking messages), and why (for the log)."""
+
+    topic: str
+    reason: str
 
 
 @dataclass(frozen=True, slots=True)
@@ -503,13 +513,14 @@ class ServerSession(Generic[E]):
                 events.append(SubscriptionDeadline(subscribed, request.timeout))
             return None
         publish = self._publish(request.params, id)
-        if type(publish) is bytes:
-            return publish
+        if not isinstance(publish, Publish):
+            return ErrorResponse(id, publish).serialize()
         events.append(publish)
         return None
 
-    def _publish(self, params: Any, id: Id) -> Publish | bytes:
-        """Admit a ``$/publish``: the message to validate and hand on, or the error reply."""
+    def _publish(self, params: Any, id: Id) -> Publish | RPCError:
+        """Admit a ``$/publish``: the message to validate and hand on, or the error that
+        refuses it (the reply to a request, the log line of a notification)."""
         assert self.topics is not None
         try:
             if type(params) is not dict or "message" not in params:
@@ -518,7 +529,7 @@ class ServerSession(Generic[E]):
                 )
             topic = self.topics.find(params.get("topic"), self.scopes, publish=True)
         except RPCError as exc:
-            return ErrorResponse(id, exc).serialize()
+            return exc
         return Publish(topic, id, params["message"])
 
     def _refuse(self, id: Id, error: RPCError) -> bytes:
@@ -530,7 +541,10 @@ class ServerSession(Generic[E]):
         if method.startswith(_PROTOCOL_PREFIX):
             if method == PUBLISH_METHOD and self.topics is not None and not self.closing:
                 publish = self._publish(note.params, None)
-                return publish if type(publish) is Publish else None
+                if isinstance(publish, Publish):
+                    return publish
+                named = note.params.get("topic") if type(note.params) is dict else None
+                return RefusedMessage(named if type(named) is str else "?", publish.message)
             return self._cancel(read_cancel(note.params)) if method == CANCEL_METHOD else None
         entry = self.services.get(method)
         if entry is None or self.closing:
