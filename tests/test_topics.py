@@ -571,6 +571,46 @@ async def test_reconnecting_resumes_subscriptions_and_reports_the_gap() -> None:
                 assert (await sub.receive()).position == [5.0]
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on (it was free a moment ago)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def served_history(published: int) -> Server:
+    """A server whose topic /tl keeps its last 3 messages, of which it published ``published``
+    before anyone connects (``m1``, ``m2``, ...)."""
+    server = Server(grace_period=0)
+    pub = server.topic("/tl", String, qos={"depth": 3, "durability": "transient_local"})
+    for n in range(1, published + 1):
+        pub.publish(String(data=f"m{n}"))
+    return server
+
+
+async def receive_some(sub: Any, count: int) -> list[tuple[int, str]]:
+    return [((message := await sub.receive()) and sub.seq, message.data) for _ in range(count)]
+
+
+@pytest.mark.parametrize("transport_name", ["websockets", "picows"])
+async def test_the_resume_log_says_the_last_message_seen_before_a_restart(
+    transport_name: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, "srvwire.client")
+    port = free_port()
+    async with connect(f"ws://127.0.0.1:{port}", reconnect=True, timeout=scaled(5)) as client:
+        async with serve(served_history(3), "127.0.0.1", port, transport=transport_name):
+            await client.wait_for_topic("/tl", timeout=scaled(10))
+            sub = await client.subscribe("/tl").start()
+            assert await receive_some(sub, 3) == [(1, "m1"), (2, "m2"), (3, "m3")]
+        async with serve(served_history(1), "127.0.0.1", port, transport=transport_name):
+            assert await receive_some(sub, 1) == [(1, "m1")]  # the new server's
+            assert sub.gaps.restarts == 1
+    lines = [r.getMessage() for r in caplog.records if "resumed" in r.getMessage()]
+    assert lines == ["resumed the subscription to /tl after reconnecting (last message seen: 3)"]
+
+
 async def test_without_reconnect_a_lost_connection_ends_the_subscription() -> None:
     server = Server()
     server.topic("/joint_states", JointState)

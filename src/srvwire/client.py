@@ -1410,16 +1410,16 @@ class Subscription:
         """The server's ``$/subscribed``."""
         granted = self.granted = event.granted
         seq = granted.get("seq")
-        resumed = self.gaps.last is not None
+        last = self.gaps.last  # before subscribed() forgets it when the server restarted
         self.gaps.subscribed(seq if type(seq) is int else 0)
         depth = granted.get("depth")
         self._limit = depth if type(depth) is int and depth > 0 else 10
         self._best_effort = granted.get("reliability") == "best_effort"
-        if resumed:
+        if last is not None:
             self.client.logger.warning(
                 "resumed the subscription to %s after reconnecting (last message seen: %s)",
                 self.name,
-                self.gaps.last,
+                last,
             )
         if self._started is not None and not self._started.done():
             self._started.set_result(None)
