@@ -579,18 +579,20 @@ def free_port() -> int:
         return port
 
 
-def served_history(published: int) -> Server:
+def served_history(published: int, tag: str) -> Server:
     """A server whose topic /tl keeps its last 3 messages, of which it published ``published``
-    before anyone connects (``m1``, ``m2``, ...)."""
+    before anyone connects (``tag`` 1, ``tag`` 2, ...)."""
     server = Server(grace_period=0)
     pub = server.topic("/tl", String, qos={"depth": 3, "durability": "transient_local"})
     for n in range(1, published + 1):
-        pub.publish(String(data=f"m{n}"))
+        pub.publish(String(data=f"{tag}{n}"))
     return server
 
 
 async def receive_some(sub: Any, count: int) -> list[tuple[int, str]]:
-    return [((message := await sub.receive()) and sub.seq, message.data) for _ in range(count)]
+    """The next ``count`` messages of ``sub``, with their sequence numbers."""
+    async with asyncio.timeout(scaled(10)):  # a message that never comes fails, not hangs
+        return [((message := await sub.receive()) and sub.seq, message.data) for _ in range(count)]
 
 
 @pytest.mark.parametrize("transport_name", ["websockets", "picows"])
@@ -600,15 +602,33 @@ async def test_the_resume_log_says_the_last_message_seen_before_a_restart(
     caplog.set_level(logging.WARNING, "srvwire.client")
     port = free_port()
     async with connect(f"ws://127.0.0.1:{port}", reconnect=True, timeout=scaled(5)) as client:
-        async with serve(served_history(3), "127.0.0.1", port, transport=transport_name):
+        async with serve(served_history(3, "old"), "127.0.0.1", port, transport=transport_name):
             await client.wait_for_topic("/tl", timeout=scaled(10))
             sub = await client.subscribe("/tl").start()
-            assert await receive_some(sub, 3) == [(1, "m1"), (2, "m2"), (3, "m3")]
-        async with serve(served_history(1), "127.0.0.1", port, transport=transport_name):
-            assert await receive_some(sub, 1) == [(1, "m1")]  # the new server's
+            assert await receive_some(sub, 3) == [(1, "old1"), (2, "old2"), (3, "old3")]
+        async with serve(served_history(1, "new"), "127.0.0.1", port, transport=transport_name):
+            assert await receive_some(sub, 1) == [(1, "new1")]  # the new server's
             assert sub.gaps.restarts == 1
     lines = [r.getMessage() for r in caplog.records if "resumed" in r.getMessage()]
     assert lines == ["resumed the subscription to /tl after reconnecting (last message seen: 3)"]
+
+
+@pytest.mark.parametrize("transport_name", ["websockets", "picows"])
+async def test_a_resumed_subscription_gets_a_restarted_servers_history_though_its_seq_went_on(
+    transport_name: str,
+) -> None:
+    port = free_port()
+    async with connect(f"ws://127.0.0.1:{port}", reconnect=True, timeout=scaled(5)) as client:
+        async with serve(served_history(3, "old"), "127.0.0.1", port, transport=transport_name):
+            await client.wait_for_topic("/tl", timeout=scaled(10))
+            sub = await client.subscribe("/tl").start()
+            first_epoch = sub.granted.get("epoch")
+            assert await receive_some(sub, 3) == [(1, "old1"), (2, "old2"), (3, "old3")]
+        # Another server, which published 4: it keeps 2, 3 and 4, none of them seen.
+        async with serve(served_history(4, "new"), "127.0.0.1", port, transport=transport_name):
+            assert await receive_some(sub, 3) == [(2, "new2"), (3, "new3"), (4, "new4")]
+            assert sub.granted["epoch"] != first_epoch
+            assert (sub.gaps.restarts, sub.gaps.resumed, sub.dropped) == (1, 1, 0)
 
 
 async def test_without_reconnect_a_lost_connection_ends_the_subscription() -> None:

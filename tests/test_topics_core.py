@@ -116,6 +116,7 @@ def test_subscribed_comes_before_the_messages_and_a_message_is_written_once() ->
                 "subscription": 1,
                 "topic": "/chatter",
                 "seq": 0,
+                "epoch": chatter.epoch,
                 "depth": 10,
                 "reliability": "reliable",
                 "durability": "volatile",
@@ -466,6 +467,21 @@ def test_gaps_count_what_was_missed_across_a_reconnection() -> None:
     gaps.subscribed(2)  # the server restarted: numbers cannot be compared
     assert gaps.restarts == 1
     assert gaps.accept(1, 0) == 0
+
+
+def test_gaps_take_another_epoch_for_a_restart_though_the_numbers_went_on() -> None:
+    gaps = Gaps()
+    gaps.subscribed(0, "a")
+    assert [gaps.accept(seq, 0) for seq in (1, 2, 3)] == [0, 0, 0]
+    gaps.subscribed(3, "a")  # the same topic: 3 is seen already
+    assert gaps.accept(3, 0) is None and gaps.restarts == 0
+    gaps.subscribed(4, "b")  # another server, whose history replays 2, 3 and 4
+    assert gaps.restarts == 1 and gaps.resumed == 2
+    assert [gaps.accept(seq, 0) for seq in (2, 3, 4)] == [0, 0, 0]
+    assert gaps.missed == 0
+    gaps.subscribed(9)  # a server that says no epoch: the numbers alone decide
+    assert gaps.restarts == 1 and gaps.accept(4, 0) is None
+    assert Topic("/x", None).epoch != Topic("/x", None).epoch  # each instance its own
 
 
 @settings(max_examples=200, deadline=None)

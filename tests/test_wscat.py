@@ -38,11 +38,13 @@ README = ROOT / "README.md"
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 TEXT_BLOCK = re.compile(r"^```text\n(.*?)^```", re.MULTILINE | re.DOTALL)
 GOAL_ID = re.compile(r'"goal_id":"[0-9a-f-]{36}"')
+EPOCH = re.compile(r'"epoch":"[0-9a-f]{16}"')
 
 
 def same_goal_ids(line: str) -> str:
-    """A received line with its goal id, a new UUID each time, written as one fixed id."""
-    return GOAL_ID.sub('"goal_id":"(a uuid)"', line)
+    """A received line with its goal id, a new UUID each time, written as one fixed id (and
+    a topic's epoch, random too, as one fixed epoch)."""
+    return EPOCH.sub('"epoch":"(random)"', GOAL_ID.sub('"goal_id":"(a uuid)"', line))
 
 
 def wscat_command() -> list[str]:
@@ -181,7 +183,8 @@ def test_the_guide_is_what_wscat_shows(wscat: Terminal) -> None:
         else:
             # A typed line followed by no "<" line (a notification) gets no reply: the next
             # reply must then be the one the guide shows for the line after it. An action's
-            # goal id is new each time: any UUID stands for the one the guide shows.
+            # goal id is new each time: any UUID stands for the one the guide shows (and
+            # any epoch for a topic's).
             reply = wscat.expect_reply(scaled(5))
             assert json.loads(same_goal_ids(json.dumps(reply, separators=(",", ":")))) == (
                 json.loads(same_goal_ids(line[2:]))

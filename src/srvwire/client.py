@@ -1410,8 +1410,9 @@ class Subscription:
         """The server's ``$/subscribed``."""
         granted = self.granted = event.granted
         seq = granted.get("seq")
+        epoch = granted.get("epoch")
         last = self.gaps.last  # before subscribed() forgets it when the server restarted
-        self.gaps.subscribed(seq if type(seq) is int else 0)
+        self.gaps.subscribed(seq if type(seq) is int else 0, epoch if type(epoch) is str else None)
         depth = granted.get("depth")
         self._limit = depth if type(depth) is int and depth > 0 else 10
         self._best_effort = granted.get("reliability") == "best_effort"

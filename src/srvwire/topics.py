@@ -47,6 +47,7 @@ Invariants:
 
 from __future__ import annotations
 
+import secrets
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -167,10 +168,22 @@ class Topic(Generic[T]):
 
     ``entry`` is whatever the shell keeps with it (the message class, the handlers of
     client-published messages); this module never reads it. ``accepts`` says whether clients
-    may publish on it.
+    may publish on it. ``epoch``, random, names this instance of the topic, whose sequence
+    numbers start at 1: a subscriber resuming on a server restarted (or a topic declared
+    anew) finds another epoch in ``$/subscribed``, and knows not to compare the numbers.
     """
 
-    __slots__ = ("accepts", "entry", "history", "name", "qos", "scopes", "seq", "subscriptions")
+    __slots__ = (
+        "accepts",
+        "entry",
+        "epoch",
+        "history",
+        "name",
+        "qos",
+        "scopes",
+        "seq",
+        "subscriptions",
+    )
 
     def __init__(
         self,
@@ -187,6 +200,7 @@ class Topic(Generic[T]):
         self.scopes = scopes
         self.accepts = accepts
         self.seq = 0  # the last sequence number published
+        self.epoch = secrets.token_hex(8)
         self.history: deque[tuple[int, bytes]] = deque(
             maxlen=qos.depth if qos.durability == "transient_local" else 0
         )
@@ -438,7 +452,13 @@ class Outbox:
         subscription = Subscription(id, topic, qos, self)
         self.subscriptions[id] = subscription
         topic.subscriptions.add(subscription)
-        granted = {"subscription": id, "topic": topic.name, "seq": topic.seq, **qos.to_json()}
+        granted = {
+            "subscription": id,
+            "topic": topic.name,
+            "seq": topic.seq,
+            "epoch": topic.epoch,
+            **qos.to_json(),
+        }
         self.push(Notification(SUBSCRIBED_METHOD, granted).serialize())
         if qos.durability == "transient_local":
             history = list(topic.history)[-qos.depth :]
@@ -611,26 +631,31 @@ class Gaps:
     :meth:`accept` says whether a message is new (a resumed transient-local subscription
     replays some it saw already) and counts in :attr:`missed` every message it did not get:
     what the server dropped (best effort) and what was published while it was not subscribed.
-    A topic whose numbers went back (its server restarted) cannot be compared: counting starts
-    again, and :attr:`restarts` says so.
+    A topic whose epoch changed, or, from a server that sends none, whose numbers went back
+    (its server restarted) cannot be compared: counting starts again, and :attr:`restarts`
+    says so.
     """
 
-    __slots__ = ("last", "missed", "restarts", "resumed")
+    __slots__ = ("epoch", "last", "missed", "restarts", "resumed")
 
     def __init__(self) -> None:
         self.last: int | None = None  # the last sequence number accepted
+        self.epoch: str | None = None  # the topic's, as the last $/subscribed said it
         self.missed = 0
         self.resumed = 0
         self.restarts = 0
 
-    def subscribed(self, seq: int) -> None:
-        """A ``$/subscribed`` said the topic's last sequence number is ``seq``."""
+    def subscribed(self, seq: int, epoch: str | None = None) -> None:
+        """A ``$/subscribed`` said the topic's last sequence number is ``seq``, in ``epoch``
+        (None: a server that does not say)."""
         last = self.last
         if last is not None:
             self.resumed += 1
-            if seq < last:
+            other = epoch is not None and self.epoch is not None and epoch != self.epoch
+            if other or seq < last:
                 self.restarts += 1
                 self.last = None
+        self.epoch = epoch
 
     def accept(self, seq: int, dropped: int) -> int | None:
         """Account for message ``seq``; return how many were missed just before it, or None
