@@ -360,6 +360,10 @@ def test_declaring_a_topic_twice_with_other_scopes_or_qos_is_refused() -> None:
         frozenset({"admin"}),
     )
     server.subscription("/cmd", String)(lambda msg: None)  # leaves them out: keeps them
+    server.subscription("/plain", String)(lambda msg: None)
+    server.topic("/plain", String, qos={"depth": 10})  # the default, but given: it holds
+    with pytest.raises(RegistrationError, match="/plain is declared with the QoS"):
+        server.topic("/plain", String, qos={"depth": 3})
 
 
 # --- the end of a subscription -------------------------------------------------------------------

@@ -598,7 +598,7 @@ class Server:
             except (TypeError, ValueError) as exc:
                 raise RegistrationError(f"cannot declare the topic {name}: {exc}") from None
             if new_qos == topic.qos:
-                new_qos = None
+                new_qos, entry.qos_given = None, True
             elif entry.qos_given:
                 raise RegistrationError(
                     f"the topic {name} is declared with the QoS {topic.qos.to_json()}, not "
@@ -606,7 +606,9 @@ class Server:
                     "give it once"
                 )
         new_scopes = None
-        if scopes and scopes != topic.scopes:
+        if scopes == topic.scopes:
+            entry.scopes_given = entry.scopes_given or bool(scopes)
+        elif scopes:
             if entry.scopes_given:
                 raise RegistrationError(
                     f"the topic {name} is declared with the scopes {sorted(topic.scopes)}, "
