@@ -44,6 +44,7 @@ from srvwire.errors import (
     ServiceUnavailable,
     Unauthenticated,
 )
+from srvwire.inline import Pending
 from srvwire.link import MAX_READY, Answer, Link
 from srvwire.loader import load_service
 from srvwire.models import Service, build_service
@@ -1480,6 +1481,37 @@ async def test_a_link_keeps_a_bounded_number_of_calls_ready() -> None:
     assert len(link.ready) == MAX_READY
     link.remember("/one_more", ("/one_more", None))
     assert link.ready == {"/one_more": ("/one_more", None)}
+
+
+async def test_a_send_that_ends_in_the_turn_its_call_fails_cancels_nothing_after_it() -> None:
+    # A call waits in its send (backpressure); the send finishes and the call's future fails
+    # (the client closed) in the same loop turn, the send's wake-up first. The call goes on
+    # past its send; the failure's callback, already scheduled when the send ended, must not
+    # cancel what the task awaits next.
+    loop = asyncio.get_running_loop()
+    link = Link(None, None)  # type: ignore[arg-type]  # neither is used here
+    drained: asyncio.Future[None] = loop.create_future()
+    answer: asyncio.Future[Any] = loop.create_future()
+    after: asyncio.Future[str] = loop.create_future()
+
+    async def send() -> None:
+        await drained
+
+    coroutine = send()
+    pending = Pending(coroutine, coroutine.send(None), None)
+
+    async def call() -> str:
+        await link.send_unless_lost(pending, answer, 30.0)
+        return await after  # what the task awaits next
+
+    task = asyncio.create_task(call())
+    await asyncio.sleep(0)  # the task waits in its send
+    drained.set_result(None)  # the send ends: the task's wake-up is scheduled...
+    answer.set_exception(ConnectionLost("the client was closed"))  # ...then the failure's
+    for _ in range(3):
+        await asyncio.sleep(0)
+    after.set_result("went on")
+    assert await task == "went on"
 
 
 async def test_wait_for_ready_waits_for_the_real_server_to_come_up() -> None:

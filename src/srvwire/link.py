@@ -549,10 +549,11 @@ class Link:
         assert task is not None
         cancelling = task.cancelling()
         interrupted = False
+        waiting = True  # a callback scheduled already is not taken back by removing it
 
         def interrupt(answered: asyncio.Future[Arrived]) -> None:
             nonlocal interrupted
-            if not answered.cancelled() and answered.exception() is not None:
+            if waiting and not answered.cancelled() and answered.exception() is not None:
                 interrupted = True
                 task.cancel()
 
@@ -566,6 +567,7 @@ class Link:
                 raise lost from None
             raise
         finally:
+            waiting = False
             future.remove_done_callback(interrupt)
 
     def too_large(self, method: str, size: int) -> ResourceExhausted:
