@@ -294,6 +294,50 @@ async def test_a_client_knocking_in_a_loop_gets_no_log_line_per_knock(
     assert robot.calls == []
 
 
+async def send_a_frame_of_an_unknown_opcode(port: int) -> None:
+    """Open a WebSocket by hand, send a masked frame of opcode 0x3 (reserved: the server must
+    fail the connection), and read until the server closes."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        key = base64.b64encode(b"0123456789abcdef").decode()
+        writer.write(
+            f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+            f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n".encode()
+        )
+        head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), scaled(5))
+        assert head.startswith(b"HTTP/1.1 101"), head
+        writer.write(bytes((0x83, 0x80)) + b"\0\0\0\0")  # final, opcode 0x3, masked, empty
+        await asyncio.wait_for(reader.read(), scaled(5))  # to the server's close
+    finally:
+        writer.close()
+
+
+@pytest.mark.parametrize("name", ["websockets", "picows"])
+async def test_a_client_breaking_the_protocol_in_a_loop_gets_no_log_line_each_time(
+    name: str, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # picows logs an error for each frame its parser refuses; srvwire lets one through per
+    # interval and counts the rest into the next (an interval of an hour here: exactly one
+    # line for the loop, whatever the machine's pace; then none, for the count).
+    caplog.set_level(logging.INFO)
+    monkeypatch.setattr(picows_transport, "PEER_LOG_INTERVAL", 3600.0)
+    async with serve(Server(), "127.0.0.1", 0, transport=make_transport(name)) as running:
+        for _ in range(20):
+            await send_a_frame_of_an_unknown_opcode(running.port)
+        lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        if name == "websockets":
+            assert lines == []
+            return
+        assert len(lines) == 1 and "WS parser error" in lines[0], lines
+        caplog.clear()
+        monkeypatch.setattr(picows_transport, "PEER_LOG_INTERVAL", 0.0)
+        await send_a_frame_of_an_unknown_opcode(running.port)
+        lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(lines) == 1, lines
+        assert lines[0].endswith("(19 more warnings or errors since the last line)"), lines
+
+
 async def test_the_right_token_reaches_the_handler_as_an_identity(
     authed_robot: tuple[Robot, RunningServer],
 ) -> None:

@@ -1003,15 +1003,42 @@ class PicowsTransport(Transport):
             raise ValueError(f"not a WebSocket URL: {url!r} (the scheme must be ws or wss)")
 
 
+PEER_LOG_INTERVAL = 1.0
+"""Seconds: at most one of ``picows``' server warnings and errors in this time (see
+:class:`_WithoutConnectionNews`)."""
+
+
 class _WithoutConnectionNews(logging.LoggerAdapter[logging.Logger]):
-    """``picows``' server logger without its INFO lines: it writes two for every connection,
-    refused at the upgrade or not (accepted, and disconnected), so a client knocking in a loop
-    would fill the log past the one line a second srvwire logs refusals at. Its warnings and
-    errors pass, and its DEBUG lines when the logger is set to show them. Given an adapter,
-    ``picows`` also makes no logger of its own per connection."""
+    """``picows``' server logger without its INFO lines, and its warnings and errors at most
+    one a :data:`PEER_LOG_INTERVAL`.
+
+    ``picows`` writes two INFO lines for every connection, refused at the upgrade or not
+    (accepted, and disconnected), and a peer can make it write a warning or an error at will (a
+    frame its parser refuses, a paused write): a client knocking or misbehaving in a loop would
+    fill the log past the one line a second srvwire logs refusals at. A warning or error within
+    the interval of the last one is counted instead, and the next line says how many were left
+    out. DEBUG lines pass when the logger is set to show them. Given an adapter, ``picows``
+    also makes no logger of its own per connection."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        super().__init__(logger)
+        self.logged_at: float | None = None  # when the last warning or error was written
+        self.held = 0  # warnings and errors left out since
 
     def isEnabledFor(self, level: int) -> bool:
         return level != logging.INFO and self.logger.isEnabledFor(level)
+
+    def log(self, level: int, msg: object, *args: Any, **kwargs: Any) -> None:
+        if level >= logging.WARNING and self.isEnabledFor(level):
+            now = asyncio.get_running_loop().time()
+            if self.logged_at is not None and now - self.logged_at < PEER_LOG_INTERVAL:
+                self.held += 1
+                return
+            self.logged_at = now
+            if self.held:
+                msg = f"{msg} ({self.held} more warnings or errors since the last line)"
+                self.held = 0
+        super().log(level, msg, *args, **kwargs)
 
 
 class _Opening(WSProtocol):  # type: ignore[misc]
