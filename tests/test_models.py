@@ -15,6 +15,7 @@ import pydantic_core
 import pytest
 from hypothesis import given, settings, strategies as st
 
+from srvwire import scanner
 from srvwire.errors import InterfaceError
 from srvwire.idl import (
     INTEGER_RANGES,
@@ -183,6 +184,9 @@ def test_float32_range_is_what_rounds_to_a_finite_float32() -> None:
     below = math.nextafter(FLOAT32_BOUND, 0)
     assert struct.unpack("f", struct.pack("f", below))[0] == FLOAT32_MAX
     assert struct.unpack("f", struct.pack("f", FLOAT32_BOUND))[0] == math.inf
+    # The scanner checks constants and defaults against its own copy (both are layer 1, and
+    # neither may import the other): the two must be the same bound.
+    assert scanner.FLOAT32_BOUND == FLOAT32_BOUND
     for value in (3.4028235e38, 3.40282347e38, below):
         assert cls(v=value).v == value
         assert cls(v=-value).v == -value

@@ -73,7 +73,9 @@ INTEGER: Final = re.compile(
 )
 BASES: Final = {"dec": 10, "hex": 16, "oct": 8, "bin": 2}  # INTEGER's digit groups
 FLOAT: Final = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-FLOAT32_BOUND: Final = 2.0**128 - 2.0**103  # what rounds to a finite float32 lies within it
+# What rounds to a finite float32 lies within it: primitives.FLOAT32_BOUND, which this layer
+# may not import (tests/test_models.py holds the two together).
+FLOAT32_BOUND: Final = 2.0**128 - 2.0**103
 MAX_SIZE: Final = 2**32 - 1  # array sizes and string bounds are 32-bit unsigned in OMG IDL
 
 SNAKE_RULE: Final = (
