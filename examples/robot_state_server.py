@@ -170,14 +170,19 @@ class RobotStateNode:
         self.state.status = "CALIBRATING"
         self.state.calibrated = False
         done = 0
-        for joint in range(joints):
-            await handle.feedback({"current_joint": f"joint_{joint}", "progress": joint / joints})
-            try:  # the joint's share of the time, unless the client cancels first
-                await asyncio.wait_for(handle.cancelled(), duration / joints)
-            except TimeoutError:
-                done += 1
-                continue
-            break  # cancelled
+        try:
+            for joint in range(joints):
+                progress = {"current_joint": f"joint_{joint}", "progress": joint / joints}
+                await handle.feedback(progress)
+                try:  # the joint's share of the time, unless the client cancels first
+                    await asyncio.wait_for(handle.cancelled(), duration / joints)
+                except TimeoutError:
+                    done += 1
+                    continue
+                break  # cancelled
+        except asyncio.CancelledError:  # the goal's deadline passed: stopped where it was
+            self.state.status = "STOPPED"
+            raise
         if done == joints:
             self.state.status, self.state.calibrated = "CALIBRATED", True
             message = "Robot calibrated"

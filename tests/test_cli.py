@@ -1226,7 +1226,8 @@ def test_call_with_the_wrong_type_exits_2(
     code, out, err = call(capsys, remote, "/trigger", "std_srvs/srv/Empty")
     assert (code, out) == (ExitCode.USAGE, "")
     assert (
-        one_error_line(err) == "/trigger is a std_srvs/srv/Trigger service, not std_srvs/srv/Empty"
+        one_error_line(err)
+        == "/trigger is a service of type std_srvs/srv/Trigger, not std_srvs/srv/Empty"
     )
 
 

@@ -26,7 +26,7 @@ from typing import IO, Any
 import pytest
 
 from srvwire import connect
-from srvwire.errors import ServiceUnavailable
+from srvwire.errors import DeadlineExceeded, ServiceUnavailable
 from srvwire.server import serve
 from srvwire.transports.memory import MemoryTransport
 from support import ROOT, scaled
@@ -456,6 +456,35 @@ async def test_the_calibrate_action_stops_when_cancelled(node: Any) -> None:
     assert outcome.status == "canceled"
     assert outcome.result.joints_done == 0
     assert outcome.result.message == "Calibration canceled after 0 of 5 joints"
+    assert (node.state.status, node.state.calibrated) == ("STOPPED", False)
+
+
+async def test_a_calibration_past_its_deadline_leaves_the_robot_stopped(
+    node: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The goal's deadline cancels the handler on the server (no cancel request first): the
+    # robot must not stay CALIBRATING.
+    ended = asyncio.Event()
+    calibrate = node.calibrate
+
+    async def watched(goal: Any, handle: Any) -> Any:
+        try:
+            return await calibrate(goal, handle)
+        finally:
+            ended.set()
+
+    monkeypatch.setattr(node, "calibrate", watched)
+    transport = MemoryTransport()
+    async with (
+        serve(server_example.build_server(node), "127.0.0.1", 0, transport=transport) as running,
+        connect(running.url, transport=transport, timeout=scaled(5)) as client,
+    ):
+        handle = await client.send_goal("/calibrate", {"duration": 60}, timeout=scaled(0.3))
+        await anext(handle.feedback())
+        assert node.state.status == "CALIBRATING"
+        with pytest.raises(DeadlineExceeded):
+            await handle.result()
+        await asyncio.wait_for(ended.wait(), scaled(10))
     assert (node.state.status, node.state.calibrated) == ("STOPPED", False)
 
 

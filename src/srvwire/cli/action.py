@@ -160,7 +160,7 @@ async def _send_goal(
         advertised = client.services.get(name)
         if action is not None and advertised is not None and advertised != action.type_name:
             raise CommandError(
-                f"{name} is a {advertised} action, not {action.type_name}", ExitCode.USAGE
+                f"{name} is an action of type {advertised}, not {action.type_name}", ExitCode.USAGE
             )
         if advertised is not None and "/action/" not in advertised:
             raise CommandError(

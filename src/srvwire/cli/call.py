@@ -195,7 +195,7 @@ async def _call(
                 srv_type = await client.service_type(name, timeout=args.timeout)
             elif advertised != type_name:
                 raise CommandError(
-                    f"{name} is a {advertised} service, not {type_name}", ExitCode.USAGE
+                    f"{name} is a service of type {advertised}, not {type_name}", ExitCode.USAGE
                 )
         request: pydantic.BaseModel | dict[str, Any] = values
         if srv_type is not None:
