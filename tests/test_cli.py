@@ -801,6 +801,54 @@ def test_call_json_prints_only_the_response(
     assert (code, out, err) == (ExitCode.OK, '{"sum": 3}\n', "")
 
 
+def strict_json(line: str) -> Any:
+    """``line`` read as standard JSON: the bare tokens NaN and Infinity are refused."""
+
+    def refuse(token: str) -> Any:
+        raise ValueError(f"{token} is not JSON")
+
+    return json.loads(line, parse_constant=refuse)
+
+
+def test_call_json_writes_a_float_that_is_not_finite_as_a_string(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    # Standard JSON has no NaN or Infinity: --json writes them as the strings a server writes
+    # by default, which a client reads back as the same floats.
+    path = ("--path", str(remote.interfaces))
+    for x, expected in ((".inf", "Infinity"), ("-.inf", "Infinity"), (".nan", "NaN")):
+        request = f"{{segment: {{start: {{x: {x}, y: 0}}}}}}"
+        code, out, err = call(capsys, remote, "/measure", request, "--json", *path)
+        assert (code, err) == (ExitCode.OK, "")
+        assert strict_json(out)["length"] == expected  # abs() of both infinities is +inf
+    code, out, _ = call(
+        capsys, remote, "/measure", "{segment: {start: {x: 2, y: 0}}}", "--json", *path
+    )
+    assert code == ExitCode.OK and strict_json(out)["length"] == 2.0
+
+
+def test_call_reads_numbers_with_an_exponent_as_json_spells_them(
+    capsys: pytest.CaptureFixture[str], remote: Remote
+) -> None:
+    # YAML 1.1 reads 1e3 as a string; VALUES reads it as JSON does, so pasted JSON and --json's
+    # own output (which writes 1e+16 and 1e-07) read back.
+    path = ("--path", str(remote.interfaces))
+    for x, y, length in (
+        ("1e3", "2E-1", 1000.2),
+        ("1e+16", "0", 1e16),
+        ("-1.5e1", "1e-07", 15.0000001),
+    ):
+        request = f'{{"segment": {{"start": {{"x": {x}, "y": {y}}}}}}}'
+        code, out, err = call(capsys, remote, "/measure", request, "--json", *path)
+        assert (code, err) == (ExitCode.OK, "")
+        assert strict_json(out)["length"] == pytest.approx(length)
+    # An integer stays an integer, and a string stays a string.
+    code, out, err = call(capsys, remote, "/add_two_ints", "{a: 10, b: 2}", "--json")
+    assert (code, out) == (ExitCode.OK, '{"sum": 12}\n')
+    code, out, err = call(capsys, remote, "/add_two_ints", "{a: '1e3', b: 2}", "--json")
+    assert code == ExitCode.INVALID_PARAMS, (out, err)
+
+
 def test_call_type_alone_and_defaults(capsys: pytest.CaptureFixture[str], remote: Remote) -> None:
     code, out, _ = call(capsys, remote, "/trigger", "std_srvs/srv/Trigger")
     assert code == ExitCode.OK

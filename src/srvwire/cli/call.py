@@ -12,6 +12,7 @@ import argparse
 import asyncio
 import json
 import logging
+import math
 import re
 import sys
 from collections.abc import Callable
@@ -141,6 +142,20 @@ def _read_values(source: str, read: Callable[[], bytes]) -> str:
         ) from None
 
 
+class _ValuesLoader(yaml.SafeLoader):
+    """``yaml.safe_load``'s reading, except that a number with an exponent is a float however
+    JSON or YAML 1.2 spell it (``1e3``, ``2E-7``, ``1.0e+16``): YAML 1.1, which PyYAML reads,
+    wants a dot and a signed exponent, and reads the others as strings, so pasted JSON (and
+    ``--json``'s own output) would not read back."""
+
+
+_ValuesLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
+    list("-+.0123456789"),
+)
+
+
 def _parse_values(text: str | None) -> dict[str, Any]:
     """Read VALUES: a YAML mapping, ``{}`` when left out; ``-`` is stdin and ``@path`` a file."""
     if text is None:
@@ -152,7 +167,7 @@ def _parse_values(text: str | None) -> dict[str, Any]:
         path = text[1:]
         what, text = f"VALUES in {path}", _read_values(path, Path(path).read_bytes)
     try:
-        values = yaml.safe_load(text)
+        values = yaml.load(text, _ValuesLoader)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -213,7 +228,7 @@ async def _call(
                 print(f"requester: making request: {shown}", flush=True)
             response = await client.call(name, request, timeout=args.timeout, srv_type=srv_type)
             if args.json:
-                print(json.dumps(_jsonable(response), ensure_ascii=False), flush=True)
+                print(_json_line(response), flush=True)
             else:
                 shown = _ros_repr(response, _part_label(srv_type, type_name, "Response"))
                 print(f"\nresponse:\n{shown}", flush=True)
@@ -270,7 +285,24 @@ def _ros_repr(value: Any, label: str | None = None) -> str:
     return repr(value)
 
 
-def _jsonable(value: Any) -> Any:
+def _json_line(value: Any) -> str:
+    """``value`` (a model, or a model's ``model_dump(mode="json")``) as one line of standard
+    JSON, as ``--json`` prints it. A float that is not finite is written as the string a server
+    writes it as by default (``"NaN"``, ``"Infinity"``, ``"-Infinity"``: see Infinity and NaN in
+    the types page), never as a bare token, which is not JSON."""
     if isinstance(value, pydantic.BaseModel):
-        return value.model_dump(mode="json", by_alias=True)
+        value = value.model_dump(mode="json", by_alias=True)
+    return json.dumps(_finite(value), ensure_ascii=False, allow_nan=False)
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with each float that is not finite replaced by its JSON string."""
+    if isinstance(value, float):
+        if math.isfinite(value):
+            return value
+        return "NaN" if math.isnan(value) else ("Infinity" if value > 0 else "-Infinity")
+    if isinstance(value, list):
+        return [_finite(item) for item in value]
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
     return value

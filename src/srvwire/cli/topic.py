@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import itertools
-import json
 import math
 import sys
 from typing import Any
@@ -18,7 +17,7 @@ import pydantic
 import yaml
 
 from srvwire.calls import encode_message
-from srvwire.cli.call import _TYPE_SHAPE, _parse_values, _ros_repr
+from srvwire.cli.call import _TYPE_SHAPE, _json_line, _parse_values, _ros_repr
 from srvwire.cli.common import (
     EXIT_CODES_HELP,
     Commands,
@@ -245,7 +244,7 @@ async def _echo(args: argparse.Namespace, msg_type: Any, count: int | None) -> i
                     )
                 data = message.model_dump(mode="json", by_alias=True)
                 if args.json:
-                    print(json.dumps(data, ensure_ascii=False), flush=True)
+                    print(_json_line(data), flush=True)
                 else:
                     text = yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
                     print(f"{text}---", flush=True)
