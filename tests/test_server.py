@@ -9,9 +9,9 @@ import signal
 import socket
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from concurrent.futures import Future
-from contextlib import contextmanager
+from contextlib import asynccontextmanager, contextmanager
 from typing import Any, TypeVar
 
 import pytest
@@ -1330,6 +1330,32 @@ print("stopped", flush=True)
 """
 
 
+Served = tuple[asyncio.subprocess.Process, asyncio.StreamReader, asyncio.StreamReader, str]
+"""A script's process, its output and its errors, and the URL it serves on."""
+
+
+@asynccontextmanager
+async def serving_script(folder: Any, name: str, text: str) -> AsyncIterator[Served]:
+    """Run ``text`` as the Python script ``folder/name``, which prints ``ready URL`` once it
+    serves; yield the process, its output and errors, and that URL, all within 20 s; kill the
+    process at the end if it still runs."""
+    path = folder / name
+    path.write_text(text)
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, str(path), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+    )
+    try:
+        assert process.stdout is not None and process.stderr is not None
+        async with asyncio.timeout(scaled(20)):
+            line = (await process.stdout.readline()).decode()
+            assert line.startswith("ready ws://127.0.0.1:"), line
+            yield process, process.stdout, process.stderr, line.split()[1]
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+
+
 @pytest.mark.parametrize(
     ("serve_call", "signum"),
     [
@@ -1344,30 +1370,17 @@ print("stopped", flush=True)
 async def test_serving_until_a_signal_reports_the_bound_url(
     tmp_path: Any, serve_call: str, signum: signal.Signals
 ) -> None:
-    script = tmp_path / "serve.py"
-    script.write_text(SERVE_SCRIPT.format(tests=str(ROOT / "tests"), serve=serve_call))
-    process = await asyncio.create_subprocess_exec(
-        sys.executable, str(script), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
-    )
-    try:
-        assert process.stderr is not None and process.stdout is not None
-        async with asyncio.timeout(scaled(20)):
-            line = (await process.stdout.readline()).decode()
-            assert line.startswith("ready ws://127.0.0.1:"), line
-            url = line.split()[1]
-            w = await open_wire(url)
-            assert (await w.call(request("subtract", [7, 2])))["result"] == {"difference": 5}
-            process.send_signal(signum)
-            assert await closed_code(w) == 1001
-            assert await process.wait() == 0
-            assert (await process.stdout.read()).decode() == "stopping True\nstopped\n"
-            log = (await process.stderr.read()).decode()
-            assert f"serving 1 service on {url}\n" in log
-            assert "Traceback" not in log
-    finally:
-        if process.returncode is None:
-            process.kill()
-            await process.wait()
+    text = SERVE_SCRIPT.format(tests=str(ROOT / "tests"), serve=serve_call)
+    async with serving_script(tmp_path, "serve.py", text) as (process, out, err, url):
+        w = await open_wire(url)
+        assert (await w.call(request("subtract", [7, 2])))["result"] == {"difference": 5}
+        process.send_signal(signum)
+        assert await closed_code(w) == 1001
+        assert await process.wait() == 0
+        assert (await out.read()).decode() == "stopping True\nstopped\n"
+        log = (await err.read()).decode()
+        assert f"serving 1 service on {url}\n" in log
+        assert "Traceback" not in log
 
 
 async def test_serve_forever_stops_when_cancelled_and_restores_signal_handlers(
@@ -2632,35 +2645,23 @@ async def test_shutdown_ends_when_a_handler_never_ends_after_its_cancellation(
 ) -> None:
     # The handler swallows every cancellation: Server.run still returns once the grace period
     # and the second after cancelling are over, names the handler, and the process exits 0.
-    script = tmp_path / "swallow.py"
-    script.write_text(SWALLOW_SCRIPT.format(tests=str(ROOT / "tests"), transport=transport_name))
-    process = await asyncio.create_subprocess_exec(
-        sys.executable, str(script), stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
-    )
-    try:
-        assert process.stderr is not None and process.stdout is not None
-        async with asyncio.timeout(scaled(20)):
-            line = (await process.stdout.readline()).decode()
-            assert line.startswith("ready ws://127.0.0.1:"), line
-            w = await open_wire(line.split()[1])
-            await w.send(request("/stubborn", {"text": ""}, id="s"))
-            assert await process.stdout.readline() == b"entered\n"
-            process.send_signal(signal.SIGTERM)
-            reply = await w.recv_reply()
-            assert error(reply) == ("s", -32003, "UNAVAILABLE")
-            if client_leaves:
-                await w.ws.close()
-            else:
-                assert await closed_code(w) == 1001
-            assert await process.wait() == 0
-            assert (await process.stdout.read()).decode() == "stopped\n"
-            log = (await process.stderr.read()).decode()
-            assert (
-                "leaving 1 handler running that did not end when cancelled (its call was "
-                "answered): /stubborn" in log
-            ), log
-            assert "Traceback" not in log and "destroyed" not in log, log
-    finally:
-        if process.returncode is None:
-            process.kill()
-            await process.wait()
+    text = SWALLOW_SCRIPT.format(tests=str(ROOT / "tests"), transport=transport_name)
+    async with serving_script(tmp_path, "swallow.py", text) as (process, out, err, url):
+        w = await open_wire(url)
+        await w.send(request("/stubborn", {"text": ""}, id="s"))
+        assert await out.readline() == b"entered\n"
+        process.send_signal(signal.SIGTERM)
+        reply = await w.recv_reply()
+        assert error(reply) == ("s", -32003, "UNAVAILABLE")
+        if client_leaves:
+            await w.ws.close()
+        else:
+            assert await closed_code(w) == 1001
+        assert await process.wait() == 0
+        assert (await out.read()).decode() == "stopped\n"
+        log = (await err.read()).decode()
+        assert (
+            "leaving 1 handler running that did not end when cancelled (its call was "
+            "answered): /stubborn" in log
+        ), log
+        assert "Traceback" not in log and "destroyed" not in log, log
